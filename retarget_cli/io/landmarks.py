@@ -1,0 +1,137 @@
+"""``landmarks.npz``: the contract between ``track`` and every later stage.
+
+See the README's "File formats" section. A file holding only ``points`` is
+accepted too (landmarks from another tracker); the head motion and the
+stabilized landmarks are then computed with :func:`retarget_cli.track.head.estimate_head`,
+the same routine ``track`` uses.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import InputError
+from ..track.head import estimate_head
+from .atomic import load_npz, savez
+
+
+@dataclass
+class Landmarks:
+    """Tracked landmarks of one take.
+
+    Attributes
+    ----------
+    points : ndarray, shape (T, L, 2), float32
+        Image pixels, x right, y down, OpenCV pixel-centre convention.
+    confidence : ndarray, shape (T, L), float32
+        In [0, 1]; 0 means lost or occluded.
+    head : ndarray, shape (T, 2, 3), float32
+        Similarity mapping stabilized coordinates to image pixels.
+    stabilized : ndarray, shape (T, L, 2), float32
+        Landmarks with the head motion removed.
+    fps : float
+    frame_size : ndarray, shape (2,), int
+        ``[width, height]``; ``[0, 0]`` when unknown.
+    names : ndarray, shape (L,), str, optional
+    meta : dict
+    """
+
+    points: np.ndarray
+    confidence: np.ndarray
+    head: np.ndarray
+    stabilized: np.ndarray
+    fps: float = 30.0
+    frame_size: np.ndarray = field(default_factory=lambda: np.zeros(2, dtype=np.int64))
+    names: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[1])
+
+
+def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
+    """Atomically write *lm* in the ``landmarks.npz`` contract."""
+    T, L = lm.points.shape[:2]
+    arrays = {
+        "points": np.asarray(lm.points, dtype=np.float32),
+        "confidence": np.asarray(lm.confidence, dtype=np.float32),
+        "head": np.asarray(lm.head, dtype=np.float32),
+        "stabilized": np.asarray(lm.stabilized, dtype=np.float32),
+        "fps": np.float64(lm.fps),
+        "frame_size": np.asarray(lm.frame_size, dtype=np.int64),
+    }
+    for key, shape in (("confidence", (T, L)), ("head", (T, 2, 3)), ("stabilized", (T, L, 2))):
+        if arrays[key].shape != shape:
+            raise ValueError(f"{key}: expected shape {shape}, got {arrays[key].shape}")
+    if lm.names is not None:
+        arrays["names"] = np.asarray(lm.names, dtype=str)
+    meta = {"version": __version__, **lm.meta}
+    arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
+    savez(path, arrays)
+
+
+def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
+    """Read a ``landmarks.npz`` file, completing optional keys.
+
+    Parameters
+    ----------
+    path : path-like
+    rigid_points : sequence of int, optional
+        Used only when the file has no ``head``/``stabilized`` keys.
+
+    Raises
+    ------
+    InputError
+        Naming the file and the key when ``points`` is missing or a key has
+        the wrong shape.
+    """
+    path = Path(path)
+    data = load_npz(path)
+    if "points" not in data:
+        raise InputError(f"{path}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
+    points = data["points"].astype(np.float32)
+    if points.ndim != 3 or points.shape[2] != 2 or points.shape[0] == 0 or points.shape[1] == 0:
+        raise InputError(f"{path}: 'points' must have shape (T, L, 2) with T, L >= 1, got {points.shape}")
+    T, L, _ = points.shape
+    conf = data.get("confidence")
+    if conf is None:
+        conf = np.where(np.isfinite(points).all(-1), 1.0, 0.0).astype(np.float32)
+    elif conf.shape != (T, L):
+        raise InputError(f"{path}: 'confidence' must have shape {(T, L)}, got {conf.shape}")
+    if ("head" in data) != ("stabilized" in data):
+        raise InputError(f"{path}: 'head' and 'stabilized' must be given together or not at all")
+    if "head" in data:
+        head, stab = data["head"], data["stabilized"]
+        if head.shape != (T, 2, 3):
+            raise InputError(f"{path}: 'head' must have shape {(T, 2, 3)}, got {head.shape}")
+        if stab.shape != (T, L, 2):
+            raise InputError(f"{path}: 'stabilized' must have shape {(T, L, 2)}, got {stab.shape}")
+    else:
+        head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+    meta = {}
+    if "meta" in data:
+        try:
+            meta = json.loads(str(data["meta"]))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{path}: 'meta' is not a JSON string ({exc})") from exc
+    return Landmarks(
+        points=points,
+        confidence=conf.astype(np.float32),
+        head=np.asarray(head, dtype=np.float32),
+        stabilized=np.asarray(stab, dtype=np.float32),
+        fps=float(data["fps"]) if "fps" in data else 30.0,
+        frame_size=np.asarray(data.get("frame_size", np.zeros(2)), dtype=np.int64),
+        names=data.get("names"),
+        meta=meta,
+    )

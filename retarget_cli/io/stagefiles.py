@@ -1,0 +1,294 @@
+"""The small files passed between stages: ``keys.json``, ``weights.npz``,
+``targets.yaml`` and ``rig.yaml``. Formats are documented in the README."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import InputError
+from .atomic import dumps_json, load_npz, savez, write_json, write_text
+
+# --------------------------------------------------------------------------- keys.json
+
+
+def write_keys(path: str | os.PathLike, landmarks: str | os.PathLike, regions: dict) -> None:
+    """Write ``keys.json``.
+
+    Parameters
+    ----------
+    path : path-like
+    landmarks : path-like
+        The landmarks file the frames index into; stored relative to *path*.
+    regions : dict
+        Region name to ``{"points": [...], "method": str, "frames": [...], "error": float}``.
+    """
+    path = Path(path)
+    rel = os.path.relpath(Path(landmarks).resolve(), path.resolve().parent)
+    write_json(path, {"landmarks": rel, "regions": regions, "version": __version__})
+
+
+@dataclass
+class Keys:
+    """Parsed ``keys.json``: region name to (points, frames)."""
+
+    path: Path
+    landmarks: Path | None
+    regions: dict = field(default_factory=dict)
+
+
+def read_keys(path: str | os.PathLike) -> Keys:
+    """Read and check ``keys.json``.
+
+    Raises
+    ------
+    InputError
+        For a missing file, invalid JSON, or a region without integer
+        ``points`` and ``frames`` lists.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: keys file not found") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("regions"), dict) or not data["regions"]:
+        raise InputError(f"{path}: expected {{'regions': {{name: {{'points': [...], 'frames': [...]}}}}}}")
+    regions = {}
+    for name, reg in data["regions"].items():
+        for key in ("points", "frames"):
+            vals = reg.get(key) if isinstance(reg, dict) else None
+            if not isinstance(vals, list) or not vals or not all(isinstance(v, int) and v >= 0 for v in vals):
+                raise InputError(f"{path}: region {name!r} key {key!r} must be a non-empty list of integers >= 0")
+        if len(set(reg["frames"])) != len(reg["frames"]):
+            raise InputError(f"{path}: region {name!r} lists a key frame twice")
+        regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]),
+                         "method": reg.get("method"), "error": reg.get("error")}
+    lm = data.get("landmarks")
+    return Keys(path, (path.parent / lm) if isinstance(lm, str) else None, regions)
+
+
+# --------------------------------------------------------------------------- weights.npz
+
+
+def save_weights(path, regions: dict, meta: dict) -> None:
+    """Write ``weights.npz``.
+
+    Parameters
+    ----------
+    regions : dict
+        Region name to ``(weights (T, K), frames (K,), residual (T,))``.
+    meta : dict
+        Stored as a JSON string under ``meta``.
+    """
+    arrays = {}
+    for name, (w, frames, res) in regions.items():
+        arrays[name] = np.asarray(w, dtype=np.float64)
+        arrays[f"{name}_frames"] = np.asarray(frames, dtype=np.int64)
+        arrays[f"{name}_residual"] = np.asarray(res, dtype=np.float64)
+    arrays["meta"] = np.array(json.dumps({"version": __version__, **meta}, sort_keys=True))
+    savez(path, arrays)
+
+
+def load_weights(path) -> tuple[dict, dict]:
+    """Read ``weights.npz``.
+
+    Returns
+    -------
+    regions : dict
+        Region name to ``(weights (T, K), frames (K,), residual (T,))``.
+    meta : dict
+    """
+    path = Path(path)
+    data = load_npz(path)
+    meta = json.loads(str(data.pop("meta"))) if "meta" in data else {}
+    regions = {}
+    for name in sorted(k for k in data if not k.endswith(("_frames", "_residual"))):
+        w = data[name]
+        frames = data.get(f"{name}_frames")
+        if frames is None or w.ndim != 2 or frames.shape != (w.shape[1],):
+            raise InputError(f"{path}: region {name!r} needs '{name}' (T, K) and '{name}_frames' (K,)")
+        res = data.get(f"{name}_residual", np.zeros(w.shape[0]))
+        regions[name] = (w, frames, res)
+    if not regions:
+        raise InputError(f"{path}: no weight arrays found")
+    T = {w.shape[0] for w, _, _ in regions.values()}
+    if len(T) != 1:
+        raise InputError(f"{path}: regions have different frame counts {sorted(T)}")
+    return regions, meta
+
+
+def weights_csv(regions: dict, fps: float) -> str:
+    """CSV text: ``frame,time`` then one column per ``region:keyframe``."""
+    names = sorted(regions)
+    T = regions[names[0]][0].shape[0]
+    header = ["frame", "time"] + [f"{n}:{int(f)}" for n in names for f in regions[n][1]]
+    cols = np.concatenate([regions[n][0] for n in names], axis=1)
+    lines = [",".join(header)]
+    for t in range(T):
+        lines.append(f"{t},{t / fps:.6f}," + ",".join(f"{v:.6f}" for v in cols[t]))
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------- targets.yaml
+
+
+@dataclass
+class Targets:
+    """Parsed ``targets.yaml``; every path absolute.
+
+    Attributes
+    ----------
+    neutral : Path or None
+    regions : dict
+        Region name to ``{"keys": {frame: Path}, "vertices": Path or None}``.
+    """
+
+    path: Path
+    neutral: Path | None
+    regions: dict
+
+    def files(self) -> list[Path]:
+        """Every file the targets reference (inputs for up-to-date checks)."""
+        out = [self.neutral] if self.neutral else []
+        for reg in self.regions.values():
+            out += list(reg["keys"].values())
+            if reg["vertices"]:
+                out.append(reg["vertices"])
+        return out
+
+
+def _load_yaml(path: Path, what: str):
+    import yaml
+
+    try:
+        return yaml.safe_load(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: {what} file not found") from None
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: invalid YAML ({exc})") from exc
+
+
+def read_targets(path: str | os.PathLike) -> Targets:
+    """Read ``targets.yaml`` (paths relative to the file).
+
+    Raises
+    ------
+    InputError
+        Naming the file and the region or key that is malformed.
+    """
+    path = Path(path)
+    data = _load_yaml(path, "targets")
+    if not isinstance(data, dict) or not isinstance(data.get("regions"), dict) or not data["regions"]:
+        raise InputError(f"{path}: expected 'regions: {{name: {{keys: {{frame: file.obj}}}}}}'")
+    unknown = set(data) - {"neutral", "regions"}
+    if unknown:
+        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected 'neutral' and 'regions'")
+    base = path.parent
+    regions = {}
+    for name, reg in data["regions"].items():
+        if not isinstance(reg, dict) or not isinstance(reg.get("keys"), dict) or not reg["keys"]:
+            raise InputError(f"{path}: region {name!r} needs 'keys: {{frame: file.obj, ...}}'")
+        keys = {}
+        for frame, obj in reg["keys"].items():
+            if not isinstance(frame, int) or not isinstance(obj, str):
+                raise InputError(f"{path}: region {name!r}: key {frame!r} must map an integer frame to an OBJ path")
+            keys[frame] = base / obj
+        verts = reg.get("vertices")
+        regions[str(name)] = {"keys": keys, "vertices": base / verts if isinstance(verts, str) else None}
+    neutral = data.get("neutral")
+    return Targets(path, base / neutral if isinstance(neutral, str) else None, regions)
+
+
+def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = "") -> str:
+    """Text of a ``targets.yaml`` (deterministic, commented).
+
+    Parameters
+    ----------
+    regions : dict
+        Region name to ``{"keys": {frame: relpath}, "vertices": relpath or None}``.
+    """
+    lines = [f"# {c}" if c else "#" for c in comment.splitlines()]
+    if neutral:
+        lines.append(f"neutral: {json.dumps(neutral)}")
+    lines.append("regions:")
+    for name, reg in regions.items():
+        lines.append(f"  {name}:")
+        lines.append("    keys:")
+        for frame, obj in sorted(reg["keys"].items()):
+            lines.append(f"      {int(frame)}: {json.dumps(str(obj))}")
+        if reg.get("vertices"):
+            lines.append(f"    vertices: {json.dumps(str(reg['vertices']))}")
+    return "\n".join(lines) + "\n"
+
+
+def write_targets(path, regions: dict, *, neutral=None, comment: str = "") -> None:
+    """Atomically write a ``targets.yaml``; see :func:`targets_yaml`."""
+    write_text(path, targets_yaml(regions, neutral=neutral, comment=comment))
+
+
+def read_vertex_mask(path: Path, n_vertices: int) -> np.ndarray:
+    """Read a region mask: vertex ids (one per line, or a JSON list) or one weight per vertex.
+
+    Returns
+    -------
+    ndarray, shape (N,), float64 in [0, 1]
+    """
+    text = Path(path).read_text(encoding="utf-8") if Path(path).is_file() else None
+    if text is None:
+        raise InputError(f"{path}: region mask file not found")
+    try:
+        vals = json.loads(text) if text.lstrip().startswith("[") else [float(t) for t in text.split()]
+    except ValueError as exc:
+        raise InputError(f"{path}: expected vertex ids or per-vertex weights ({exc})") from exc
+    vals = np.asarray(vals, dtype=np.float64)
+    if vals.size == n_vertices and (np.any(vals % 1 != 0) or vals.max(initial=0) <= 1):
+        if np.any((vals < 0) | (vals > 1)):
+            raise InputError(f"{path}: per-vertex weights must lie in [0, 1]")
+        return vals
+    if np.any(vals % 1 != 0) or np.any(vals < 0) or np.any(vals >= n_vertices):
+        raise InputError(f"{path}: vertex ids must be integers in [0, {n_vertices})")
+    mask = np.zeros(n_vertices)
+    mask[vals.astype(int)] = 1.0
+    return mask
+
+
+# --------------------------------------------------------------------------- rig.yaml
+
+
+@dataclass
+class Rig:
+    """A blendshape rig: neutral OBJ plus named shapes (full meshes at weight 1)."""
+
+    path: Path
+    neutral: Path
+    shapes: dict
+    range: tuple = (0.0, 1.0)
+
+    def files(self) -> list[Path]:
+        return [self.neutral, *self.shapes.values()]
+
+
+def read_rig(path: str | os.PathLike) -> Rig:
+    """Read ``rig.yaml``: ``neutral``, ``shapes: {name: obj}``, optional ``range: [lo, hi]``."""
+    path = Path(path)
+    data = _load_yaml(path, "rig")
+    if not isinstance(data, dict) or not isinstance(data.get("neutral"), str) or not isinstance(data.get("shapes"), dict):
+        raise InputError(f"{path}: expected 'neutral: file.obj' and 'shapes: {{name: file.obj}}'")
+    unknown = set(data) - {"neutral", "shapes", "range"}
+    if unknown:
+        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected neutral, shapes, range")
+    rng = tuple(data.get("range", (0.0, 1.0)))
+    return Rig(path, path.parent / data["neutral"], {str(k): path.parent / v for k, v in data["shapes"].items()}, rng)
+
+
+__all__ = [
+    "Keys", "Rig", "Targets", "dumps_json", "load_weights", "read_keys", "read_rig", "read_targets",
+    "read_vertex_mask", "save_weights", "targets_yaml", "weights_csv", "write_keys", "write_targets",
+]

@@ -1,0 +1,303 @@
+"""Stage runners: read the input files, call the pure stage function, write
+the outputs atomically. The CLI commands and ``retarget run`` both call these.
+
+Each runner returns the list of files it wrote.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .errors import InputError
+from .io.atomic import check_not_input, sha256_file, write_text
+
+log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def _no_progress(length, label):
+    class _Bar:
+        def update(self, n):
+            pass
+
+    yield _Bar()
+
+
+def _require(path, what: str) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: {what} not found")
+    return path
+
+
+# --------------------------------------------------------------------------- track
+
+
+def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_threshold=1.0, anchor=True,
+              rigid_points=None, progress=_no_progress) -> list[Path]:
+    """Track landmarks through *video* from the ``.pts`` annotation of its first frame.
+
+    Writes the ``landmarks.npz`` contract to *output*.
+    """
+    from .io.annotations import read_pts
+    from .io.landmarks import Landmarks, save_landmarks
+    from .io.video import VideoReader
+    from .track.head import estimate_head
+    from .track.lk import track_lk
+
+    video, init = _require(video, "video file"), _require(init, "annotation file")
+    check_not_input(output, [video, init])
+    if method != "lk":
+        raise ValueError(f"method: expected 'lk', got {method!r}")
+    P0 = read_pts(init)
+    with VideoReader(video) as reader:
+        W, H = reader.frame_size
+        with progress(reader.frame_count or None, "track") as bar:
+            try:
+                points, conf = track_lk(reader, P0, window=window, levels=levels, fb_threshold=fb_threshold,
+                                        anchor=anchor, rigid_points=rigid_points,
+                                        progress=lambda t: bar.update(1))
+            except ValueError as exc:
+                raise InputError(f"{init}: {exc}") from exc
+        fps = reader.fps
+    lost = conf < 1e-3
+    if np.all(lost[1:]) and len(conf) > 1:
+        raise InputError(f"{video}: the face was lost in every frame after the first")
+    head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+    meta = {
+        "tracker": "lk",
+        "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor},
+        "source": Path(video).name,
+        "source_sha256": sha256_file(video),
+        "annotation": Path(init).name,
+    }
+    save_landmarks(output, Landmarks(points, conf, head, stab, fps, np.array([W, H]), None, meta))
+    log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
+    return [Path(output)]
+
+
+# --------------------------------------------------------------------------- select
+
+
+def region_points(regions, n_points: int) -> dict[str, list[int]]:
+    """Resolve region definitions (``"all"`` or index lists) to index lists."""
+    regions = regions or {"face": "all"}
+    out = {}
+    for name, pts in regions.items():
+        if pts == "all":
+            out[name] = list(range(n_points))
+            continue
+        if not isinstance(pts, list) or not pts or not all(isinstance(i, int) for i in pts):
+            raise InputError(f"regions: {name!r} must be 'all' or a list of landmark indices")
+        bad = [i for i in pts if not 0 <= i < n_points]
+        if bad:
+            raise InputError(f"regions: {name!r} names landmark {bad[0]} but the take has {n_points} (0..{n_points - 1})")
+        out[name] = list(pts)
+    return out
+
+
+def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12, regions=None,
+               seed=0) -> list[Path]:
+    """Choose key frames per region; write ``keys.json`` and a ``targets.yaml`` template."""
+    from .decompose import reconstruction_error
+    from .io.landmarks import load_landmarks
+    from .io.stagefiles import write_keys, write_targets
+    from .select import select_keys
+
+    landmarks = _require(landmarks, "landmarks file")
+    check_not_input(output, [landmarks])
+    lm = load_landmarks(landmarks)
+    stab = lm.stabilized.astype(np.float64)
+    result, tmpl = {}, {}
+    for name, idx in region_points(regions, lm.n_points).items():
+        X = stab[:, idx].reshape(lm.n_frames, -1)
+        try:
+            frames = select_keys(X, k, method=method)
+        except ValueError as exc:
+            raise InputError(f"{landmarks}: region {name!r}: {exc}") from exc
+        err = reconstruction_error(X, X[frames])
+        result[name] = {"points": idx, "method": method, "frames": [int(f) for f in frames], "error": round(err, 6)}
+        tmpl[name] = {"keys": {int(f): f"target/{name}/key_{int(f):05d}.obj" for f in frames}}
+        log.info("region %s: keys %s, E = %.4g (eq. 5)", name, result[name]["frames"], err)
+    write_keys(output, landmarks, result)
+    written = [Path(output)]
+    if template:
+        check_not_input(template, [landmarks])
+        if Path(template).exists():
+            log.warning("%s exists; not overwriting an artist's targets file", template)
+        else:
+            write_targets(template, tmpl, comment=(
+                "Target key shapes: sculpt one OBJ per key frame (same topology for all),\n"
+                "matching the actor's expression in that frame. Paths are relative to this file."))
+            written.append(Path(template))
+    return written
+
+
+# --------------------------------------------------------------------------- decompose
+
+
+def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls") -> list[Path]:
+    """Weights over the key shapes for every frame and region; writes ``weights.npz``."""
+    from .decompose import decompose
+    from .io.landmarks import load_landmarks
+    from .io.stagefiles import read_keys, save_weights, weights_csv
+
+    landmarks, keys = _require(landmarks, "landmarks file"), _require(keys, "keys file")
+    check_not_input(output, [landmarks, keys])
+    lm = load_landmarks(landmarks)
+    kf = read_keys(keys)
+    stab = lm.stabilized.astype(np.float64)
+    regions = {}
+    for name, reg in kf.regions.items():
+        bad = [f for f in reg["frames"] if f >= lm.n_frames]
+        if bad:
+            raise InputError(f"{keys}: region {name!r} key frame {bad[0]} is outside the take ({lm.n_frames} frames in {landmarks})")
+        badp = [p for p in reg["points"] if p >= lm.n_points]
+        if badp:
+            raise InputError(f"{keys}: region {name!r} landmark {badp[0]} does not exist ({lm.n_points} points in {landmarks})")
+        X = stab[:, reg["points"]].reshape(lm.n_frames, -1)
+        W, res = decompose(X, X[reg["frames"]], solver=solver)
+        regions[name] = (W, np.array(reg["frames"]), res)
+        log.info("region %s: %d frames, mean residual %.4g px", name, len(W), res.mean() / np.sqrt(len(reg["points"])))
+    meta = {"solver": solver, "fps": lm.fps, "landmarks": Path(landmarks).name}
+    save_weights(output, regions, meta)
+    written = [Path(output)]
+    if csv:
+        write_text(csv, weights_csv(regions, lm.fps))
+        written.append(Path(csv))
+    return written
+
+
+# --------------------------------------------------------------------------- pose-keys
+
+
+def run_pose(*, keys, rig, poses, output) -> list[Path]:
+    """Pose the rig at each key frame's known slider values; write target OBJs and ``targets.yaml``.
+
+    This is the automatic "artist" for takes whose slider values are known
+    (synthetic takes, or a performance recorded on a rig).
+    """
+    from .io.atomic import load_npz
+    from .io.obj import check_same_topology, read_obj, write_obj
+    from .io.stagefiles import read_keys, read_rig, write_targets
+
+    keys, rig_path, poses = _require(keys, "keys file"), _require(rig, "rig file"), _require(poses, "poses file")
+    kf, rig = read_keys(keys), read_rig(rig_path)
+    data = load_npz(poses)
+    if "curves" not in data or "names" not in data:
+        raise InputError(f"{poses}: expected 'curves' (T, E) and 'names' (E,)")
+    curves, names = data["curves"], [str(n) for n in data["names"]]
+    missing = [n for n in names if n not in rig.shapes]
+    if missing:
+        raise InputError(f"{poses}: slider {missing[0]!r} is not a shape of {rig_path}")
+    neutral = read_obj(rig.neutral)
+    shapes = [read_obj(rig.shapes[n]) for n in names]
+    check_same_topology([neutral, *shapes])
+    D = np.stack([s.vertices - neutral.vertices for s in shapes])
+    out = Path(output)
+    written, regions = [], {}
+    for name, reg in kf.regions.items():
+        regions[name] = {"keys": {}}
+        for f in reg["frames"]:
+            if f >= len(curves):
+                raise InputError(f"{keys}: key frame {f} is outside {poses} ({len(curves)} frames)")
+            rel = f"{name}/key_{f:05d}.obj"
+            write_obj(out / rel, neutral, neutral.vertices + np.tensordot(curves[f], D, axes=1))
+            regions[name]["keys"][f] = rel
+            written.append(out / rel)
+    nrel = os.path.relpath(rig.neutral.resolve(), out.resolve())
+    write_targets(out / "targets.yaml", regions, neutral=nrel, comment="Written by retarget pose-keys.")
+    written.append(out / "targets.yaml")
+    return written
+
+
+# --------------------------------------------------------------------------- apply
+
+FRAME_RE = re.compile(r"frame_(\d{5,})\.obj$")
+
+
+def run_apply(*, weights, targets, output, head_motion="none", progress=_no_progress) -> list[Path]:
+    """Drive the target key shapes with the weights; write ``frame_%05d.obj`` into *output*."""
+    from .apply import blend_keys, blend_regions
+    from .io.obj import check_same_topology, read_obj
+    from .io.stagefiles import load_weights, read_targets, read_vertex_mask
+
+    weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
+    if head_motion != "none":
+        raise ValueError(f"head_motion: expected 'none', got {head_motion!r}")
+    regions, _ = load_weights(weights)
+    tg = read_targets(targets)
+    missing = sorted(set(regions) - set(tg.regions))
+    if missing:
+        raise InputError(f"{targets}: no targets for region {missing[0]!r} of {weights}")
+    per_region, meshes = [], []
+    for name, (W, frames, _) in sorted(regions.items()):
+        keyfiles = tg.regions[name]["keys"]
+        absent = [int(f) for f in frames if int(f) not in keyfiles]
+        if absent:
+            raise InputError(f"{targets}: region {name!r} has no target shape for key frame {absent[0]}")
+        objs = [read_obj(keyfiles[int(f)]) for f in frames]
+        meshes += objs
+        per_region.append((name, W, objs))
+    neutral = read_obj(tg.neutral) if tg.neutral else None
+    check_same_topology(([neutral] if neutral else []) + meshes)
+    template = neutral or meshes[0]
+    N = template.n_vertices
+    masks = None
+    if len(per_region) > 1:
+        if neutral is None:
+            raise InputError(f"{targets}: several regions need a 'neutral' mesh to blend them")
+        masks = []
+        for name, _, _ in per_region:
+            vf = tg.regions[name]["vertices"]
+            if vf is None:
+                raise InputError(f"{targets}: region {name!r} needs 'vertices' (its mask) when there are several regions")
+            masks.append(read_vertex_mask(vf, N))
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    keysets = [np.stack([m.vertices for m in objs]) for _, _, objs in per_region]
+    T = per_region[0][1].shape[0]
+    written = []
+    chunk = 64
+    with progress(T, "apply") as bar:
+        for start in range(0, T, chunk):
+            sl = slice(start, min(start + chunk, T))
+            res = [blend_keys(W[sl], B) for (_, W, _), B in zip(per_region, keysets)]
+            pos = res[0] if masks is None else blend_regions(res, masks, neutral.vertices)
+            for i, p in enumerate(pos):
+                path = out / f"frame_{start + i:05d}.obj"
+                from .io.obj import write_obj
+
+                write_obj(path, template, p)
+                written.append(path)
+            bar.update(sl.stop - sl.start)
+    # Remove frames left over from a longer previous run (only files this stage names).
+    for stale in out.iterdir():
+        m = FRAME_RE.match(stale.name)
+        if m and int(m.group(1)) >= T:
+            stale.unlink()
+    log.info("wrote %d frames of %d vertices to %s", T, N, out)
+    return written
+
+
+def digest_files(paths) -> str:
+    """One sha256 over several files' names and contents."""
+    h = hashlib.sha256()
+    for p in sorted(map(str, paths)):
+        h.update(p.encode())
+        h.update(sha256_file(p).encode())
+    return h.hexdigest()
+
+
+__all__ = ["run_track", "run_select", "run_decompose", "run_pose", "run_apply", "__version__", "json"]

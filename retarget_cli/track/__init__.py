@@ -1,0 +1,1 @@
+"""Landmark tracking and head-motion separation."""
