@@ -206,14 +206,14 @@ def run(config, force, start, stop, overrides):
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True, help="Random seed.")
 def synth(outdir, frames, size, seed):
     """Write a synthetic performance (video, truth, target rig, config) into OUTDIR."""
-    from .synth import write_take
-
     try:
         w, h = (int(v) for v in size.lower().split("x"))
     except ValueError:
         raise click.BadParameter(f"expected WxH such as 320x320, got {size!r}", param_hint="--size") from None
     if not (64 <= w <= 4096 and 64 <= h <= 4096):
         raise click.BadParameter(f"width and height must lie in [64, 4096], got {size}", param_hint="--size")
+    from .synth import write_take
+
     written = write_take(outdir, n_frames=frames, size=(w, h), seed=seed)
     for p in written.values():
         click.echo(str(p))

@@ -46,12 +46,12 @@ def pca_extremes(features, k: int) -> np.ndarray:
     T = X.shape[0]
     if k < 1:
         raise ShapeError(f"k: expected k >= 1, got {k}")
-    n_distinct = len(np.unique(X.round(6), axis=0))
-    if k > n_distinct:
-        raise ShapeError(f"k: {k} keys requested but the take has only {n_distinct} distinct frames")
     Xc = X - X.mean(0)
     if not np.any(np.abs(Xc) > 1e-9):
         raise ShapeError("features: every frame has the same shape (no variation to choose keys from)")
+    n_distinct = len(np.unique(X.round(6), axis=0))
+    if k > n_distinct:
+        raise ShapeError(f"k: {k} keys requested but the take has only {n_distinct} distinct frames")
     from sklearn.decomposition import PCA
 
     n_comp = min(T, X.shape[1])

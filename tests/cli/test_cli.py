@@ -1,0 +1,50 @@
+import pytest
+from click.testing import CliRunner
+
+from retarget_cli.cli import main
+
+COMMANDS = sorted(main.commands)
+
+
+def test_the_stage_commands_exist():
+    assert {"track", "select", "decompose", "apply", "run", "synth", "pose-keys"} <= set(COMMANDS)
+
+
+@pytest.mark.parametrize("command", [None, *COMMANDS])
+def test_help_for_every_command(command):
+    args = ["--help"] if command is None else [command, "--help"]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 0, result.output
+    assert "Usage:" in result.output
+
+
+def test_misspelt_config_key_is_one_line_with_suggestion(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("select:\n  methd: pca-extremes\n")
+    result = CliRunner().invoke(main, ["run", str(cfg)])
+    assert result.exit_code == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert "unknown key 'methd'" in lines[0] and "did you mean 'method'?" in lines[0] and "c.yaml" in lines[0]
+
+
+def test_missing_input_file_is_named(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("track: {video: nowhere.mp4, init: nowhere.pts}\n")
+    result = CliRunner().invoke(main, ["run", str(cfg)])
+    assert result.exit_code == 1
+    assert "nowhere.mp4" in result.stderr and "not found" in result.stderr
+
+
+def test_missing_input_for_a_stage_command(tmp_path):
+    result = CliRunner().invoke(main, ["decompose", str(tmp_path / "none.npz"), str(tmp_path / "k.json"),
+                                       "-o", str(tmp_path / "w.npz")])
+    assert result.exit_code == 1
+    assert "none.npz: landmarks file not found" in result.stderr
+
+
+def test_usage_errors_exit_2(tmp_path):
+    result = CliRunner().invoke(main, ["select", str(tmp_path / "x.npz"), "-k", "0"])
+    assert result.exit_code == 2
+    result = CliRunner().invoke(main, ["synth", str(tmp_path), "--size", "big"])
+    assert result.exit_code == 2 and "--size" in result.stderr

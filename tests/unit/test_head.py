@@ -1,0 +1,63 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from retarget_cli.track.head import apply_similarity, estimate_head, fit_similarity, invert_similarity
+
+
+def similarity(s, theta, tx, ty):
+    c, si = s * np.cos(theta), s * np.sin(theta)
+    return np.array([[c, -si, tx], [si, c, ty]])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    s=st.floats(0.5, 2.0),
+    theta=st.floats(-np.pi / 3, np.pi / 3),
+    tx=st.floats(-100, 100),
+    ty=st.floats(-100, 100),
+)
+def test_fit_similarity_recovers_known_motion(s, theta, tx, ty):
+    src = np.random.default_rng(1).uniform(0, 200, size=(11, 2))
+    M = similarity(s, theta, tx, ty)
+    dst = apply_similarity(M[None], src[None])
+    np.testing.assert_allclose(fit_similarity(src, dst)[0], M, atol=1e-6)
+
+
+def test_fit_similarity_is_robust_to_one_outlier():
+    src = np.random.default_rng(2).uniform(0, 200, size=(11, 2))
+    M = similarity(1.1, 0.2, 5, -3)
+    dst = apply_similarity(M[None], src[None])
+    dst[0, 4] += [40.0, -25.0]
+    got = fit_similarity(src, dst, iterations=5)[0]
+    plain = fit_similarity(src, dst, iterations=0)[0]
+    assert np.abs(got - M).max() < 0.2 * np.abs(plain - M).max()
+
+
+def test_invert_similarity_round_trips():
+    M = np.stack([similarity(1.2, 0.3, 4, 5), similarity(0.8, -0.5, -10, 2)])
+    pts = np.random.default_rng(3).normal(size=(2, 7, 2))
+    back = apply_similarity(invert_similarity(M), apply_similarity(M, pts))
+    np.testing.assert_allclose(back, pts, atol=1e-12)
+
+
+def test_estimate_head_separates_rigid_motion_from_expression():
+    rng = np.random.default_rng(4)
+    ref = rng.uniform(50, 250, size=(68, 2))
+    T = 5
+    stab = np.repeat(ref[None], T, axis=0)
+    stab[:, 48:68] += rng.normal(scale=3.0, size=(T, 20, 2))  # mouth moves, rigid points do not
+    stab[0] = ref
+    heads = np.stack([similarity(1.0 + 0.05 * t, 0.1 * t, 3 * t, -2 * t) for t in range(T)])
+    pts = apply_similarity(heads, stab)
+    head, got = estimate_head(pts)
+    np.testing.assert_allclose(head, heads, atol=1e-6)
+    np.testing.assert_allclose(got, stab, atol=1e-6)
+
+
+def test_estimate_head_rejects_bad_shapes():
+    with pytest.raises(ValueError, match=r"\(T, L, 2\)"):
+        estimate_head(np.zeros((4, 68)))
+    with pytest.raises(ValueError, match="rigid_points"):
+        estimate_head(np.zeros((4, 10, 2)), rigid_points=[3, 12])
