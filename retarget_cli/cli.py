@@ -130,14 +130,18 @@ def track(video, init, output, **settings):
 @click.option("-k", "k", type=click.IntRange(1, 1000), default=_param("select", "k").default, show_default=True,
               help=_param("select", "k").help)
 @setting("select", "method")
+@click.option("--neutral-frame", type=click.IntRange(0), default=_param("select", "neutral_frame").default,
+              show_default=True, help=_param("select", "neutral_frame").help)
+@click.option("--no-neutral", is_flag=True, help="Let the method choose all k keys.")
 @click.option("--template", type=click.Path(dir_okay=False), default=None,
               help="Also write a targets.yaml template for the artist (never overwrites).")
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True, help="Random seed.")
-def select(landmarks, output, k, method, template, seed):
+def select(landmarks, output, k, method, neutral_frame, no_neutral, template, seed):
     """Choose key frames from LANDMARKS (PCA extremes, Chuang & Bregler §4.2)."""
     from .stages import run_select
 
-    _print_outputs(run_select(landmarks=landmarks, output=output, template=template, method=method, k=k, seed=seed))
+    _print_outputs(run_select(landmarks=landmarks, output=output, template=template, method=method, k=k,
+                              neutral_frame=None if no_neutral else neutral_frame, seed=seed))
 
 
 @main.command()
@@ -158,12 +162,20 @@ def decompose(landmarks, keys, output, csv, solver):
 @click.argument("rig", type=click.Path(dir_okay=False))
 @click.option("--poses", type=click.Path(dir_okay=False), required=True,
               help="NPZ with per-frame slider values: 'curves' (T, E) and 'names' (E,).")
+@click.option("--mask", "masks", multiple=True, metavar="REGION=FILE",
+              help="Vertex mask of a region (needed with several regions). Repeatable.")
 @output_option("targets", "Directory for the key OBJs and targets.yaml.", required=False)
-def pose_keys(keys, rig, poses, output):
+def pose_keys(keys, rig, poses, masks, output):
     """Pose RIG at every key frame's known slider values (automatic target keys)."""
     from .stages import run_pose
 
-    _print_outputs(run_pose(keys=keys, rig=rig, poses=poses, output=output))
+    parsed = {}
+    for m in masks:
+        region, sep, path = m.partition("=")
+        if not sep or not region or not path:
+            raise click.BadParameter(f"expected REGION=FILE, got {m!r}", param_hint="--mask")
+        parsed[region] = path
+    _print_outputs(run_pose(keys=keys, rig=rig, poses=poses, output=output, masks=parsed))
 
 
 @main.command()
@@ -193,7 +205,8 @@ def run(config, force, start, stop, overrides):
 
     cfg = load_config(config, stage_params(), overrides)
     for name, status, outs in run_pipeline(cfg, force=force, start=start, stop=stop, progress=progress):
-        click.echo(f"{name}: {status}", err=True)
+        if log.getEffectiveLevel() <= logging.WARNING:
+            click.echo(f"{name}: {status}", err=True)
         shown = outs if len(outs) <= 3 else [outs[0].parent]
         for p in shown:
             click.echo(f"{name}\t{p}")

@@ -12,9 +12,9 @@ from __future__ import annotations
 import json
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from . import __version__, stages
 from .config import REQUIRED, Config, Param
@@ -35,6 +35,7 @@ class Stage:
     extra_inputs: Callable = field(default=lambda kw: [])
     uses_progress: bool = False
     uses_seed: bool = False
+    uses_base_dir: bool = False
 
     def param(self, name: str) -> Param:
         return next(p for p in self.params if p.name == name)
@@ -46,10 +47,11 @@ def _targets_files(kw) -> list[Path]:
     return read_targets(kw["targets"]).files()
 
 
-def _rig_files(kw) -> list[Path]:
+def _pose_files(kw) -> list[Path]:
     from .io.stagefiles import read_rig
 
-    return read_rig(kw["rig"]).files()
+    masks = [Path(kw["base_dir"]) / m for m in (kw.get("masks") or {}).values()]
+    return read_rig(kw["rig"]).files() + masks
 
 
 STAGES: dict[str, Stage] = {
@@ -85,6 +87,9 @@ STAGES: dict[str, Stage] = {
                       "targets.yaml template for the artist (never overwritten).", nullable=True),
                 Param("method", "setting", str, "pca-extremes", "Selection method.", choices=("pca-extremes",)),
                 Param("k", "setting", int, 12, "Number of key shapes per region.", min=1, max=1000),
+                Param("neutral_frame", "setting", int, 0,
+                      "Frame always kept as a key (the actor at rest); null to let the method choose all k.",
+                      min=0, nullable=True),
                 Param("regions", "setting", dict, None,
                       "Region name to landmark indices or 'all' (default: face: all).", nullable=True),
             ],
@@ -111,9 +116,12 @@ STAGES: dict[str, Stage] = {
                 Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs."),
                 Param("poses", "input", str, help="NPZ with 'curves' (T, E) and 'names' (E,)."),
                 Param("output", "output", str, "targets", "Directory for the key OBJs and targets.yaml."),
+                Param("masks", "setting", dict, None,
+                      "Region name to vertex-mask file (needed with several regions).", nullable=True),
             ],
             stages.run_pose,
-            extra_inputs=_rig_files,
+            extra_inputs=_pose_files,
+            uses_base_dir=True,
         ),
         Stage(
             "apply",
@@ -132,6 +140,18 @@ STAGES: dict[str, Stage] = {
 }
 
 ORDER = list(STAGES)
+
+
+def code_fingerprint() -> str:
+    """sha256 over the package's source files: a code change reruns every stage."""
+    import hashlib
+
+    h = hashlib.sha256(__version__.encode())
+    root = Path(__file__).parent
+    for f in sorted(root.rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def stage_params() -> dict[str, list[Param]]:
@@ -177,6 +197,8 @@ def resolve(cfg: Config, name: str) -> dict:
             kw[p.name] = None if v is REQUIRED else v
     if stage.uses_seed:
         kw["seed"] = cfg.seed
+    if stage.uses_base_dir:
+        kw["base_dir"] = cfg.base_dir
     return kw
 
 
@@ -226,8 +248,8 @@ def check_up_to_date(cfg: Config, name: str, kw: dict) -> tuple[bool, str]:
     except json.JSONDecodeError:
         return False, "manifest unreadable"
     stage = STAGES[name]
-    if man.get("version") != __version__:
-        return False, f"version changed ({man.get('version')} -> {__version__})"
+    if man.get("version") != __version__ or man.get("code") != code_fingerprint():
+        return False, "retarget version or code changed"
     if man.get("settings") != _settings(stage, kw, cfg):
         return False, "settings changed"
     inputs = _inputs(stage, kw)
@@ -253,6 +275,7 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None) -> list[Path]:
     man = {
         "stage": name,
         "version": __version__,
+        "code": code_fingerprint(),
         "settings": _settings(stage, kw, cfg),
         "inputs": {_rel(p, cfg.base_dir): _record(p) for p in inputs},
         "outputs": {_rel(p, cfg.base_dir): _record(p) for p in outputs},

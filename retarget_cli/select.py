@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 METHODS = ("pca-extremes",)
 
 
-def pca_extremes(features, k: int) -> np.ndarray:
+def pca_extremes(features, k: int, *, include=()) -> np.ndarray:
     """Frames of maximum and minimum projection on the principal axes.
 
     "Maximum spread along principal components" (Chuang & Bregler 2002,
@@ -36,6 +36,9 @@ def pca_extremes(features, k: int) -> np.ndarray:
         One flattened stabilized shape per frame.
     k : int
         Number of keys, 1 <= k <= number of distinct frames.
+    include : sequence of int
+        Frames that must be keys (e.g. the neutral); they count towards k and
+        are chosen first.
 
     Returns
     -------
@@ -57,6 +60,13 @@ def pca_extremes(features, k: int) -> np.ndarray:
     n_comp = min(T, X.shape[1])
     proj = PCA(n_components=n_comp, svd_solver="full").fit_transform(X)
     chosen: list[int] = []
+    for f in include:
+        if not 0 <= int(f) < T:
+            raise ShapeError(f"include: frame {f} is outside the take (0..{T - 1})")
+        if int(f) not in chosen and len(chosen) < k:
+            chosen.append(int(f))
+    if len(chosen) == k:
+        return np.array(chosen)
     for axis in range(n_comp):
         # Stable order: ties broken by the lower frame index.
         order_max = np.lexsort((np.arange(T), -proj[:, axis]))
@@ -75,7 +85,7 @@ def pca_extremes(features, k: int) -> np.ndarray:
     return np.array(chosen)
 
 
-def select_keys(features, k: int, *, method: str = "pca-extremes") -> np.ndarray:
+def select_keys(features, k: int, *, method: str = "pca-extremes", include=()) -> np.ndarray:
     """Choose *k* key frames with the named *method*.
 
     Parameters
@@ -83,6 +93,11 @@ def select_keys(features, k: int, *, method: str = "pca-extremes") -> np.ndarray
     features : ndarray, shape (T, D)
     k : int
     method : {"pca-extremes"}
+    include : sequence of int
+        Frames that must be keys (counted in k), e.g. the neutral frame: with
+        the whole-shape model of eq. 3 and non-negative weights, a frame can
+        only be reproduced inside the cone of the keys, so a take whose keys
+        are all expressive cannot return to rest.
 
     Returns
     -------
@@ -91,5 +106,5 @@ def select_keys(features, k: int, *, method: str = "pca-extremes") -> np.ndarray
     """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-    frames = pca_extremes(features, k)
+    frames = pca_extremes(features, k, include=include)
     return np.sort(frames)

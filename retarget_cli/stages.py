@@ -106,7 +106,7 @@ def region_points(regions, n_points: int) -> dict[str, list[int]]:
 
 
 def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12, regions=None,
-               seed=0) -> list[Path]:
+               neutral_frame=0, seed=0) -> list[Path]:
     """Choose key frames per region; write ``keys.json`` and a ``targets.yaml`` template."""
     from .decompose import reconstruction_error
     from .io.landmarks import load_landmarks
@@ -121,7 +121,8 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
     for name, idx in region_points(regions, lm.n_points).items():
         X = stab[:, idx].reshape(lm.n_frames, -1)
         try:
-            frames = select_keys(X, k, method=method)
+            include = () if neutral_frame is None else (neutral_frame,)
+            frames = select_keys(X, k, method=method, include=include)
         except ValueError as exc:
             raise InputError(f"{landmarks}: region {name!r}: {exc}") from exc
         err = reconstruction_error(X, X[frames])
@@ -180,8 +181,11 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls") -> list[P
 # --------------------------------------------------------------------------- pose-keys
 
 
-def run_pose(*, keys, rig, poses, output) -> list[Path]:
+def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None) -> list[Path]:
     """Pose the rig at each key frame's known slider values; write target OBJs and ``targets.yaml``.
+
+    *masks* maps region names to vertex-mask files (relative to *base_dir*),
+    copied into ``targets.yaml`` so ``apply`` can blend the regions.
 
     This is the automatic "artist" for takes whose slider values are known
     (synthetic takes, or a performance recorded on a rig).
@@ -214,6 +218,18 @@ def run_pose(*, keys, rig, poses, output) -> list[Path]:
             write_obj(out / rel, neutral, neutral.vertices + np.tensordot(curves[f], D, axes=1))
             regions[name]["keys"][f] = rel
             written.append(out / rel)
+    masks = masks or {}
+    unknown = sorted(set(masks) - set(kf.regions))
+    if unknown:
+        raise InputError(f"masks: region {unknown[0]!r} is not a region of {keys} ({', '.join(kf.regions)})")
+    if len(kf.regions) > 1:
+        absent = [r for r in kf.regions if r not in masks]
+        if absent:
+            raise InputError(f"masks: region {absent[0]!r} needs a vertex mask when {keys} has several regions")
+    for name, mask in masks.items():
+        mask = Path(base_dir or ".") / mask
+        _require(mask, "region mask")
+        regions[name]["vertices"] = os.path.relpath(mask.resolve(), out.resolve())
     nrel = os.path.relpath(rig.neutral.resolve(), out.resolve())
     write_targets(out / "targets.yaml", regions, neutral=nrel, comment="Written by retarget pose-keys.")
     written.append(out / "targets.yaml")

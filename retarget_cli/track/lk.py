@@ -12,7 +12,7 @@ the annotated shape mapped through the head similarity.
 from __future__ import annotations
 
 import logging
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -30,6 +30,11 @@ def _gray(frame: np.ndarray) -> np.ndarray:
     return frame
 
 
+def _contour_points(n_points: int) -> np.ndarray:
+    """Default silhouette points: the jaw line of the 68-point layout."""
+    return np.arange(17) if n_points == 68 else np.zeros(0, dtype=int)
+
+
 def track_lk(
     frames: Iterable[np.ndarray],
     init_points,
@@ -39,6 +44,7 @@ def track_lk(
     fb_threshold: float = 1.0,
     anchor: bool = True,
     rigid_points=None,
+    contour_points=None,
     progress=None,
 ):
     """Track landmarks through a sequence of frames.
@@ -61,6 +67,9 @@ def track_lk(
     rigid_points : sequence of int, optional
         Points used for the similarity that warps the anchor; default
         :func:`~retarget_cli.track.head.default_rigid_points`.
+    contour_points : sequence of int, optional
+        Silhouette points tracked through an inward proxy; default the jaw
+        line (0-16) for the 68-point layout, none otherwise.
     progress : callable, optional
         Called with the number of frames processed after each frame.
 
@@ -81,8 +90,17 @@ def track_lk(
     lk = dict(
         winSize=(window, window),
         maxLevel=levels,
-        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 0.001),
     )
+    contour = _contour_points(L) if contour_points is None else np.asarray(contour_points, dtype=int)
+    # Silhouette points (the jaw line) have background under half their window,
+    # which drags them when the head moves. Track a proxy moved inward by about
+    # half a window instead and map it back with the current head similarity.
+    offset = np.zeros((L, 2))
+    if contour.size:
+        inward = P0.mean(0) - P0[contour]
+        inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-9)
+        offset[contour] = inward * (window // 2 + 2)
     it = iter(frames)
     try:
         first = _gray(next(it))
@@ -92,13 +110,14 @@ def track_lk(
     if np.any(P0 < -0.5) or np.any(P0[:, 0] > w - 0.5) or np.any(P0[:, 1] > h - 0.5):
         bad = int(np.argwhere((P0 < -0.5).any(1) | (P0[:, 0] > w - 0.5) | (P0[:, 1] > h - 0.5))[0, 0])
         raise ShapeError(f"init_points: point {bad} at {P0[bad].round(1).tolist()} lies outside the {w}x{h} image")
+    Q0 = P0 + offset
     pts = [P0.copy()]
     conf = [np.ones(L)]
     prev = first
-    ref32 = P0.astype(np.float32).reshape(-1, 1, 2)
+    q_prev = Q0
     for t, frame in enumerate(it, start=1):
         cur = _gray(frame)
-        p_prev = pts[-1].astype(np.float32).reshape(-1, 1, 2)
+        p_prev = q_prev.astype(np.float32).reshape(-1, 1, 2)
         fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p_prev, None, **lk)
         bwd, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, fwd, None, **lk)
         fb = np.linalg.norm((bwd - p_prev).reshape(-1, 2), axis=1)
@@ -109,8 +128,8 @@ def track_lk(
         c_fit = np.where(err < 3 * fb_threshold, 1.0, 0.0)
         if c_fit[rigid].sum() < 2:
             c_fit = np.ones(L)
-        M = fit_similarity(P0[rigid], est[None, rigid], c_fit[None, rigid])[0]
-        prior = P0 @ M[:, :2].T + M[:, 2]
+        M = fit_similarity(Q0[rigid], est[None, rigid], c_fit[None, rigid])[0]
+        prior = Q0 @ M[:, :2].T + M[:, 2]
         if anchor:
             # Re-register against the annotated frame warped by the head motion:
             # removes the drift that frame-to-frame flow accumulates.
@@ -131,10 +150,10 @@ def track_lk(
         lost = ~(err < 3 * fb_threshold)
         est[lost] = prior[lost]
         c = np.exp(-np.where(lost, np.inf, err) / fb_threshold)
-        pts.append(est)
+        q_prev = est
+        pts.append(est - offset @ M[:, :2].T)
         conf.append(np.where(lost, 0.0, c))
         prev = cur
         if progress is not None:
             progress(t)
-    del ref32
     return np.stack(pts), np.clip(np.stack(conf), 0.0, 1.0)

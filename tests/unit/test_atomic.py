@@ -2,7 +2,6 @@ import numpy as np
 import pytest
 
 from retarget_cli.errors import RetargetError
-
 from retarget_cli.io.atomic import atomic_open, check_not_input, load_npz, savez
 
 
