@@ -207,8 +207,7 @@ def run(config, force, start, stop, overrides):
     for name, status, outs in run_pipeline(cfg, force=force, start=start, stop=stop, progress=progress):
         if log.getEffectiveLevel() <= logging.WARNING:
             click.echo(f"{name}: {status}", err=True)
-        shown = outs if len(outs) <= 3 else [outs[0].parent]
-        for p in shown:
+        for p in outs:
             click.echo(f"{name}\t{p}")
 
 

@@ -307,7 +307,8 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
     Returns
     -------
     list of (stage, status, outputs)
-        *status* is ``"ran"`` or ``"skipped"``.
+        *status* is ``"ran"`` or ``"skipped"``; *outputs* are the stage's
+        declared output paths (files or directories).
     """
     names = select_stages(cfg, start, stop)
     resolved = {n: resolve(cfg, n) for n in names}
@@ -315,12 +316,12 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
     for n in names:
         kw = resolved[n]
         ok, why = (False, "--force") if force else check_up_to_date(cfg, n, kw)
+        declared = [kw[p.name] for p in STAGES[n].params if p.kind == "output" and kw[p.name] is not None]
         if ok:
             log.info("%s: up to date, skipped", n)
-            man = json.loads(manifest_path(cfg, n).read_text())
-            report.append((n, "skipped", [cfg.base_dir / p for p in man["outputs"]]))
+            report.append((n, "skipped", declared))
             continue
         log.info("%s: running (%s)", n, why)
-        outs = run_stage(cfg, n, kw, progress)
-        report.append((n, "ran", outs))
+        run_stage(cfg, n, kw, progress)
+        report.append((n, "ran", declared))
     return report

@@ -133,14 +133,20 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
     written = [Path(output)]
     if template:
         check_not_input(template, [landmarks])
-        if Path(template).exists():
-            log.warning("%s exists; not overwriting an artist's targets file", template)
-        else:
-            write_targets(template, tmpl, comment=(
-                "Target key shapes: sculpt one OBJ per key frame (same topology for all),\n"
-                "matching the actor's expression in that frame. Paths are relative to this file."))
-            written.append(Path(template))
+        t = Path(template)
+        if t.exists() and not t.read_text(encoding="utf-8", errors="replace").startswith(TEMPLATE_MARK):
+            raise InputError(f"{t}: exists and was not written by 'retarget select'; "
+                             "refusing to overwrite it (choose another --template path)")
+        write_targets(t, tmpl, comment=TEMPLATE_MARK[2:] + (
+            "Sculpt one OBJ per key frame (same topology for all), matching the actor's\n"
+            "expression in that frame. Paths are relative to this file. Copy this file\n"
+            "before editing: select rewrites it."))
+        written.append(t)
     return written
+
+
+#: First line of the targets template ``select`` writes; a file without it is never overwritten.
+TEMPLATE_MARK = "# targets.yaml template written by retarget select.\n"
 
 
 # --------------------------------------------------------------------------- decompose
