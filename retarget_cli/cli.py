@@ -133,15 +133,41 @@ def track(video, init, output, **settings):
 @click.option("--neutral-frame", type=click.IntRange(0), default=_param("select", "neutral_frame").default,
               show_default=True, help=_param("select", "neutral_frame").help)
 @click.option("--no-neutral", is_flag=True, help="Let the method choose all k keys.")
+@click.option("--region", "regions", multiple=True, metavar="NAME=SPEC",
+              help="A region and its landmarks, e.g. mouth=48-67,3-13 or face=all. Repeatable; default face=all.")
 @click.option("--template", type=click.Path(dir_okay=False), default=None,
-              help="Also write a targets.yaml template for the artist (never overwrites).")
+              help="Also write a targets.yaml template for the artist (never overwrites a file select did not write).")
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True, help="Random seed.")
-def select(landmarks, output, k, method, neutral_frame, no_neutral, template, seed):
+def select(landmarks, output, k, method, neutral_frame, no_neutral, regions, template, seed):
     """Choose key frames from LANDMARKS (PCA extremes, Chuang & Bregler §4.2)."""
     from .stages import run_select
 
     _print_outputs(run_select(landmarks=landmarks, output=output, template=template, method=method, k=k,
-                              neutral_frame=None if no_neutral else neutral_frame, seed=seed))
+                              regions=_parse_regions(regions), neutral_frame=None if no_neutral else neutral_frame,
+                              seed=seed))
+
+
+def _parse_regions(specs) -> dict | None:
+    """``NAME=all`` or ``NAME=a-b,c,...`` (inclusive ranges) to ``{name: "all" | [ids]}``."""
+    if not specs:
+        return None
+    out = {}
+    for spec in specs:
+        name, sep, body = spec.partition("=")
+        try:
+            if not sep or not name:
+                raise ValueError
+            if body == "all":
+                out[name] = "all"
+                continue
+            ids = []
+            for part in body.split(","):
+                lo, _, hi = part.partition("-")
+                ids += list(range(int(lo), int(hi or lo) + 1))
+            out[name] = ids
+        except ValueError:
+            raise click.BadParameter(f"expected NAME=all or NAME=a-b,c,..., got {spec!r}", param_hint="--region") from None
+    return out
 
 
 @main.command()
