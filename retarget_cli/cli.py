@@ -58,7 +58,7 @@ def output_option(default=None, help="Output file.", required=True):
 @contextlib.contextmanager
 def progress(length, label):
     """A click progress bar on stderr (hidden when stderr is not a terminal or with -q)."""
-    quiet = logging.getLogger("retarget_cli").getEffectiveLevel() > logging.INFO
+    quiet = logging.getLogger("retarget_cli").getEffectiveLevel() > logging.WARNING
     if length is None or quiet:
         class _Null:
             def update(self, n):
