@@ -36,16 +36,13 @@ curves, and the same seed gives byte-identical files.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from .errors import RetargetError, ShapeError
+from .errors import ShapeError
 from .track.head import RIGID_68, apply_similarity, fit_similarity
 
 logger = logging.getLogger(__name__)
@@ -1108,31 +1105,15 @@ illum 2
 
 
 def _write_video(path: Path, frames, size, fps: float, n_frames: int) -> None:
-    """Atomically write *frames* as mp4v; the temp file keeps the .mp4 suffix for OpenCV."""
-    import cv2
+    """Atomically write *frames* as an mp4v video, logging progress."""
+    from .io.video import atomic_video_writer
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".mp4", dir=path.parent)
-    os.close(fd)
-    try:
-        writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps), tuple(size))
-        if not writer.isOpened():
-            raise RetargetError(f"{path}: OpenCV cannot open an mp4v video writer")
-        try:
-            step = max(1, n_frames // 10)
-            for t, img in enumerate(frames):
-                writer.write(img)
-                if (t + 1) % step == 0 or t + 1 == n_frames:
-                    logger.info("synth: rendered %d/%d frames", t + 1, n_frames)
-        finally:
-            writer.release()
-        if os.path.getsize(tmp) == 0:
-            raise RetargetError(f"{path}: the video writer produced an empty file")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    step = max(1, n_frames // 10)
+    with atomic_video_writer(path, fps, tuple(size)) as writer:
+        for t, img in enumerate(frames):
+            writer.write(img)
+            if (t + 1) % step == 0 or t + 1 == n_frames:
+                logger.info("synth: rendered %d/%d frames", t + 1, n_frames)
 
 
 def write_take(outdir, *, n_frames: int = 240, size=(320, 320), seed: int = 0, fps: float = 30.0) -> dict:

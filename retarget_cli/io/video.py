@@ -115,6 +115,8 @@ def atomic_video_writer(path: str | os.PathLike, fps: float, frame_size: tuple[i
             raise InputError(f"{path}: OpenCV cannot write this video type")
         yield writer
         writer.release()
+        if os.path.getsize(tmp) == 0:
+            raise InputError(f"{path}: the video writer produced an empty file")
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
