@@ -249,9 +249,9 @@ def edit(animation, edits, output, rig, objs):
               help="Rig vertex of each landmark: one id per line, or 'landmark vertex' pairs.")
 @click.option("--mask", "masks", multiple=True, metavar="REGION=FILE",
               help="Vertex mask of a region (needed with several regions). Repeatable.")
-@click.option("--alpha", type=click.FloatRange(0), default=0.01, show_default=True,
+@click.option("--alpha", type=click.FloatRange(0), default=0.001, show_default=True,
               help="Pull toward the neutral (eq. 3's alpha, in units of the rig's squared displacement scale).")
-@click.option("--mu", type=click.FloatRange(0), default=0.001, show_default=True, help="Weight decay (eq. 3's mu).")
+@click.option("--mu", type=click.FloatRange(0), default=0.0001, show_default=True, help="Weight decay (eq. 3's mu).")
 @output_option("targets", "Directory for the key OBJs, sliders.csv and targets.yaml.", required=False)
 def auto_pose(keys, landmarks, rig, landmark_vertices, masks, alpha, mu, output):
     """Pose RIG at every key frame from its landmarks: a first draft of each target key shape."""

@@ -431,7 +431,7 @@ def read_vertex_map(path, n_landmarks: int, n_vertices: int) -> tuple[np.ndarray
     return lm, vx
 
 
-def run_auto_pose(*, keys, landmarks, rig, landmark_vertices, output, masks=None, alpha=0.01, mu=0.001,
+def run_auto_pose(*, keys, landmarks, rig, landmark_vertices, output, masks=None, alpha=0.001, mu=0.0001,
                   base_dir=None) -> list[Path]:
     """Pose the rig at each key frame from its stabilized landmarks; write key OBJs, sliders and ``targets.yaml``.
 

@@ -1281,7 +1281,7 @@ def overlapping_rig(*, n_shapes: int = 12, grid=(24, 20), seed: int = 0) -> dict
 
     A ``nx x ny`` grid over a dome (x, y in [-1, 1], z up to 0.3), quads, and
     *n_shapes* smooth, compactly supported bumps: each moves the vertices
-    within radius 0.25-0.6 of a random centre along a random 3D direction
+    within radius 0.35-0.8 of a random centre along a random 3D direction
     (peak 0.1-0.3), so several shapes move most vertices ("blendshape
     interference").
 
@@ -1308,8 +1308,8 @@ def overlapping_rig(*, n_shapes: int = 12, grid=(24, 20), seed: int = 0) -> dict
     faces = np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]], -1).reshape(-1, 4)
     D = np.zeros((n_shapes, len(vertices), 3))
     for k in range(n_shapes):
-        c = rng.uniform(-0.8, 0.8, 2)
-        r = rng.uniform(0.25, 0.6)
+        c = rng.uniform(-0.7, 0.7, 2)
+        r = rng.uniform(0.35, 0.8)
         d = rng.normal(size=3)
         d *= rng.uniform(0.1, 0.3) / np.linalg.norm(d)
         fall = np.clip(1 - np.sum((vertices[:, :2] - c) ** 2, 1) / r**2, 0, None) ** 2

@@ -204,7 +204,7 @@ def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=
         Naming the file, the edit (``edits[2].pin.constraints[0].vertex``) and
         what was expected; unknown keys get the closest valid key.
     """
-    from ..edit import AttenuateEdit, Pin, PinEdit
+    from ..edit import DEFAULT_ALPHA, DEFAULT_MU, AttenuateEdit, Pin, PinEdit
     from .stagefiles import read_vertex_mask
 
     path = Path(path)
@@ -275,8 +275,8 @@ def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=
                 w0 = {str(k): float(v) for k, v in w0.items()}
             else:
                 raise ConfigError(f"{where}.w0: expected 'current' or {{expression: coefficient}}, got {w0!r}")
-            out.append(PinEdit(pins=pins, alpha=_num(body.get("alpha", 0.1), f"{where}.alpha", 0.0),
-                               mu=_num(body.get("mu", 0.001), f"{where}.mu", 0.0), w0=w0, **common))
+            out.append(PinEdit(pins=pins, alpha=_num(body.get("alpha", DEFAULT_ALPHA), f"{where}.alpha", 0.0),
+                               mu=_num(body.get("mu", DEFAULT_MU), f"{where}.mu", 0.0), w0=w0, **common))
             if out[-1].alpha + out[-1].mu <= 0:
                 raise ConfigError(f"{where}: alpha + mu must be > 0")
         else:
