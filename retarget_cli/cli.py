@@ -195,13 +195,18 @@ def pose_keys(keys, rig, poses, masks, output):
     """Pose RIG at every key frame's known slider values (automatic target keys)."""
     from .stages import run_pose
 
+    _print_outputs(run_pose(keys=keys, rig=rig, poses=poses, output=output, masks=_parse_masks(masks)))
+
+
+def _parse_masks(masks) -> dict:
+    """``REGION=FILE`` options to ``{region: file}``."""
     parsed = {}
     for m in masks:
         region, sep, path = m.partition("=")
         if not sep or not region or not path:
             raise click.BadParameter(f"expected REGION=FILE, got {m!r}", param_hint="--mask")
         parsed[region] = path
-    _print_outputs(run_pose(keys=keys, rig=rig, poses=poses, output=output, masks=parsed))
+    return parsed
 
 
 @main.command()
@@ -215,6 +220,45 @@ def apply(weights, targets, output, head_motion):
 
     written = run_apply(weights=weights, targets=targets, output=output, head_motion=head_motion, progress=progress)
     click.echo(f"{output} ({len(written)} frames)")
+
+
+@main.command()
+@click.argument("animation", type=click.Path(dir_okay=False))
+@click.argument("edits", type=click.Path(dir_okay=False))
+@output_option(None, "Edited weights (.csv or .npz, same layout as ANIMATION).")
+@click.option("--rig", type=click.Path(dir_okay=False), default=None,
+              help="rig.yaml (default: the 'rig:' named in EDITS).")
+@click.option("--objs", type=click.Path(file_okay=False), default=None,
+              help="Also write the posed OBJ sequence (frame_00000.obj, ...) into this directory.")
+def edit(animation, edits, output, rig, objs):
+    """Apply the pins and attenuations of EDITS to the rig weights in ANIMATION (CSV or NPZ).
+
+    Pins are direct manipulation (Lewis & Anjyo 2010, eq. 3); attenuations are
+    selected motion attenuation (Lewis et al. 2005, eq. 3).
+    """
+    from .stages import run_edit
+
+    _print_outputs(run_edit(animation=animation, edits=edits, rig=rig, output=output, objs=objs, progress=progress))
+
+
+@main.command("auto-pose")
+@click.argument("keys", type=click.Path(dir_okay=False))
+@click.argument("landmarks", type=click.Path(dir_okay=False))
+@click.argument("rig", type=click.Path(dir_okay=False))
+@click.option("--landmark-vertices", type=click.Path(dir_okay=False), required=True,
+              help="Rig vertex of each landmark: one id per line, or 'landmark vertex' pairs.")
+@click.option("--mask", "masks", multiple=True, metavar="REGION=FILE",
+              help="Vertex mask of a region (needed with several regions). Repeatable.")
+@click.option("--alpha", type=click.FloatRange(0), default=0.001, show_default=True,
+              help="Pull toward the neutral (eq. 3's alpha, in units of the rig's squared displacement scale).")
+@click.option("--mu", type=click.FloatRange(0), default=0.0001, show_default=True, help="Weight decay (eq. 3's mu).")
+@output_option("targets", "Directory for the key OBJs, sliders.csv and targets.yaml.", required=False)
+def auto_pose(keys, landmarks, rig, landmark_vertices, masks, alpha, mu, output):
+    """Pose RIG at every key frame from its landmarks: a first draft of each target key shape."""
+    from .stages import run_auto_pose
+
+    _print_outputs(run_auto_pose(keys=keys, landmarks=landmarks, rig=rig, landmark_vertices=landmark_vertices,
+                                 output=output, masks=_parse_masks(masks), alpha=alpha, mu=mu))
 
 
 @main.command()

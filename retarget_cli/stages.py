@@ -197,22 +197,20 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None) -> list[Pat
     (synthetic takes, or a performance recorded on a rig).
     """
     from .io.atomic import load_npz
-    from .io.obj import check_same_topology, read_obj, write_obj
-    from .io.stagefiles import read_keys, read_rig, write_targets
+    from .io.obj import write_obj
+    from .io.stagefiles import read_keys
+    from .rig import BlendshapeRig
 
     keys, rig_path, poses = _require(keys, "keys file"), _require(rig, "rig file"), _require(poses, "poses file")
-    kf, rig = read_keys(keys), read_rig(rig_path)
+    kf, rig = read_keys(keys), BlendshapeRig.load(rig_path)
     data = load_npz(poses)
     if "curves" not in data or "names" not in data:
         raise InputError(f"{poses}: expected 'curves' (T, E) and 'names' (E,)")
     curves, names = data["curves"], [str(n) for n in data["names"]]
-    missing = [n for n in names if n not in rig.shapes]
+    missing = [n for n in names if n not in rig.index]
     if missing:
         raise InputError(f"{poses}: slider {missing[0]!r} is not a shape of {rig_path}")
-    neutral = read_obj(rig.neutral)
-    shapes = [read_obj(rig.shapes[n]) for n in names]
-    check_same_topology([neutral, *shapes])
-    D = np.stack([s.vertices - neutral.vertices for s in shapes])
+    cols = [rig.index[n] for n in names]
     out = Path(output)
     written, regions = [], {}
     for name, reg in kf.regions.items():
@@ -221,9 +219,19 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None) -> list[Pat
             if f >= len(curves):
                 raise InputError(f"{keys}: key frame {f} is outside {poses} ({len(curves)} frames)")
             rel = f"{name}/key_{f:05d}.obj"
-            write_obj(out / rel, neutral, neutral.vertices + np.tensordot(curves[f], D, axes=1))
+            w = np.zeros(rig.n_sliders)
+            w[cols] = curves[f]
+            write_obj(out / rel, rig.template, rig.evaluate(w))
             regions[name]["keys"][f] = rel
             written.append(out / rel)
+    written.append(_write_targets_yaml(out, kf, keys, regions, masks, base_dir, rig_path, "pose-keys"))
+    return written
+
+
+def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path, command) -> Path:
+    """Add the region masks to *regions* and write ``out/targets.yaml`` (neutral = the rig's)."""
+    from .io.stagefiles import read_rig, write_targets
+
     masks = masks or {}
     unknown = sorted(set(masks) - set(kf.regions))
     if unknown:
@@ -236,10 +244,9 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None) -> list[Pat
         mask = Path(base_dir or ".") / mask
         _require(mask, "region mask")
         regions[name]["vertices"] = os.path.relpath(mask.resolve(), out.resolve())
-    nrel = os.path.relpath(rig.neutral.resolve(), out.resolve())
-    write_targets(out / "targets.yaml", regions, neutral=nrel, comment="Written by retarget pose-keys.")
-    written.append(out / "targets.yaml")
-    return written
+    nrel = os.path.relpath(read_rig(rig_path).neutral.resolve(), out.resolve())
+    write_targets(out / "targets.yaml", regions, neutral=nrel, comment=f"Written by retarget {command}.")
+    return out / "targets.yaml"
 
 
 # --------------------------------------------------------------------------- apply
@@ -322,4 +329,151 @@ def digest_files(paths) -> str:
     return h.hexdigest()
 
 
-__all__ = ["run_track", "run_select", "run_decompose", "run_pose", "run_apply", "__version__", "json"]
+# --------------------------------------------------------------------------- edit, auto-pose
+
+
+def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path]:
+    """Write ``frame_%05d.obj`` (named by frame number) for each pose; remove stale frames of earlier runs."""
+    from .io.obj import write_obj
+
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    with progress(len(W), "objs") as bar:
+        for start in range(0, len(W), 64):
+            for f, pos in zip(frames[start:start + 64], rig.evaluate(W[start:start + 64])):
+                write_obj(out / f"frame_{int(f):05d}.obj", rig.template, pos)
+                written.append(out / f"frame_{int(f):05d}.obj")
+            bar.update(min(64, len(W) - start))
+    keep = {p.name for p in written}
+    for stale in out.iterdir():
+        if FRAME_RE.match(stale.name) and stale.name not in keep:
+            stale.unlink()
+    return written
+
+
+def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_progress) -> list[Path]:
+    """Apply ``edits.yaml`` (pins and attenuations over frame ranges) to rig weights over time.
+
+    The rig is *rig* or else the ``rig:`` named in ``edits.yaml``. Writes the
+    edited weights to *output* (CSV or NPZ, by extension) and, with *objs*,
+    the posed OBJ sequence (``frame_%05d.obj``, by frame number).
+    """
+    from .edit import apply_edits
+    from .io.editfiles import edits_rig, read_animation, read_edits, write_animation
+    from .rig import BlendshapeRig
+
+    animation, edits = _require(animation, "animation"), _require(edits, "edits file")
+    rig = rig or edits_rig(edits)
+    if rig is None:
+        raise InputError(f"{edits}: no rig given; add 'rig: path/to/rig.yaml' to the file or pass --rig")
+    rig_path = _require(rig, "rig file")
+    check_not_input(output, [animation, edits, rig_path])
+    r = BlendshapeRig.load(rig_path)
+    names, W_in, frames, times = read_animation(animation)
+    unknown = [n for n in names if n not in r.index]
+    if unknown:
+        from .config import closest
+
+        hint = closest(unknown[0], r.names)
+        raise InputError(f"{animation}: slider {unknown[0]!r} is not a shape of {rig_path}"
+                         + (f"; did you mean {hint!r}?" if hint else ""))
+    order = names + [n for n in r.names if n not in names]
+    W = np.zeros((len(W_in), r.n_sliders))
+    W[:, [r.index[n] for n in names]] = W_in
+    todo = read_edits(edits, n_vertices=r.n_vertices, frames=frames, expressions=list(r.library))
+    try:
+        W = apply_edits(r, W, frames, todo)
+    except ValueError as exc:
+        raise InputError(f"{edits}: {exc}") from exc
+    write_animation(output, order, W[:, [r.index[n] for n in order]], frames, times,
+                    meta={"edits": Path(edits).name, "edits_sha256": sha256_file(edits), "rig": Path(rig_path).name})
+    written = [Path(output)]
+    if objs:
+        written += _write_frames(Path(objs), r, W, frames, progress)
+    log.info("applied %d edits to %d frames", len(todo), len(W))
+    return written
+
+
+def read_vertex_map(path, n_landmarks: int, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Landmark-to-vertex map: one vertex id per line (line i = landmark i), or
+    ``landmark vertex`` pairs (a subset); ``#`` starts a comment.
+
+    Returns
+    -------
+    landmarks : ndarray of int, shape (L,)
+    vertices : ndarray of int, shape (L,)
+    """
+    path = _require(path, "landmark-vertex map")
+    rows = []
+    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        tok = line.split("#", 1)[0].replace(",", " ").split()
+        if not tok:
+            continue
+        if len(tok) > 2 or not all(t.lstrip("-").isdigit() for t in tok):
+            raise InputError(f"{path}:{i}: expected 'vertex' or 'landmark vertex' (integers), got {line.strip()!r}")
+        rows.append([int(t) for t in tok])
+    if not rows or len({len(r) for r in rows}) != 1:
+        raise InputError(f"{path}: expected one vertex id per landmark, or 'landmark vertex' pairs on every line")
+    arr = np.array(rows, dtype=np.int64)
+    lm, vx = (np.arange(len(arr)), arr[:, 0]) if arr.shape[1] == 1 else (arr[:, 0], arr[:, 1])
+    if arr.shape[1] == 1 and len(arr) != n_landmarks:
+        raise InputError(f"{path}: lists {len(arr)} vertices but the landmarks file has {n_landmarks} landmarks")
+    bad = lm[(lm < 0) | (lm >= n_landmarks)]
+    if bad.size:
+        raise InputError(f"{path}: landmark {int(bad[0])} does not exist ({n_landmarks} landmarks)")
+    badv = vx[(vx < 0) | (vx >= n_vertices)]
+    if badv.size:
+        raise InputError(f"{path}: vertex {int(badv[0])} is outside the mesh ({n_vertices} vertices, ids 0-{n_vertices - 1})")
+    if len(set(lm.tolist())) != len(lm):
+        raise InputError(f"{path}: a landmark is mapped twice")
+    return lm, vx
+
+
+def run_auto_pose(*, keys, landmarks, rig, landmark_vertices, output, masks=None, alpha=0.001, mu=0.0001,
+                  base_dir=None) -> list[Path]:
+    """Pose the rig at each key frame from its stabilized landmarks; write key OBJs, sliders and ``targets.yaml``.
+
+    Per key frame: :func:`retarget_cli.edit.auto_pose` (orthographic camera fit
+    + direct manipulation with every mapped landmark as a pin, weighted by the
+    landmark's confidence). Outputs in *output*: ``REGION/key_%05d.obj``,
+    ``sliders.csv`` (the animation CSV format, one row per key frame) and
+    ``targets.yaml`` ready for ``apply``.
+    """
+    from .edit import auto_pose
+    from .io.editfiles import write_animation
+    from .io.landmarks import load_landmarks
+    from .io.obj import write_obj
+    from .io.stagefiles import read_keys
+    from .rig import BlendshapeRig
+
+    keys, landmarks, rig_path = _require(keys, "keys file"), _require(landmarks, "landmarks file"), _require(rig, "rig file")
+    kf, lm, r = read_keys(keys), load_landmarks(landmarks), BlendshapeRig.load(rig_path)
+    lm_ids, vx = read_vertex_map(landmark_vertices, lm.n_points, r.n_vertices)
+    out = Path(output)
+    frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
+    bad = [f for f in frames if f >= lm.n_frames]
+    if bad:
+        raise InputError(f"{keys}: key frame {bad[0]} is outside {landmarks} ({lm.n_frames} frames)")
+    poses, written = {}, []
+    for f in frames:
+        res = auto_pose(r, vx, lm.stabilized[f, lm_ids].astype(np.float64), weights=lm.confidence[f, lm_ids],
+                        alpha=alpha, mu=mu)
+        poses[f] = res["w"]
+        log.info("key %d: rms %.3f px after %d iterations, scale %.4g", f, res["rms"], res["iterations"], res["scale"])
+    regions = {}
+    for name, reg in kf.regions.items():
+        regions[name] = {"keys": {}}
+        for f in reg["frames"]:
+            rel = f"{name}/key_{f:05d}.obj"
+            write_obj(out / rel, r.template, r.evaluate(poses[f]))
+            regions[name]["keys"][f] = rel
+            written.append(out / rel)
+    write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames)
+    written.append(out / "sliders.csv")
+    written.append(_write_targets_yaml(out, kf, keys, regions, masks, base_dir, rig_path, "auto-pose"))
+    return written
+
+
+__all__ = ["run_track", "run_select", "run_decompose", "run_pose", "run_apply", "run_edit", "run_auto_pose", "__version__", "json"]

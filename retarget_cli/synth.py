@@ -58,6 +58,8 @@ __all__ = [
     "target_rig",
     "target_animation",
     "write_take",
+    "overlapping_rig",
+    "landmark_rig",
 ]
 
 #: Expression names, in column order of every curve and delta array.
@@ -1248,3 +1250,90 @@ pose:                # the synthetic artist: the rig posed at each key frame's t
 apply:
   head_motion: none
 """
+
+
+# --------------------------------------------------------------------------
+# rigs for the editing tools (retarget edit, retarget auto-pose)
+# --------------------------------------------------------------------------
+
+
+def overlapping_rig(*, n_shapes: int = 12, grid=(24, 20), seed: int = 0) -> dict:
+    """A delta blendshape rig whose shapes overlap, as real rigs' do (Lewis et al. 2005, §1).
+
+    A ``nx x ny`` grid over a dome (x, y in [-1, 1], z up to 0.3), quads, and
+    *n_shapes* smooth, compactly supported bumps: each moves the vertices
+    within radius 0.35-0.8 of a random centre along a random 3D direction
+    (peak 0.1-0.3), so several shapes move most vertices ("blendshape
+    interference").
+
+    Parameters
+    ----------
+    n_shapes : int
+    grid : (int, int)
+        Vertices per row and column; ``(125, 200)`` gives 25,000 vertices.
+    seed : int
+
+    Returns
+    -------
+    dict
+        ``vertices`` (N, 3), ``faces`` (F, 4), ``deltas`` (n_shapes, N, 3),
+        ``names`` (``s00``, ``s01``, ...).
+    """
+    seed = _check_seed(seed)
+    n_shapes = _check_int("n_shapes", n_shapes, 1)
+    nx, ny = (_check_int("grid", g, 2) for g in grid)
+    rng = np.random.default_rng([seed, 7])
+    u, v = np.meshgrid(np.linspace(-1, 1, nx), np.linspace(-1, 1, ny))
+    vertices = np.stack([u.ravel(), v.ravel(), 0.3 * (1 - 0.5 * (u**2 + v**2)).ravel()], 1)
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    faces = np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]], -1).reshape(-1, 4)
+    D = np.zeros((n_shapes, len(vertices), 3))
+    for k in range(n_shapes):
+        c = rng.uniform(-0.7, 0.7, 2)
+        r = rng.uniform(0.35, 0.8)
+        d = rng.normal(size=3)
+        d *= rng.uniform(0.1, 0.3) / np.linalg.norm(d)
+        fall = np.clip(1 - np.sum((vertices[:, :2] - c) ** 2, 1) / r**2, 0, None) ** 2
+        D[k] = fall[:, None] * d
+    names = tuple(f"s{k:02d}" for k in range(n_shapes))
+    return {"vertices": vertices, "faces": faces, "deltas": D, "names": names}
+
+
+def landmark_rig(*, n_extra: int = 60, seed: int = 0) -> dict:
+    """A 3D rig whose landmark vertices reproduce the source face's 2D landmarks.
+
+    The 68 source landmarks (:func:`source_neutral`, flipped to y up) are
+    lifted onto a dome (z up to 0.3) and each expression's source
+    displacement (:func:`source_deltas`) gets a small depth component, so an
+    orthographic view of the rig posed at ``c(t)`` is the source face's
+    landmarks for the same curves. *n_extra* further vertices (a ring
+    around the face, no expression moves them) are added and all vertices
+    shuffled, so the landmark-to-vertex map is not the identity.
+
+    Returns
+    -------
+    dict
+        ``vertices`` (N, 3), ``faces`` (F, 3) triangles, ``deltas`` (E, N, 3)
+        in :data:`EXPRESSIONS` order, ``names``, ``landmark_vertices`` (68,)
+        the vertex of each landmark.
+    """
+    from scipy.spatial import Delaunay
+
+    seed = _check_seed(seed)
+    rng = np.random.default_rng([seed, 8])
+    n = source_neutral() * np.array([1.0, -1.0])
+    d = source_deltas() * np.array([1.0, -1.0])
+    ang = np.linspace(0, 2 * np.pi, n_extra, endpoint=False)
+    ring = 0.75 * np.column_stack([np.cos(ang), np.sin(ang)])
+    xy = np.vstack([n, ring])
+    z = 0.3 * np.clip(1 - np.sum(xy**2, 1) / 0.75**2, 0, None)
+    V = np.column_stack([xy, z])
+    dz = 0.5 * np.linalg.norm(d, axis=2) * rng.uniform(-1, 1, (len(d), 1))
+    D = np.zeros((len(d), len(V), 3))
+    D[:, :68, :2] = d
+    D[:, :68, 2] = dz
+    perm = rng.permutation(len(V))  # new vertex i is old vertex perm[i]
+    inv = np.argsort(perm)
+    faces = inv[Delaunay(xy).simplices]
+    return {"vertices": V[perm], "faces": faces, "deltas": D[:, perm], "names": EXPRESSIONS,
+            "landmark_vertices": inv[:68]}

@@ -264,31 +264,117 @@ def read_vertex_mask(path: Path, n_vertices: int) -> np.ndarray:
 
 @dataclass
 class Rig:
-    """A blendshape rig: neutral OBJ plus named shapes (full meshes at weight 1)."""
+    """A blendshape rig as listed in ``rig.yaml``; every path absolute.
+
+    Attributes
+    ----------
+    neutral : Path
+        Neutral OBJ (the rig's ``f0``).
+    shapes : dict
+        Shape name to OBJ path, in file order.
+    range : tuple
+        Default slider range ``(lo, hi)``.
+    ranges : dict
+        Shape name to its ``(lo, hi)`` (every shape; the default where not overridden).
+    shapes_are : {"absolute", "delta"}
+        ``absolute``: each OBJ is the whole face at weight 1 (delta = shape - neutral,
+        Lewis 2005 §3); ``delta``: each OBJ's vertices are the offsets themselves.
+    library : dict
+        Expression name to ``{slider: weight}`` over a subset of the sliders.
+    correctives : object
+        The ``correctives`` value, unparsed (for the inverse rig).
+    """
 
     path: Path
     neutral: Path
     shapes: dict
     range: tuple = (0.0, 1.0)
+    ranges: dict = field(default_factory=dict)
+    shapes_are: str = "absolute"
+    library: dict = field(default_factory=dict)
+    correctives: object = None
 
     def files(self) -> list[Path]:
         return [self.neutral, *self.shapes.values()]
 
 
+RIG_KEYS = ("neutral", "shapes", "shapes_are", "range", "ranges", "library", "correctives")
+
+
+def _rig_range(value, where: str) -> tuple[float, float]:
+    """``t`` (meaning ``[0, t]``) or ``[lo, hi]`` to ``(lo, hi)``."""
+    num = (int, float)
+    if isinstance(value, num) and not isinstance(value, bool):
+        value = [0.0, value]
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, num) and not isinstance(v, bool) for v in value) or not value[0] < value[1]):
+        raise InputError(f"{where}: expected a number t (range [0, t]) or [lo, hi] with lo < hi, got {value!r}")
+    return float(value[0]), float(value[1])
+
+
 def read_rig(path: str | os.PathLike) -> Rig:
-    """Read ``rig.yaml``: ``neutral``, ``shapes: {name: obj}``, optional ``range: [lo, hi]``."""
+    """Read ``rig.yaml``.
+
+    Keys: ``neutral``, ``shapes: {name: obj}``, optional ``shapes_are``
+    (``absolute`` or ``delta``), ``range`` (``t`` or ``[lo, hi]``, every
+    slider), ``ranges`` (per-shape overrides), ``library`` (``{expression:
+    {slider: weight}}``) and ``correctives`` (kept unparsed).
+
+    Raises
+    ------
+    InputError, ConfigError
+        Naming the file and the key; unknown keys and slider names get the
+        closest valid name as a suggestion.
+    """
+    from ..config import closest, unknown_key_error
+
     path = Path(path)
     data = _load_yaml(path, "rig")
     if not isinstance(data, dict) or not isinstance(data.get("neutral"), str) or not isinstance(data.get("shapes"), dict):
         raise InputError(f"{path}: expected 'neutral: file.obj' and 'shapes: {{name: file.obj}}'")
-    unknown = set(data) - {"neutral", "shapes", "range"}
-    if unknown:
-        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected neutral, shapes, range")
-    rng = tuple(data.get("range", (0.0, 1.0)))
-    return Rig(path, path.parent / data["neutral"], {str(k): path.parent / v for k, v in data["shapes"].items()}, rng)
+    for key in data:
+        if key not in RIG_KEYS:
+            raise unknown_key_error(str(path), str(key), RIG_KEYS)
+    if not data["shapes"] or not all(isinstance(v, str) for v in data["shapes"].values()):
+        raise InputError(f"{path}: shapes: expected a non-empty mapping of shape names to OBJ files")
+    shapes = {str(k): path.parent / v for k, v in data["shapes"].items()}
+    shapes_are = data.get("shapes_are", "absolute")
+    if shapes_are not in ("absolute", "delta"):
+        raise InputError(f"{path}: shapes_are: expected 'absolute' or 'delta', got {shapes_are!r}")
+    rng = _rig_range(data.get("range", [0.0, 1.0]), f"{path}: range")
+
+    def check_name(name, where):
+        if str(name) not in shapes:
+            hint = closest(str(name), shapes)
+            raise InputError(f"{where}: unknown slider {name!r}" + (f"; did you mean {hint!r}?" if hint else
+                                                                    f"; the rig's sliders are {', '.join(shapes)}"))
+        return str(name)
+
+    over = data.get("ranges") or {}
+    if not isinstance(over, dict):
+        raise InputError(f"{path}: ranges: expected a mapping of slider names to t or [lo, hi]")
+    ranges = {n: rng for n in shapes}
+    for name, value in over.items():
+        ranges[check_name(name, f"{path}: ranges")] = _rig_range(value, f"{path}: ranges.{name}")
+    library = {}
+    lib = data.get("library") or {}
+    if not isinstance(lib, dict):
+        raise InputError(f"{path}: library: expected {{expression: {{slider: weight}}}}")
+    for expr, vec in lib.items():
+        where = f"{path}: library.{expr}"
+        if not isinstance(vec, dict) or not vec:
+            raise InputError(f"{where}: expected a non-empty mapping of slider names to weights")
+        library[str(expr)] = {}
+        for name, value in vec.items():
+            name = check_name(name, where)
+            lo, hi = ranges[name]
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+                raise InputError(f"{where}.{name}: expected a number in the slider's range [{lo:g}, {hi:g}], got {value!r}")
+            library[str(expr)][name] = float(value)
+    return Rig(path, path.parent / data["neutral"], shapes, rng, ranges, shapes_are, library, data.get("correctives"))
 
 
 __all__ = [
-    "Keys", "Rig", "Targets", "dumps_json", "load_weights", "read_keys", "read_rig", "read_targets",
+    "Keys", "RIG_KEYS", "Rig", "Targets", "dumps_json", "load_weights", "read_keys", "read_rig", "read_targets",
     "read_vertex_mask", "save_weights", "targets_yaml", "weights_csv", "write_keys", "write_targets",
 ]

@@ -1,0 +1,309 @@
+"""Files of the rig-editing commands: rig animations (CSV or NPZ) and ``edits.yaml``.
+
+Formats are documented in the README's "Rig editing" section.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..config import closest, unknown_key_error
+from ..errors import ConfigError, InputError
+from .atomic import load_npz, savez, write_text
+
+# --------------------------------------------------------------------------- animations
+
+
+def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read rig weights over time.
+
+    CSV: a header with ``frame``, optionally ``time``, and one column per
+    slider; frames are strictly increasing integers. NPZ: ``curves`` (T, E)
+    and ``names`` (E,) (what ``retarget synth`` writes as ``truth.npz``),
+    optionally ``frames`` (T,); other members are ignored.
+
+    Returns
+    -------
+    names : list of str
+    W : ndarray, shape (T, E)
+    frames : ndarray, shape (T,), int64
+    times : ndarray, shape (T,) or None
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: animation file not found")
+    times = None
+    if path.suffix.lower() == ".npz":
+        data = load_npz(path)
+        if "curves" not in data or "names" not in data:
+            raise InputError(f"{path}: expected 'curves' (T, E) and 'names' (E,)")
+        W, names = np.asarray(data["curves"], dtype=np.float64), [str(n) for n in data["names"]]
+        if W.ndim != 2 or W.shape[1] != len(names):
+            raise InputError(f"{path}: 'curves' must be (T, {len(names)}) for {len(names)} names, got {W.shape}")
+        frames = np.asarray(data.get("frames", np.arange(len(W))), dtype=np.int64)
+    elif path.suffix.lower() == ".csv":
+        lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()]
+        if not lines:
+            raise InputError(f"{path}: empty CSV")
+        header = [h.strip() for h in lines[0].split(",")]
+        if "frame" not in header:
+            raise InputError(f"{path}: the header needs a 'frame' column, got {','.join(header)}")
+        try:
+            rows = np.array([[float(x) for x in ln.split(",")] for ln in lines[1:]], dtype=np.float64)
+        except ValueError as exc:
+            raise InputError(f"{path}: expected numbers after the header ({exc})") from exc
+        if rows.ndim != 2 or rows.shape[1] != len(header) or not len(rows):
+            raise InputError(f"{path}: every row needs {len(header)} values (one per header column)")
+        fcol = rows[:, header.index("frame")]
+        if np.any(fcol % 1 != 0):
+            raise InputError(f"{path}: 'frame' values must be integers")
+        frames = fcol.astype(np.int64)
+        if "time" in header:
+            times = rows[:, header.index("time")]
+        names = [h for h in header if h not in ("frame", "time")]
+        W = rows[:, [header.index(n) for n in names]]
+    else:
+        raise InputError(f"{path}: expected a .csv or .npz animation")
+    if len(set(names)) != len(names):
+        raise InputError(f"{path}: slider names repeat")
+    if frames.shape != (len(W),) or np.any(np.diff(frames) <= 0):
+        raise InputError(f"{path}: frames must be strictly increasing, one per row")
+    if not np.all(np.isfinite(W)):
+        t = int(np.argwhere(~np.isfinite(W))[0, 0])
+        raise InputError(f"{path}: frame {int(frames[t])} has a non-finite weight")
+    return names, W, frames, times
+
+
+def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, meta: dict | None = None) -> None:
+    """Write rig weights over time, CSV or NPZ by the file's extension (the formats of :func:`read_animation`)."""
+    path = Path(path)
+    W = np.asarray(W, dtype=np.float64)
+    if path.suffix.lower() == ".npz":
+        arrays = {"curves": W, "names": np.asarray(names, dtype=str), "frames": np.asarray(frames, dtype=np.int64),
+                  "meta": np.array(json.dumps({"version": __version__, **(meta or {})}, sort_keys=True))}
+        savez(path, arrays)
+        return
+    if path.suffix.lower() != ".csv":
+        raise InputError(f"{path}: expected a .csv or .npz output")
+    head = ["frame"] + (["time"] if times is not None else []) + list(names)
+    out = [",".join(head)]
+    for t, f in enumerate(frames):
+        cells = [str(int(f))] + ([f"{times[t]:.6f}"] if times is not None else []) + [f"{v:.6f}" for v in W[t]]
+        out.append(",".join(cells))
+    write_text(path, "\n".join(out) + "\n")
+
+
+# --------------------------------------------------------------------------- edits.yaml
+
+EDIT_KINDS = ("pin", "attenuate")
+COMMON_KEYS = ("frames", "ease_in", "ease_out", "solve")
+PIN_KEYS = COMMON_KEYS + ("alpha", "mu", "w0", "constraints")
+ATTENUATE_KEYS = COMMON_KEYS + ("alpha", "reference", "select")
+CONSTRAINT_KEYS = ("vertex", "axes", "weight", "position", "offset", "frame", "to_vertex")
+SELECT_KEYS = ("vertices", "axes")
+
+
+def _int(value, where, minimum=None):
+    if isinstance(value, bool) or not isinstance(value, int) or (minimum is not None and value < minimum):
+        more = f" >= {minimum}" if minimum is not None else ""
+        raise ConfigError(f"{where}: expected an integer{more}, got {value!r}")
+    return value
+
+
+def _num(value, where, minimum=None):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (minimum is not None and value < minimum):
+        more = f" >= {minimum:g}" if minimum is not None else ""
+        raise ConfigError(f"{where}: expected a number{more}, got {value!r}")
+    return float(value)
+
+
+def _vec3(value, where):
+    if not isinstance(value, list) or len(value) != 3:
+        raise ConfigError(f"{where}: expected [x, y, z], got {value!r}")
+    return tuple(_num(v, where) for v in value)
+
+
+def _axes(value, where):
+    from ..rig import parse_axes
+
+    try:
+        parse_axes(value)
+    except ValueError:
+        raise ConfigError(f"{where}: expected a combination of x, y, z such as 'xy', got {value!r}") from None
+    return value
+
+
+def _keys(d, valid, where):
+    if not isinstance(d, dict):
+        raise ConfigError(f"{where}: expected a mapping, got {d!r}")
+    for k in d:
+        if k not in valid:
+            raise unknown_key_error(where, str(k), valid)
+
+
+def _vertex(value, where, n_vertices):
+    _int(value, where)
+    if not 0 <= value < n_vertices:
+        raise ConfigError(f"{where}: vertex {value} is outside the mesh ({n_vertices} vertices, ids 0-{n_vertices - 1})")
+    return value
+
+
+def _frame(value, where, frames):
+    _int(value, where)
+    if value not in frames:
+        raise ConfigError(f"{where}: frame {value} is not in the animation (frames {frames[0]}-{frames[-1]})")
+    return value
+
+
+def _load_edits_yaml(path: Path):
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: edits file not found") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: invalid YAML ({exc})") from exc
+    _keys(data, ("rig", "edits"), str(path))
+    if "rig" in data and not isinstance(data["rig"], str):
+        raise ConfigError(f"{path}: rig: expected the path of a rig.yaml, got {data['rig']!r}")
+    return data
+
+
+def edits_rig(path: str | os.PathLike) -> Path | None:
+    """The ``rig:`` of an ``edits.yaml`` (relative to the file), or None."""
+    path = Path(path)
+    rig = _load_edits_yaml(path).get("rig")
+    return path.parent / rig if rig else None
+
+
+def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=()) -> list:
+    """Read and check ``edits.yaml`` against a rig and an animation.
+
+    Parameters
+    ----------
+    n_vertices : int
+        The rig's vertex count (pin and selection ids must lie below it).
+    frames : sequence of int
+        The animation's frames (edit ranges must overlap them).
+    expressions : sequence of str
+        The rig library's expression names (for ``w0``).
+
+    Returns
+    -------
+    list of :class:`~retarget_cli.edit.PinEdit` and :class:`~retarget_cli.edit.AttenuateEdit`
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, the edit (``edits[2].pin.constraints[0].vertex``) and
+        what was expected; unknown keys get the closest valid key.
+    """
+    from ..edit import DEFAULT_ALPHA, DEFAULT_MU, AttenuateEdit, Pin, PinEdit
+    from .stagefiles import read_vertex_mask
+
+    path = Path(path)
+    data = _load_edits_yaml(path)
+    frames = [int(f) for f in frames]
+    items = data.get("edits")
+    if not isinstance(items, list) or not items:
+        raise ConfigError(f"{path}: edits: expected a non-empty list of '- pin: {{...}}' or '- attenuate: {{...}}'")
+    out = []
+    for i, item in enumerate(items):
+        where = f"{path}: edits[{i}]"
+        if not isinstance(item, dict) or len(item) != 1:
+            raise ConfigError(f"{where}: expected one of 'pin:' or 'attenuate:' with its settings")
+        kind, body = next(iter(item.items()))
+        if kind not in EDIT_KINDS:
+            raise unknown_key_error(where, str(kind), EDIT_KINDS)
+        where = f"{where}.{kind}"
+        _keys(body, PIN_KEYS if kind == "pin" else ATTENUATE_KEYS, where)
+        fr = body.get("frames")
+        if isinstance(fr, int) and not isinstance(fr, bool):
+            fr = [fr, fr]
+        if not isinstance(fr, list) or len(fr) != 2 or not all(isinstance(f, int) and not isinstance(f, bool)
+                                                               for f in fr) or fr[0] > fr[1]:
+            raise ConfigError(f"{where}.frames: expected a frame or [first, last] (inclusive), got {fr!r}")
+        ease_in = _int(body.get("ease_in", 0), f"{where}.ease_in", 0)
+        ease_out = _int(body.get("ease_out", 0), f"{where}.ease_out", 0)
+        if fr[1] + ease_out < frames[0] or fr[0] - ease_in > frames[-1]:
+            raise ConfigError(f"{where}.frames: {fr} is outside the animation (frames {frames[0]}-{frames[-1]})")
+        solve = body.get("solve", "bounded")
+        if solve not in ("bounded", "closed-form"):
+            hint = closest(str(solve), ("bounded", "closed-form"))
+            raise ConfigError(f"{where}.solve: expected 'bounded' or 'closed-form', got {solve!r}"
+                              + (f"; did you mean {hint!r}?" if hint else ""))
+        common = dict(frames=(fr[0], fr[1]), ease_in=ease_in, ease_out=ease_out, bounded=solve == "bounded",
+                      where=where)
+        if kind == "pin":
+            cons = body.get("constraints")
+            if not isinstance(cons, list) or not cons:
+                raise ConfigError(f"{where}.constraints: expected a non-empty list of {{vertex: id, position: [x, y, z]}}")
+            pins = []
+            for j, c in enumerate(cons):
+                cw = f"{where}.constraints[{j}]"
+                _keys(c, CONSTRAINT_KEYS, cw)
+                if "vertex" not in c:
+                    raise ConfigError(f"{cw}: 'vertex' is required")
+                if "position" in c and any(k in c for k in ("offset", "frame", "to_vertex")):
+                    raise ConfigError(f"{cw}: 'position' is absolute; it cannot be combined with offset, frame or to_vertex")
+                pins.append(Pin(
+                    vertex=_vertex(c["vertex"], f"{cw}.vertex", n_vertices),
+                    axes=_axes(c.get("axes", "xyz"), f"{cw}.axes"),
+                    weight=_num(c.get("weight", 1.0), f"{cw}.weight", 0.0),
+                    position=_vec3(c["position"], f"{cw}.position") if "position" in c else None,
+                    offset=_vec3(c["offset"], f"{cw}.offset") if "offset" in c else (0.0, 0.0, 0.0),
+                    frame=_frame(c["frame"], f"{cw}.frame", frames) if "frame" in c else None,
+                    to_vertex=_vertex(c["to_vertex"], f"{cw}.to_vertex", n_vertices) if "to_vertex" in c else None,
+                ))
+            w0 = body.get("w0", "current")
+            if w0 == "current":
+                w0 = None
+            elif isinstance(w0, dict) and w0:
+                for name, coef in w0.items():
+                    if name not in expressions:
+                        hint = closest(str(name), expressions)
+                        known = ", ".join(expressions) or "no expressions"
+                        raise ConfigError(f"{where}.w0: unknown expression {name!r}"
+                                          + (f"; did you mean {hint!r}?" if hint else f"; the rig's library has {known}"))
+                    _num(coef, f"{where}.w0.{name}")
+                w0 = {str(k): float(v) for k, v in w0.items()}
+            else:
+                raise ConfigError(f"{where}.w0: expected 'current' or {{expression: coefficient}}, got {w0!r}")
+            out.append(PinEdit(pins=pins, alpha=_num(body.get("alpha", DEFAULT_ALPHA), f"{where}.alpha", 0.0),
+                               mu=_num(body.get("mu", DEFAULT_MU), f"{where}.mu", 0.0), w0=w0, **common))
+            if out[-1].alpha + out[-1].mu <= 0:
+                raise ConfigError(f"{where}: alpha + mu must be > 0")
+        else:
+            sel = body.get("select")
+            if not isinstance(sel, list) or not sel:
+                raise ConfigError(f"{where}.select: expected a non-empty list of {{vertices: [ids], axes: xyz}}")
+            groups = []
+            for j, g in enumerate(sel):
+                gw = f"{where}.select[{j}]"
+                _keys(g, SELECT_KEYS, gw)
+                verts = g.get("vertices")
+                if isinstance(verts, str):
+                    mask_file = path.parent / verts
+                    verts = [int(v) for v in np.flatnonzero(read_vertex_mask(mask_file, n_vertices) > 0)]
+                    if not verts:
+                        raise ConfigError(f"{gw}.vertices: {mask_file} selects no vertex")
+                if not isinstance(verts, list) or not verts:
+                    raise ConfigError(f"{gw}.vertices: expected a list of vertex ids or a vertex-mask file")
+                verts = [_vertex(v, f"{gw}.vertices", n_vertices) for v in verts]
+                groups.append((verts, _axes(g.get("axes", "xyz"), f"{gw}.axes")))
+            ref = body.get("reference", "start")
+            if ref not in ("start", "neutral"):
+                _frame(ref, f"{where}.reference", frames)
+            alpha = body.get("alpha")
+            alpha = None if alpha is None else _num(alpha, f"{where}.alpha", 0.0)
+            out.append(AttenuateEdit(select=groups, alpha=alpha, reference=ref, **common))
+    return out
+
+
+__all__ = ["edits_rig", "read_animation", "read_edits", "write_animation"]
