@@ -275,3 +275,57 @@ def apply_transforms(transforms, positions) -> np.ndarray:
     if A.shape[0] != X.shape[0]:
         raise ShapeError(f"transforms: expected {X.shape[0]} frames, got {A.shape[0]}")
     return np.einsum("tij,tnj->tni", A[:, :, :3], X) + A[:, None, :, 3]
+
+
+def morph_targets(key_sets, region_masks, base) -> np.ndarray:
+    """Express the region blend as morph targets on *base* (for glTF).
+
+    With region masks ``m_r`` (rows of :func:`region_weights` without the
+    rest) the blended frame is
+
+    .. math:: V = (1 - Σ_r m_r) V_0 + Σ_r m_r Σ_k w_{rk} B_{rk}
+              = V_0 + Σ_r Σ_k w_{rk}\\, m_r (B_{rk} - V_0) + Σ_r (Σ_k w_{rk} - 1)\\, m_r V_0
+
+    so each region contributes one target per key, ``m_r (B_rk − V_0)``, and
+    one "rest" target ``m_r V_0`` weighted by ``Σ_k w_rk − 1`` (non-negative
+    weights need not sum to 1). The result equals :func:`blend_regions` exactly.
+
+    Parameters
+    ----------
+    key_sets : sequence of ndarray, each shape (K_r, N, 3)
+    region_masks : ndarray, shape (R, N), or None for one region covering every vertex
+    base : ndarray, shape (N, 3)
+        ``V_0``: the neutral (or, with one region and no neutral, its first key).
+
+    Returns
+    -------
+    ndarray, shape (Σ_r K_r + R, N, 3)
+        Per region: its K_r key targets, then its rest target.
+    """
+    V0 = check_array(base, "base", ndim=2)
+    sets = [check_array(B, "key_vertices", ndim=3) for B in key_sets]
+    M = np.ones((1, V0.shape[0])) if region_masks is None else check_array(region_masks, "region_masks", ndim=2)
+    if M.shape != (len(sets), V0.shape[0]):
+        raise ShapeError(f"region_masks: expected shape ({len(sets)}, {V0.shape[0]}), got {M.shape}")
+    out = []
+    for B, m in zip(sets, M):
+        if B.shape[1:] != V0.shape:
+            raise ShapeError(f"key_vertices: expected shape (K, {V0.shape[0]}, 3), got {B.shape}")
+        out.append(m[None, :, None] * (B - V0[None]))
+        out.append((m[:, None] * V0)[None])
+    return np.concatenate(out)
+
+
+def morph_weights(weights) -> np.ndarray:
+    """Morph weights matching :func:`morph_targets`: per region ``[w_r1..w_rK, Σ_k w_rk − 1]``.
+
+    Parameters
+    ----------
+    weights : sequence of ndarray, each shape (T, K_r)
+
+    Returns
+    -------
+    ndarray, shape (T, Σ_r K_r + R)
+    """
+    Ws = [check_array(W, "weights", ndim=2) for W in weights]
+    return np.concatenate([np.concatenate([W, W.sum(1, keepdims=True) - 1.0], 1) for W in Ws], 1)

@@ -130,3 +130,22 @@ def test_head_motion_recovers_a_known_similarity(reference):
     s = np.hypot(rel[:, 0, 0], rel[:, 1, 0])
     np.testing.assert_allclose(out[..., 2] - P[2], s[:, None] * (X[:, 2] - P[2]), atol=1e-9)
     np.testing.assert_allclose(out[reference], X, atol=1e-9)
+
+
+def test_morph_targets_reproduce_the_region_blend():
+    from retarget_cli.apply import blend_keys, morph_targets, morph_weights
+
+    rng = np.random.default_rng(2)
+    V, F = grid(8, 6)
+    n = len(V)
+    keys = [V + rng.normal(size=(3, n, 3)) * 0.1, V + rng.normal(size=(2, n, 3)) * 0.1]
+    W = [rng.uniform(0, 0.8, size=(5, 3)), rng.uniform(0, 0.8, size=(5, 2))]
+    masks = region_weights([(V[:, 0] < 0.4) * 1.0, (V[:, 0] > 0.3) * 1.0], vertices=V, faces=F, falloff=[0.2, 0.2])[:-1]
+    want = blend_regions([blend_keys(w, k) for w, k in zip(W, keys)], list(masks), V)
+    D, mw = morph_targets(keys, masks, V), morph_weights(W)
+    assert D.shape == (7, n, 3) and mw.shape == (5, 7)
+    np.testing.assert_allclose(V[None] + np.einsum("tm,mnd->tnd", mw, D), want, atol=1e-12)
+    # One region, no neutral: relative to the first key.
+    D1 = morph_targets([keys[0]], None, keys[0][0])
+    got = keys[0][0] + np.einsum("tm,mnd->tnd", morph_weights([W[0]]), D1)
+    np.testing.assert_allclose(got, blend_keys(W[0], keys[0]), atol=1e-12)
