@@ -376,9 +376,8 @@ def write_obj(path: str | os.PathLike, mesh: ObjMesh, positions: np.ndarray) -> 
         Template; every non-coordinate byte is copied from it.
     positions : ndarray, shape (N, 3)
     """
-    chunks = mesh.iter_bytes(positions)
     with atomic_open(path, "wb") as fh:
-        fh.writelines(chunks)
+        fh.write(mesh.to_bytes(positions))
 
 
 def check_same_topology(meshes: list[ObjMesh]) -> None:
