@@ -222,3 +222,29 @@ def test_cli_apply_formats_and_errors(scene):
     assert r.exit_code == 1 and "formats" in r.stderr and "fbx" in r.stderr
     r = CliRunner().invoke(main, [*args, "--pivot", "1,2"])
     assert r.exit_code == 2 and "X,Y,Z" in r.stderr
+
+
+def test_config_checks_formats_before_anything_runs(tmp_path):
+    from retarget_cli.config import load_config
+    from retarget_cli.errors import ConfigError
+    from retarget_cli.pipeline import stage_params
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("apply: {weights: w.npz, targets: t.yaml, formats: [obj, glb]}\n")
+    assert load_config(cfg, stage_params()).sections["apply"]["formats"] == ["obj", "glb"]
+    for bad in ("[obj, fbx]", "[]", "[obj, obj]"):
+        cfg.write_text(f"apply: {{weights: w.npz, targets: t.yaml, formats: {bad}}}\n")
+        with pytest.raises(ConfigError, match="apply.formats"):
+            load_config(cfg, stage_params())
+
+
+def test_targets_falloff_is_validated(scene):
+    from retarget_cli.errors import InputError
+    from retarget_cli.io.stagefiles import read_targets
+
+    tmp, _, _ = scene
+    y = tmp / "t" / "targets.yaml"
+    assert read_targets(y).regions["eyes"]["falloff"] == 2.5
+    y.write_text(y.read_text().replace("falloff: 2.5", "falloff: -1", 1))
+    with pytest.raises(InputError, match="falloff must be a number >= 0"):
+        read_targets(y)

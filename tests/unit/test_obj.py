@@ -197,9 +197,9 @@ def test_fast_writer_matches_printf_exactly(tmp_path):
     p.write_bytes(b"v 0 0 0\n" * n + b"f 1 2 3\n")
     m = read_obj(p)
     got = m.to_bytes(v)
-    want = "".join("v %.6f %.6f %.6f\n" % tuple(r) for r in v).encode() + b"f 1 2 3\n"
+    want = "".join("v %.6f %.6f %.6f\n" % tuple(r) for r in v).encode() + b"f 1 2 3\n"  # noqa: UP031
     assert got == want
     # Beyond 1e9 the reference formatter takes over, with the same result.
     v[5] = [3e12, -1e10, 1e9]
-    want = "".join("v %.6f %.6f %.6f\n" % tuple(r) for r in v).encode() + b"f 1 2 3\n"
+    want = "".join("v %.6f %.6f %.6f\n" % tuple(r) for r in v).encode() + b"f 1 2 3\n"  # noqa: UP031
     assert m.to_bytes(v) == want
