@@ -98,16 +98,16 @@ def main() -> None:
             tm.vertices = p
             (tmp / f"c_{t % RING}.obj").write_text(export_obj(tm, include_normals=False, include_texture=True))
 
-        timing, sizes = {}, {}
-        for name, fn, prefix in (("retarget", ours, "a"), ("naive per-line", naive, "b"), ("trimesh", peer, "c")):
-            spent = 0.0
-            for t in range(T):
-                p = frame(verts, t)  # not timed
+        writers = {"retarget": (ours, "a"), "naive per-line": (naive, "b"), "trimesh": (peer, "c")}
+        timing = dict.fromkeys(writers, 0.0)
+        # Interleaved frame by frame, so that load from other processes hits every writer alike.
+        for t in range(T):
+            p = frame(verts, t)  # not timed
+            for name, (fn, _) in writers.items():
                 t0 = time.perf_counter()
                 fn(t, p)
-                spent += time.perf_counter() - t0
-            timing[name] = spent
-            sizes[name] = (tmp / f"{prefix}_{(T - 1) % RING}.obj").stat().st_size
+                timing[name] += time.perf_counter() - t0
+        sizes = {name: (tmp / f"{prefix}_{(T - 1) % RING}.obj").stat().st_size for name, (_, prefix) in writers.items()}
         last = [(T - 1 - k) for k in range(min(RING, T))]
         same = all((tmp / f"a_{t % RING}.obj").read_bytes() == (tmp / f"b_{t % RING}.obj").read_bytes() for t in last)
         peer_err = max(float(np.abs(v_lines((tmp / f"c_{t % RING}.obj").read_bytes()) - frame(verts, t)).max())
