@@ -212,14 +212,35 @@ def _parse_masks(masks) -> dict:
 @main.command()
 @click.argument("weights", type=click.Path(dir_okay=False))
 @click.argument("targets", type=click.Path(dir_okay=False))
-@output_option("frames", "Directory for the OBJ sequence.", required=False)
+@output_option("frames", "Directory for the OBJ sequence and the other exports.", required=False)
+@click.option("--format", "formats", default="obj", show_default=True, metavar="LIST",
+              help="Comma-separated exports: obj (frame_%05d.obj), csv (weights.csv), "
+                   "exr (animation.exr + animation.json), glb (animation.glb).")
+@click.option("--landmarks", type=click.Path(dir_okay=False), default=None,
+              help="landmarks.npz whose head motion --head-motion 2d applies.")
 @setting("apply", "head_motion")
-def apply(weights, targets, output, head_motion):
-    """Drive the target key shapes in TARGETS with WEIGHTS; write an OBJ sequence."""
+@setting("apply", "scale")
+@click.option("--pivot", default=None, metavar="X,Y,Z", help=_param("apply", "pivot").help)
+@setting("apply", "vat")
+def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivot, vat):
+    """Drive the target key shapes in TARGETS with WEIGHTS; write an OBJ sequence and other exports."""
     from .stages import run_apply
 
-    written = run_apply(weights=weights, targets=targets, output=output, head_motion=head_motion, progress=progress)
-    click.echo(f"{output} ({len(written)} frames)")
+    if pivot is not None:
+        try:
+            pivot = [float(v) for v in pivot.split(",")]
+            if len(pivot) != 3:
+                raise ValueError
+        except ValueError:
+            raise click.BadParameter(f"expected X,Y,Z, got {pivot!r}", param_hint="--pivot") from None
+    fmts = [f.strip() for f in formats.split(",") if f.strip()]
+    written = run_apply(weights=weights, targets=targets, output=output, landmarks=landmarks, formats=fmts,
+                        head_motion=head_motion, scale=scale, pivot=pivot, vat=vat, progress=progress)
+    n = sum(p.suffix == ".obj" for p in written)
+    click.echo(f"{output} ({n} frames)")
+    for p in written:
+        if p.suffix != ".obj":
+            click.echo(str(p))
 
 
 @main.command()

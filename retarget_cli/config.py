@@ -89,7 +89,12 @@ class Param:
         elif t in (list, dict):
             if not isinstance(value, t):
                 raise ConfigError(f"{where}: expected a {'list' if t is list else 'mapping'}, got {value!r}")
-        if self.choices is not None and value not in self.choices:
+        if self.choices is not None and t is list:
+            bad = [v for v in value if v not in self.choices]
+            if bad or not value or len(set(value)) != len(value):
+                raise ConfigError(f"{where}: expected a non-empty list without repeats of "
+                                  f"{', '.join(map(str, self.choices))}; got {value!r}")
+        elif self.choices is not None and value not in self.choices:
             hint = closest(str(value), [str(c) for c in self.choices])
             extra = f"; did you mean {hint!r}?" if hint else ""
             raise ConfigError(f"{where}: {value!r} is not {self.describe_range()}{extra}")

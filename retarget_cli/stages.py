@@ -253,17 +253,71 @@ def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path,
 
 FRAME_RE = re.compile(r"frame_(\d{5,})\.obj$")
 
+#: Exports ``apply`` can write (``--format``); file names inside the output directory.
+APPLY_FORMATS = ("obj", "csv", "exr", "glb")
+APPLY_FILES = {"csv": "weights.csv", "exr": "animation.exr", "exr_json": "animation.json", "glb": "animation.glb"}
 
-def run_apply(*, weights, targets, output, head_motion="none", progress=_no_progress) -> list[Path]:
-    """Drive the target key shapes with the weights; write ``frame_%05d.obj`` into *output*."""
-    from .apply import blend_keys, blend_regions
-    from .io.obj import check_same_topology, read_obj
-    from .io.stagefiles import load_weights, read_targets, read_vertex_mask
+
+def _check_formats(formats) -> list[str]:
+    if isinstance(formats, str):
+        formats = [f.strip() for f in formats.split(",") if f.strip()]
+    formats = list(formats or [])
+    bad = [f for f in formats if f not in APPLY_FORMATS]
+    if bad or not formats:
+        raise ValueError(f"formats: expected a non-empty list of {', '.join(APPLY_FORMATS)}, got {formats!r}")
+    if len(set(formats)) != len(formats):
+        raise ValueError(f"formats: {formats!r} names a format twice")
+    return formats
+
+
+def _head_transforms(landmarks, T: int, neutral: np.ndarray, scale, pivot) -> np.ndarray:
+    """(T, 3, 4) head-motion transforms from ``landmarks.npz`` (see :func:`~retarget_cli.apply.head_motion_transforms`)."""
+    from .apply import head_motion_transforms
+    from .io.landmarks import load_landmarks
+
+    if landmarks is None:
+        raise InputError("head_motion 2d needs the landmarks file (--landmarks, or a 'track' section)")
+    lm = load_landmarks(_require(landmarks, "landmarks file"))
+    if lm.n_frames != T:
+        raise InputError(f"{landmarks}: has {lm.n_frames} frames but the weights have {T}")
+    # Reference frame 0: stabilized coordinates are frame-0 pixels (head[0] is the identity).
+    ok = lm.confidence[0] > 0
+    ref = lm.stabilized[0][ok if ok.any() else slice(None)].astype(np.float64)
+    lo, hi = neutral.min(0), neutral.max(0)
+    width_px = float(np.ptp(ref[:, 0]))
+    if scale is None:
+        if width_px <= 0:
+            raise InputError(f"{landmarks}: landmarks of frame 0 have no horizontal extent; set apply.scale")
+        scale = float(hi[0] - lo[0]) / width_px
+    centre = (lo + hi) / 2
+    P = centre if pivot is None else np.asarray(pivot, dtype=np.float64)
+    if P.shape != (3,):
+        raise ValueError(f"pivot: expected [x, y, z] in model units, got {pivot!r}")
+    c = ref.mean(0) + (P[:2] - centre[:2]) * [1.0, -1.0] / scale
+    log.info("head motion: %.4g model units per pixel, pivot %s", scale, np.round(P, 4).tolist())
+    return head_motion_transforms(lm.head.astype(np.float64), units_per_pixel=scale, pivot=P, image_pivot=c)
+
+
+def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), head_motion="none", scale=None,
+              pivot=None, vat="offsets", progress=_no_progress) -> list[Path]:
+    """Drive the target key shapes with the weights (Chuang & Bregler 2002, §5) and export the result.
+
+    Writes into *output*: ``frame_%05d.obj`` (streamed, chunk by chunk),
+    ``weights.csv``, ``animation.exr`` + ``animation.json`` (vertex-animation
+    texture) and ``animation.glb``, as *formats* asks.
+    """
+    from .apply import apply_transforms, blend_keys, blend_regions, morph_targets, morph_weights, region_weights
+    from .io.obj import check_same_topology, read_obj, write_obj
+    from .io.stagefiles import load_weights, read_targets, read_vertex_mask, weights_csv
 
     weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
-    if head_motion != "none":
-        raise ValueError(f"head_motion: expected 'none', got {head_motion!r}")
-    regions, _ = load_weights(weights)
+    formats = _check_formats(formats)
+    if head_motion not in ("none", "2d"):
+        raise ValueError(f"head_motion: expected 'none' or '2d', got {head_motion!r}")
+    if vat not in ("offsets", "positions"):
+        raise ValueError(f"vat: expected 'offsets' or 'positions', got {vat!r}")
+    regions, meta = load_weights(weights)
+    fps = float(meta.get("fps") or 30.0)
     tg = read_targets(targets)
     missing = sorted(set(regions) - set(tg.regions))
     if missing:
@@ -285,18 +339,27 @@ def run_apply(*, weights, targets, output, head_motion="none", progress=_no_prog
     if len(per_region) > 1:
         if neutral is None:
             raise InputError(f"{targets}: several regions need a 'neutral' mesh to blend them")
-        masks = []
+        raw = []
         for name, _, _ in per_region:
             vf = tg.regions[name]["vertices"]
             if vf is None:
                 raise InputError(f"{targets}: region {name!r} needs 'vertices' (its mask) when there are several regions")
-            masks.append(read_vertex_mask(vf, N))
+            raw.append(read_vertex_mask(vf, N))
+        falloff = [tg.regions[name].get("falloff", 0.0) for name, _, _ in per_region]
+        faces = template.faces() if any(falloff) else None
+        masks = list(region_weights(raw, vertices=neutral.vertices, faces=faces, falloff=falloff)[:-1])
+    base = neutral.vertices if neutral else meshes[0].vertices
+    T = per_region[0][1].shape[0]
+    head = None
+    if head_motion == "2d":
+        head = _head_transforms(landmarks, T, base, scale, pivot)
     out = Path(output)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
+    check_not_input(out / APPLY_FILES["glb"], [weights, targets, landmarks])
     out.mkdir(parents=True, exist_ok=True)
     keysets = [np.stack([m.vertices for m in objs]) for _, _, objs in per_region]
-    T = per_region[0][1].shape[0]
+    vat_values = np.empty((T, N, 3), np.float32) if "exr" in formats else None
     written = []
     chunk = 64
     with progress(T, "apply") as bar:
@@ -304,19 +367,42 @@ def run_apply(*, weights, targets, output, head_motion="none", progress=_no_prog
             sl = slice(start, min(start + chunk, T))
             res = [blend_keys(W[sl], B) for (_, W, _), B in zip(per_region, keysets)]
             pos = res[0] if masks is None else blend_regions(res, masks, neutral.vertices)
-            for i, p in enumerate(pos):
-                path = out / f"frame_{start + i:05d}.obj"
-                from .io.obj import write_obj
-
-                write_obj(path, template, p)
-                written.append(path)
+            if head is not None:
+                pos = apply_transforms(head[sl], pos)
+            if vat_values is not None:
+                vat_values[sl] = pos - (base if vat == "offsets" else 0.0)
+            if "obj" in formats:
+                for i, p in enumerate(pos):
+                    path = out / f"frame_{start + i:05d}.obj"
+                    write_obj(path, template, p)
+                    written.append(path)
             bar.update(sl.stop - sl.start)
-    # Remove frames left over from a longer previous run (only files this stage names).
-    for stale in out.iterdir():
-        m = FRAME_RE.match(stale.name)
-        if m and int(m.group(1)) >= T:
-            stale.unlink()
-    log.info("wrote %d frames of %d vertices to %s", T, N, out)
+    if "obj" in formats:
+        # Remove frames left over from a longer previous run (only files this stage names).
+        for stale in out.iterdir():
+            m = FRAME_RE.match(stale.name)
+            if m and int(m.group(1)) >= T:
+                stale.unlink()
+    if "csv" in formats:
+        write_text(out / APPLY_FILES["csv"], weights_csv(regions, fps))
+        written.append(out / APPLY_FILES["csv"])
+    if vat_values is not None:
+        from .io.exr import write_vat
+
+        write_vat(out / APPLY_FILES["exr"], vat_values, fps=fps, mode=vat, sidecar=out / APPLY_FILES["exr_json"])
+        written += [out / APPLY_FILES["exr"], out / APPLY_FILES["exr_json"]]
+    if "glb" in formats:
+        from .io.gltf import write_glb
+
+        names = []
+        for name, (_, frames, _) in sorted(regions.items()):
+            names += [f"{name}:{int(f)}" for f in frames] + [f"{name}:rest"]
+        write_glb(out / APPLY_FILES["glb"], base=base, faces=template.faces(),
+                  targets=morph_targets(keysets, None if masks is None else np.stack(masks), base),
+                  target_names=names, weights=morph_weights([W for _, W, _ in per_region]), fps=fps,
+                  node_transforms=head, name=template.path.stem)
+        written.append(out / APPLY_FILES["glb"])
+    log.info("wrote %d frames of %d vertices to %s (%s)", T, N, out, ", ".join(formats))
     return written
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,6 +55,7 @@ class ObjMesh:
     tails: list = field(repr=False)
     topology: str = ""
     n_faces: int = 0
+    _tails_cache: object = field(default=None, repr=False, compare=False)
 
     @property
     def n_vertices(self) -> int:
@@ -73,7 +75,7 @@ class ObjMesh:
         # against the number of vertices defined so far, as the OBJ spec says.
         for i, seg in enumerate(self.segments):
             for line in seg.splitlines():
-                tok = line.split()
+                tok = line.split(b"#", 1)[0].split()
                 if tok and tok[0] == b"f":
                     ids = []
                     for t in tok[1:]:
@@ -87,11 +89,19 @@ class ObjMesh:
     def to_bytes(self, positions: np.ndarray) -> bytes:
         """The file's bytes with the vertex coordinates replaced by *positions*.
 
+        Each ``v`` line becomes ``v X Y Z`` (``%.6f``) followed by whatever
+        followed the third coordinate in the template (``w``, colours, a
+        comment, the line ending), byte for byte.
+
         Parameters
         ----------
         positions : ndarray, shape (N, 3)
             New vertex positions, same order as :attr:`vertices`.
         """
+        return b"".join(self.iter_bytes(positions))
+
+    def iter_bytes(self, positions: np.ndarray) -> list:
+        """:meth:`to_bytes` as a list of byte chunks (written without joining)."""
         positions = np.asarray(positions, dtype=np.float64)
         if positions.shape != self.vertices.shape:
             raise ShapeError(
@@ -100,13 +110,26 @@ class ObjMesh:
         if not np.all(np.isfinite(positions)):
             bad = int(np.argwhere(~np.isfinite(positions))[0, 0])
             raise ShapeError(f"positions for {self.path.name}: vertex {bad} is not finite")
+        tails = self._tail_matrix()
+        if tails is None or np.abs(positions).max(initial=0.0) >= _FAST_LIMIT:
+            return self._iter_bytes_slow(positions)
+        block, offsets = _format_v_lines(positions, tails)
+        view = memoryview(block)
+        out = [self.segments[0]]
+        for i, (start, stop) in enumerate(self.runs):
+            out.append(view[offsets[start]:offsets[stop]])
+            out.append(self.segments[i + 1])
+        return out
+
+    def _iter_bytes_slow(self, positions: np.ndarray) -> list:
+        """Reference implementation: one ``%``-format per run (or per line)."""
         out = [self.segments[0]]
         uniform = len(set(map(id, self.tails))) <= 1 if self.tails else True
         for i, (start, stop) in enumerate(self.runs):
             block = positions[start:stop]
             if uniform:
                 tail = self.tails[start].decode("latin-1")
-                fmt = ("v " + " ".join([COORD_FORMAT] * 3) + tail) * (stop - start)
+                fmt = ("v " + " ".join([COORD_FORMAT] * 3) + tail.replace("%", "%%")) * (stop - start)
                 out.append((fmt % tuple(block.ravel())).encode("latin-1"))
             else:
                 lines = [
@@ -115,20 +138,157 @@ class ObjMesh:
                 ]
                 out.append(b"".join(lines))
             out.append(self.segments[i + 1])
-        return b"".join(out)
+        return out
+
+    def _tail_matrix(self):
+        """Per-vertex tails as a zero-padded (N, L) uint8 matrix, or None when the
+        fast writer cannot represent them (a NUL byte, or very long tails)."""
+        if self._tails_cache is None:
+            width = max(map(len, self.tails))
+            if width > _MAX_TAIL or any(b"\0" in t for t in set(self.tails)):
+                self._tails_cache = False
+            else:
+                mat = np.zeros((len(self.tails), width), np.uint8)
+                uniq: dict[bytes, list[int]] = {}
+                for i, t in enumerate(self.tails):
+                    uniq.setdefault(t, []).append(i)
+                for t, rows in uniq.items():
+                    if t:
+                        mat[np.asarray(rows), : len(t)] = np.frombuffer(t, np.uint8)
+                self._tails_cache = mat
+        return None if self._tails_cache is False else self._tails_cache
+
+
+#: Coordinates at or above this magnitude go through the reference formatter.
+_FAST_LIMIT = 1e9
+#: Longest per-vertex tail (bytes after z) the vectorised writer handles.
+_MAX_TAIL = 256
+_ZERO, _MINUS, _DOT, _SPACE, _V = 48, 45, 46, 32, 118
+
+
+def _format_v_lines(positions: np.ndarray, tails: np.ndarray) -> tuple[bytes, np.ndarray]:
+    """``v`` lines for all vertices, exactly as ``"v %.6f %.6f %.6f" + tail``.
+
+    Vectorised fixed-point formatting: each coordinate is rounded to an
+    integer number of millionths, its digits are written into a byte matrix
+    (one row per line, padding bytes 0) and the padding is squeezed out.
+    Rounding matches C's ``%.6f`` (correctly rounded, ties to even): the
+    float product ``|x| * 1e6`` decides the rounding unless it lies within a
+    few ulps of a half-integer, and those few values are formatted with
+    ``%.6f`` itself.
+
+    Parameters
+    ----------
+    positions : ndarray, shape (N, 3), finite, ``|x| < 1e9``
+    tails : ndarray, shape (N, L), uint8
+        Bytes after the third coordinate, zero-padded.
+
+    Returns
+    -------
+    block : bytes
+        All lines concatenated.
+    offsets : ndarray, shape (N + 1,)
+        Byte offset of each line in *block* (last entry: ``len(block)``).
+    """
+    N = positions.shape[0]
+    a = np.abs(positions)
+    y = a * 1e6
+    q = np.rint(y)
+    frac = y - np.floor(y)
+    ambiguous = np.abs(frac - 0.5) <= y * 1e-15
+    q = q.astype(np.uint64)
+    if ambiguous.any():
+        for i, j in zip(*np.nonzero(ambiguous)):
+            q[i, j] = int((COORD_FORMAT % a[i, j]).replace(".", ""))
+    ip = q // np.uint64(1_000_000)
+    fp = (q - ip * np.uint64(1_000_000)).astype(np.uint32)
+    ip = ip.astype(np.uint32)
+    n_int = len(str(int(ip.max(initial=0))))
+    field = 1 + n_int + 1 + 6  # sign, integer digits, point, six decimals
+    width = 1 + 3 * (1 + field) + tails.shape[1]
+    mat = np.empty((N, width), np.uint8)
+    mat[:, 0] = _V
+    coords = mat[:, 1 : 1 + 3 * (1 + field)].reshape(N, 3, 1 + field)
+    coords[:, :, 0] = _SPACE
+    coords[:, :, 1] = np.where(np.signbit(positions), _MINUS, 0)
+    ten = np.uint32(10)
+    for k in range(1 + field - 1, 1 + field - 7, -1):
+        nxt = fp // ten
+        coords[:, :, k] = fp - nxt * ten + _ZERO
+        fp = nxt
+    coords[:, :, 2 + n_int] = _DOT
+    rest = ip
+    for k in range(1 + n_int, 1, -1):
+        nxt = rest // ten
+        coords[:, :, k] = rest - nxt * ten + _ZERO
+        rest = nxt
+    for j in range(n_int - 1):  # leading zeros of the integer part become padding
+        col = coords[:, :, 2 + j]
+        col[ip < 10 ** (n_int - 1 - j)] = 0
+    if tails.shape[1]:
+        mat[:, width - tails.shape[1]:] = tails
+    keep = mat != 0
+    offsets = np.zeros(N + 1, np.int64)
+    np.cumsum(keep.sum(1), out=offsets[1:])
+    return mat[keep].tobytes(), offsets
+
+
+#: A ``v`` line: optional indentation, ``v``, then x y z (a ``#`` starts a comment).
+_V_RE = re.compile(rb"[ \t]*v[ \t]+([^ \t#]+)[ \t]+([^ \t#]+)[ \t]+([^ \t#]+)")
+#: Element lines whose vertex, texture and normal indices are checked.
+_ELEMENTS = (b"f", b"l", b"p")
 
 
 def _is_v_line(line: bytes) -> bool:
-    return line.startswith((b"v ", b"v\t"))
+    s = line.lstrip(b" \t")
+    return s[:1] == b"v" and s[1:2] in (b" ", b"\t")
+
+
+def _check_refs(path, lineno, line, head, counts, max_pos) -> None:
+    """Check the indices of an ``f``/``l``/``p`` line: negative ones against the
+    elements defined so far, positive ones (recorded in *max_pos*) later
+    against the whole file."""
+    body = line.split(b"#", 1)[0].split()[1:]
+    if not body:
+        raise InputError(f"{path}:{lineno}: '{head.decode()}' line has no vertex indices")
+    for tok in body:
+        parts = tok.split(b"/")
+        if len(parts) > 3 or not parts[0]:
+            raise InputError(f"{path}:{lineno}: bad vertex reference {tok.decode(errors='replace')!r}")
+        for slot, part in enumerate(parts):
+            if not part:
+                continue
+            try:
+                idx = int(part)
+            except ValueError:
+                raise InputError(
+                    f"{path}:{lineno}: vertex reference {tok.decode(errors='replace')!r} is not made of integers"
+                ) from None
+            kind = ("v", "vt", "vn")[slot]
+            if idx == 0 or (idx < 0 and counts[kind] + idx < 0):
+                raise InputError(
+                    f"{path}:{lineno}: '{head.decode()}' refers to {kind} {idx} but only {counts[kind]} "
+                    f"'{kind}' lines precede it (indices are 1-based; negative ones count back)"
+                )
+            if idx > max_pos[kind][0]:
+                max_pos[kind] = (idx, lineno)
 
 
 def read_obj(path: str | os.PathLike) -> ObjMesh:
     """Read an OBJ file.
 
+    Every line is kept (see :class:`ObjMesh`); ``v`` lines are parsed, and the
+    vertex, texture and normal indices of ``f``, ``l`` and ``p`` lines are
+    checked against the ``v``, ``vt`` and ``vn`` lines of the file.
+
     Parameters
     ----------
     path : path-like
-        OBJ file. Any valid OBJ is accepted; only ``v`` lines are interpreted.
+        OBJ file: ``v`` with optional ``w`` or colours, ``vt``/``vn``/``vp``,
+        faces ``v``, ``v/vt``, ``v//vn``, ``v/vt/vn`` with positive or
+        negative (relative) indices, n-gons, lines, points, groups,
+        materials, comments (also after data), LF or CRLF line endings, tabs,
+        no final newline.
 
     Returns
     -------
@@ -137,8 +297,9 @@ def read_obj(path: str | os.PathLike) -> ObjMesh:
     Raises
     ------
     InputError
-        If the file is missing, has no vertices, or a ``v`` line has fewer than
-        three numbers (the line number is given).
+        If the file is missing, has no vertices, a ``v`` line has fewer than
+        three numbers, or an element refers to a vertex, texture coordinate or
+        normal that does not exist (the line number is given).
     """
     path = Path(path)
     try:
@@ -157,6 +318,8 @@ def read_obj(path: str | os.PathLike) -> ObjMesh:
     seg: list[bytes] = []
     run_start = None
     shared_tails: dict[bytes, bytes] = {}
+    counts = {"v": 0, "vt": 0, "vn": 0}
+    max_pos = {"v": (0, 0), "vt": (0, 0), "vn": (0, 0)}
     for lineno, line in enumerate(lines, 1):
         if _is_v_line(line):
             if run_start is None:
@@ -164,29 +327,34 @@ def read_obj(path: str | os.PathLike) -> ObjMesh:
                 seg = []
                 run_start = len(tails)
             body = line.rstrip(b"\r\n")
-            ending = line[len(body):]
-            tok = body.split()
-            if len(tok) < 4:
+            m = _V_RE.match(body)
+            if m is None:
                 raise InputError(f"{path}:{lineno}: 'v' line needs x y z, got {body.decode(errors='replace')!r}")
-            coords.extend(tok[1:4])
-            # Keep whatever follows z (w, colours) plus the original line ending.
-            rest = b" " + b" ".join(tok[4:]) if len(tok) > 4 else b""
-            tail = rest + ending
+            coords.extend(m.groups())
+            # Keep whatever follows z (w, colours, a comment) plus the original line ending.
+            tail = body[m.end():] + line[len(body):]
             tails.append(shared_tails.setdefault(tail, tail))
-        else:
-            if run_start is not None:
-                runs.append((run_start, len(tails)))
-                run_start = None
-            seg.append(line)
-            head = line.split(None, 1)[0] if line.strip() else b""
-            if head in (b"f", b"l", b"p"):
-                n_faces += head == b"f"
-                topo.update(b" ".join(line.split()) + b"\n")
+            counts["v"] += 1
+            continue
+        if run_start is not None:
+            runs.append((run_start, len(tails)))
+            run_start = None
+        seg.append(line)
+        head = line.split(None, 1)[0] if line.strip() else b""
+        if head in _ELEMENTS:
+            _check_refs(path, lineno, line, head, counts, max_pos)
+            n_faces += head == b"f"
+            topo.update(b" ".join(line.split()) + b"\n")
+        elif head in (b"vt", b"vn"):
+            counts[head.decode()] += 1
     if run_start is not None:
         runs.append((run_start, len(tails)))
     segments.append(b"".join(seg))
     if not tails:
         raise InputError(f"{path}: OBJ has no 'v' lines")
+    for kind, (idx, lineno) in max_pos.items():
+        if idx > counts[kind]:
+            raise InputError(f"{path}:{lineno}: refers to {kind} {idx} but the file has {counts[kind]} '{kind}' lines")
     try:
         vertices = np.array(coords, dtype=np.float64).reshape(-1, 3)
     except ValueError as exc:
@@ -208,9 +376,8 @@ def write_obj(path: str | os.PathLike, mesh: ObjMesh, positions: np.ndarray) -> 
         Template; every non-coordinate byte is copied from it.
     positions : ndarray, shape (N, 3)
     """
-    data = mesh.to_bytes(positions)
     with atomic_open(path, "wb") as fh:
-        fh.write(data)
+        fh.write(mesh.to_bytes(positions))
 
 
 def check_same_topology(meshes: list[ObjMesh]) -> None:

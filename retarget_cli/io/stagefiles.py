@@ -147,7 +147,8 @@ class Targets:
     ----------
     neutral : Path or None
     regions : dict
-        Region name to ``{"keys": {frame: Path}, "vertices": Path or None}``.
+        Region name to ``{"keys": {frame: Path}, "vertices": Path or None,
+        "falloff": float}`` (falloff width in model units, 0 for none).
     """
 
     path: Path
@@ -201,7 +202,15 @@ def read_targets(path: str | os.PathLike) -> Targets:
                 raise InputError(f"{path}: region {name!r}: key {frame!r} must map an integer frame to an OBJ path")
             keys[frame] = base / obj
         verts = reg.get("vertices")
-        regions[str(name)] = {"keys": keys, "vertices": base / verts if isinstance(verts, str) else None}
+        unknown = set(reg) - {"keys", "vertices", "falloff"}
+        if unknown:
+            raise InputError(f"{path}: region {name!r}: unknown key {sorted(unknown)[0]!r}; "
+                             "expected keys, vertices, falloff")
+        falloff = reg.get("falloff", 0)
+        if isinstance(falloff, bool) or not isinstance(falloff, (int, float)) or not falloff >= 0:
+            raise InputError(f"{path}: region {name!r}: falloff must be a number >= 0 (model units), got {falloff!r}")
+        regions[str(name)] = {"keys": keys, "vertices": base / verts if isinstance(verts, str) else None,
+                              "falloff": float(falloff)}
     neutral = data.get("neutral")
     return Targets(path, base / neutral if isinstance(neutral, str) else None, regions)
 
@@ -225,6 +234,8 @@ def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = ""
             lines.append(f"      {int(frame)}: {json.dumps(str(obj))}")
         if reg.get("vertices"):
             lines.append(f"    vertices: {json.dumps(str(reg['vertices']))}")
+        if reg.get("falloff"):
+            lines.append(f"    falloff: {float(reg['falloff'])!r}")
     return "\n".join(lines) + "\n"
 
 

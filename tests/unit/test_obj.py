@@ -111,3 +111,95 @@ def test_wrong_position_shape_is_rejected(full_obj):
     m = read_obj(full_obj)
     with pytest.raises(ValueError, match=r"\(6, 3\)"):
         m.to_bytes(np.zeros((5, 3)))
+
+
+# Features the reader must not trip over: vp lines, tabs, w, comments after
+# data, leading blanks, a '%' in a tail, no final newline.
+EDGE = (
+    b"mtllib a.mtl\n"
+    b"v\t0.5\t0.25\t-1\n"
+    b"  v 1 2 3 1.0 # weighted\n"
+    b"v 4 5 6# glued comment\n"
+    b"vp 0.5 0.5\n"
+    b"vt 0 0\nvt 1 0 0\n"
+    b"vn 0 0 1\n"
+    b"v 7 8 9 # 100% sure\n"
+    b"f 1/1/1 2/2/1 3/1/1 # a triangle\n"
+    b"f -1 -2 -3\n"
+    b"p 4\n"
+    b"v 1e-3 -2.5E+1 0"
+)
+
+
+def test_edge_features_round_trip_with_only_v_lines_changed(tmp_path):
+    p = tmp_path / "edge.obj"
+    p.write_bytes(EDGE)
+    m = read_obj(p)
+    assert m.n_vertices == 5  # the vp line is not a vertex
+    np.testing.assert_array_equal(m.vertices, [[0.5, 0.25, -1], [1, 2, 3], [4, 5, 6], [7, 8, 9], [1e-3, -25, 0]])
+    assert m.faces() == [[0, 1, 2], [3, 2, 1]]
+    out = m.to_bytes(m.vertices + 1)
+    a, b = EDGE.splitlines(keepends=True), out.splitlines(keepends=True)
+    assert len(a) == len(b)
+    for src, dst in zip(a, b):
+        if _is_v(src):
+            assert dst.startswith(b"v ")
+        else:
+            assert src == dst
+    assert b[1] == b"v 1.500000 1.250000 0.000000\n"
+    assert b[2] == b"v 2.000000 3.000000 4.000000 1.0 # weighted\n"
+    assert b[3] == b"v 5.000000 6.000000 7.000000# glued comment\n"
+    assert b[8] == b"v 8.000000 9.000000 10.000000 # 100% sure\n"
+    assert b[-1] == b"v 1.001000 -24.000000 1.000000"  # still no final newline
+    # The reference (printf) writer gives the same bytes.
+    assert b"".join(m._iter_bytes_slow(m.vertices + 1)) == out
+
+
+def _is_v(line):
+    s = line.lstrip(b" \t")
+    return s[:1] == b"v" and s[1:2] in (b" ", b"\t")
+
+
+@pytest.mark.parametrize(
+    "face, match",
+    [
+        (b"f 1 2 9\n", r":4: refers to v 9 but the file has 3"),
+        (b"f 1 2 -4\n", r":4: 'f' refers to v -4 but only 3"),
+        (b"f 1/3 2/1 3/1\n", r"refers to vt 3 but the file has 1"),
+        (b"f 1//2 2//1 3//1\n", r"refers to vn 2 but the file has 1"),
+        (b"f 0 1 2\n", r"refers to v 0"),
+        (b"f 1 2 x\n", r"not made of integers"),
+        (b"l 1 5\n", r"refers to v 5"),
+    ],
+)
+def test_out_of_range_references_are_clear_errors(tmp_path, face, match):
+    p = tmp_path / "refs.obj"
+    p.write_bytes(b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + face + b"vt 0 0\nvn 0 0 1\n")
+    with pytest.raises(InputError, match=match):
+        read_obj(p)
+
+
+def test_forward_references_are_allowed(tmp_path):
+    p = tmp_path / "fwd.obj"
+    p.write_bytes(b"v 0 0 0\nf 1 2 3\nv 1 0 0\nv 0 1 0\n")
+    assert read_obj(p).faces() == [[0, 1, 2]]
+
+
+def test_fast_writer_matches_printf_exactly(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 20_000
+    v = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-9, 9, size=(n, 3))
+    # Exact ties at the 7th decimal (k/128), signed zeros, values that round to -0.
+    special = [0.0078125, -0.0078125, 3 / 128, 0.5, -0.0, 0.0, -1e-9, 4e-7, 5e-7, 999999999.4999, 1.0000005, 2.5e-7]
+    v[: len(special), 0] = special
+    v[: len(special), 1] = -np.array(special)
+    p = tmp_path / "m.obj"
+    p.write_bytes(b"v 0 0 0\n" * n + b"f 1 2 3\n")
+    m = read_obj(p)
+    got = m.to_bytes(v)
+    want = "".join("v %.6f %.6f %.6f\n" % tuple(r) for r in v).encode() + b"f 1 2 3\n"  # noqa: UP031
+    assert got == want
+    # Beyond 1e9 the reference formatter takes over, with the same result.
+    v[5] = [3e12, -1e10, 1e9]
+    want = "".join("v %.6f %.6f %.6f\n" % tuple(r) for r in v).encode() + b"f 1 2 3\n"  # noqa: UP031
+    assert m.to_bytes(v) == want
