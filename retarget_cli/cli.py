@@ -319,7 +319,9 @@ def preview(run_path, output, frame_range, size, fps, video, yaw, pitch, fov, di
         out = write_preview(run_files, output, frames=frame_range, height=size, fps=fps,
                             camera=_camera(yaw, pitch, fov, distance), shading=shading, progress=progress)
     except ValueError as exc:
-        raise click.BadParameter(str(exc)) if str(exc).startswith("--frames") else exc
+        if str(exc).startswith("--frames"):
+            raise click.BadParameter(str(exc)) from None
+        raise
     click.echo(str(out))
 
 

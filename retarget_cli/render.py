@@ -388,7 +388,7 @@ class View:
         return cam, xy, depth
 
 
-@dataclass
+@dataclass(frozen=True)
 class Light:
     """A directional light fixed to the camera plus ambient light (Lambert).
 

@@ -186,13 +186,13 @@ def jitter_per_frame(W: np.ndarray) -> np.ndarray:
 def worst_frames(score: np.ndarray, n: int, suppress: int = WORST_SUPPRESS) -> list[int]:
     """The *n* frames with the highest *score*, no two within *suppress* frames of each other.
 
-    Ties go to the earlier frame; non-finite scores are ignored.
+    Ties go to the earlier frame; non-finite and non-positive scores are never listed.
     """
     score = np.asarray(score, dtype=np.float64)
     order = np.lexsort((np.arange(len(score)), -np.nan_to_num(score, nan=-np.inf)))
     taken: list[int] = []
     for t in order:
-        if len(taken) >= n or not np.isfinite(score[t]):
+        if len(taken) >= n or not np.isfinite(score[t]) or score[t] <= 0:
             break
         if all(abs(int(t) - s) > suppress for s in taken):
             taken.append(int(t))
@@ -305,7 +305,7 @@ def _summary(data: RunData, run: RunFiles, keys: dict) -> tuple[str, bool]:
         rows.append(("landmarks", f"{data.lm.n_points} points, {w}x{h} pixels"))
         if data.lm.meta.get("tracker"):
             rows.append(("tracker", str(data.lm.meta.get("tracker"))))
-    for name, (W, fr) in data.regions.items():
+    for name, (W, _) in data.regions.items():
         err = keys.get(name, {}).get("error")
         extra = f", E = {err:.4g} px² (eq. 5)" if isinstance(err, (int, float)) else ""
         rows.append((f"region {name}", f"{W.shape[1]} keys{extra}"))
