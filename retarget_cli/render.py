@@ -196,21 +196,29 @@ def rasterize(xy: np.ndarray, depth: np.ndarray, tris: np.ndarray, size: tuple[i
     if tris.size and (tris.min() < 0 or tris.max() >= len(xy)):
         raise ShapeError(f"tris: vertex ids must lie in [0, {len(xy)}), got [{tris.min()}, {tris.max()}]")
     W, H = (int(s) for s in size)
-    coef = _setup(xy, depth, tris, W, H)
-    keys = np.full(W * H, _EMPTY, dtype=np.int64)
-    if coef is not None:
-        _scan(coef, keys, W)
-    hit = keys != _EMPTY
+    pix, tid, bc = _raster(xy, depth, tris, W, H)
     tri_id = np.full(W * H, -1, dtype=np.int32)
     bary = np.zeros((W * H, 3), dtype=np.float32)
-    if hit.any():
-        pix = np.flatnonzero(hit)
-        local = (keys[pix] & 0xFFFFFFFF).astype(np.int64)
-        tri_id[pix] = coef["ids"][local]
-        px, py = (pix % W).astype(np.float64), (pix // W).astype(np.float64)
-        e = (coef["A"][:, local] * px + coef["C"][:, local]) + coef["B"][:, local] * py  # (3, n)
-        bary[pix] = (e / e.sum(0)).T
+    tri_id[pix] = tid
+    bary[pix] = bc
     return tri_id.reshape(H, W), bary.reshape(H, W, 3)
+
+
+def _raster(xy, depth, tris, W, H):
+    """Covered pixels only: flat pixel indices (n,), winning triangle ids (n,), barycentrics (n, 3)."""
+    coef = _setup(xy, depth, tris, W, H)
+    if coef is None:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+    keys = np.full(W * H, _EMPTY, dtype=np.int64)
+    _scan(coef, keys, W)
+    pix = np.flatnonzero(keys != _EMPTY)
+    local = keys[pix] & 0xFFFFFFFF
+    px, py = (pix % W).astype(np.float64), (pix // W).astype(np.float64)
+    e = np.empty((len(pix), 3))
+    for k in range(3):
+        e[:, k] = (coef["A"][k][local] * px + coef["C"][k][local]) + coef["B"][k][local] * py
+    e /= e.sum(1, keepdims=True)
+    return pix, coef["ids"][local], e
 
 
 def _setup(xy, depth, tris, W, H):
@@ -249,18 +257,28 @@ def _setup(xy, depth, tris, W, H):
     # to its right: E grows with x). Two triangles sharing an edge get exactly
     # negated edge functions, so the rule gives every pixel to exactly one.
     topleft = (A > 0) | ((A == 0) & (B > 0))
+    # "E > 0, or E == 0 on a top-left edge" as one comparison: for floats,
+    # E >= 0 exactly when E > -(smallest subnormal).
+    thr = np.where(topleft, -np.nextafter(0.0, 1.0), 0.0)
     z = np.stack([Z[0][idx], Z[1][idx], Z[2][idx]])
     # depth plane z(x, y) = za x + zb y + zc (barycentric interpolation of the vertex depths)
     za, zb, zc = ((M * z).sum(0) / tot for M in (A, B, C))
-    return {"ids": idx, "A": A, "B": B, "C": C, "topleft": topleft,
+    clipped = (xmin[idx] < 0) | (ymin[idx] < 0) | (xmax[idx] > W - 1) | (ymax[idx] > H - 1)
+    return {"ids": idx, "A": A, "B": B, "C": C, "thr": thr, "clipped": clipped,
             "x0": x0[idx].astype(np.int64), "y0": y0[idx].astype(np.int64),
             "x1": x1[idx].astype(np.int64), "y1": y1[idx].astype(np.int64),
             "za": za, "zb": zb, "zc": zc, "zmin": float(z.min()), "zmax": float(z.max())}
 
 
+#: Box sides triangles are padded to: exact for small boxes (most triangles of
+#: a dense mesh), then steps of at most 1.5x, so padding wastes little work.
+_SIDES = np.unique([1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24, 32]
+                   + [48 * 2 ** i for i in range(12)] + [64 * 2 ** i for i in range(12)])
+
+
 def _bucket(n: np.ndarray) -> np.ndarray:
-    """Smallest power of two >= n (n >= 1)."""
-    return (1 << np.ceil(np.log2(np.maximum(n, 1))).astype(np.int64)).astype(np.int64)
+    """Smallest padded side (see ``_SIDES``) >= n (n >= 1)."""
+    return _SIDES[np.searchsorted(_SIDES, np.maximum(n, 1))]
 
 
 def _scan(c: dict, keys: np.ndarray, W: int) -> None:
@@ -273,6 +291,7 @@ def _scan(c: dict, keys: np.ndarray, W: int) -> None:
     ends = np.r_[starts[1:], len(order)]
     zlo, zspan = c["zmin"], c["zmax"] - c["zmin"]
     scale = (_DEPTH_LEVELS - 1) / zspan if zspan > 0 else 0.0
+    H = len(keys) // W
     for s, e in zip(starts, ends):
         sel_all = order[s:e]
         gw, gh = int(bw[sel_all[0]]), int(bh[sel_all[0]])
@@ -284,22 +303,28 @@ def _scan(c: dict, keys: np.ndarray, W: int) -> None:
             x0, y0 = c["x0"][sel], c["y0"][sel]
             px = x0[:, None, None] + ox[None, None, :]  # (n, 1, gw)
             py = y0[:, None, None] + oy[None, :, None]  # (n, gh, 1)
-            inside = (px <= c["x1"][sel][:, None, None]) & (py <= c["y1"][sel][:, None, None])
+            # Pixels of the padded box beyond the triangle's own box fail an edge test anyway;
+            # only pixels past the image border (boxes were clipped to it) are dropped below.
+            inside = None
             for k in range(3):
-                # (A x + C) + B y, evaluated identically for both triangles of a shared edge
+                # (A x + C) + B y: evaluated identically (up to sign) for both triangles of a
+                # shared edge, so the fill rule below is exact
                 ev = (c["A"][k, sel][:, None, None] * px + c["C"][k, sel][:, None, None]) \
                     + c["B"][k, sel][:, None, None] * py
-                tl = c["topleft"][k, sel]
-                if tl.any():
-                    inside &= (ev > 0) | ((ev == 0) & tl[:, None, None])
+                test = ev > c["thr"][k, sel][:, None, None]
+                if inside is None:
+                    inside = test
                 else:
-                    inside &= ev > 0
+                    inside &= test
             t, yy, xx = np.nonzero(inside)
             if not len(t):
                 continue
-            tri = sel[t]
             fx = x0[t] + xx
             fy = y0[t] + yy
+            if c["clipped"][sel].any():
+                ok = (fx < W) & (fy < H)
+                t, fx, fy = t[ok], fx[ok], fy[ok]
+            tri = sel[t]
             z = c["za"][tri] * fx + c["zb"][tri] * fy + c["zc"][tri]
             q = np.clip((z - zlo) * scale, 0, _DEPTH_LEVELS - 1).astype(np.int64)
             np.minimum.at(keys, fy * W + fx, (q << 32) | tri)
@@ -473,14 +498,11 @@ class MeshRenderer:
             raise ShapeError(f"vertices: expected shape ({self.n_vertices}, 3), got {vertices.shape}")
         W, H = self.size
         cam, xy, depth = self.view.project(vertices)
-        tri_id, bary = rasterize(xy, depth, self.tris, (W, H))
+        pix, tid, bc = _raster(xy, depth, self.tris, W, H)
         img = np.empty((H * W, 3), dtype=np.uint8)
         img[:] = self.background
-        hit = tri_id.ravel() >= 0
-        if not hit.any():
+        if not len(pix):
             return img.reshape(H, W, 3)
-        tid = tri_id.ravel()[hit]
-        bc = bary.reshape(-1, 3)[hit].astype(np.float64)
         vt = self.tris[tid]
         ortho = self.view.camera.fov == 0
         if self.shading == "flat":
@@ -490,16 +512,16 @@ class MeshRenderer:
         else:
             vn = vertex_normals(cam, self.tris)
             view = np.array([0.0, 0.0, 1.0]) if ortho else -cam
-            vi = shade_intensity(vn, view, self.light)
-            inten = np.einsum("ij,ij->i", vi[vt], bc)
+            vi = shade_intensity(vn, view, self.light)[vt]
+            inten = vi[:, 0] * bc[:, 0] + vi[:, 1] * bc[:, 1] + vi[:, 2] * bc[:, 2]
         if vertex_colors is not None:
             vc = np.asarray(vertex_colors, dtype=np.float64)
             if vc.shape != (self.n_vertices, 3):
                 raise ShapeError(f"vertex_colors: expected shape ({self.n_vertices}, 3), got {vc.shape}")
-            col = np.einsum("ij,ijk->ik", bc, vc[vt])
+            col = np.einsum("ij,ijk->ik", bc, vc[vt]) * inten[:, None]
         else:
-            col = self.color[None]
-        img[hit] = np.clip(col * inten[:, None], 0, 255).astype(np.uint8)
+            col = inten[:, None] * self.color[None]
+        img[pix] = np.clip(col, 0, 255).astype(np.uint8)
         return img.reshape(H, W, 3)
 
 
