@@ -293,7 +293,7 @@ def preview_frames(data: RunData, frames: range, *, height: int = 360, camera=No
             left = cv2.resize(frame, (left_w, height), interpolation=cv2.INTER_AREA)
             if data.lm is not None and t < data.lm.n_frames:
                 draw_landmarks(left, data.lm.points[t], data.lm.confidence[t], scale=left_w / sw,
-                               radius=max(1, height // 180))
+                               radius=max(1, round(height / 150)))
                 put_text(left, f"confidence {float(np.mean(data.lm.confidence[t])):.2f}", (8, height - 10), 0.42)
             put_text(left, f"frame {t}  {t / data.fps:6.2f}s", (8, 18), 0.5)
             out[:height, :left_w] = left

@@ -54,7 +54,7 @@ nav a{margin-right:12px}section{margin-bottom:24px}
 table{border-collapse:collapse;margin:8px 0;font-size:.9em}td,th{border:1px solid #ddd;padding:3px 8px;text-align:left;
 vertical-align:top}th{background:#eee}td.num{text-align:right;font-variant-numeric:tabular-nums}
 figure{margin:12px 0}figure img{max-width:100%;border:1px solid #ddd;background:#fff}
-figcaption{font-size:.85em;color:#555}code{font-size:.9em}.muted{color:#777}.thumb img{height:96px;margin-right:2px}
+figcaption{font-size:.85em;color:#555}details{margin:8px 0}summary{cursor:pointer;font-weight:600}code{font-size:.9em}.muted{color:#777}.thumb img{height:96px;margin-right:2px}
 """
 
 
@@ -327,10 +327,11 @@ def _summary(data: RunData, run: RunFiles, keys: dict) -> tuple[str, bool]:
                     inp.append((stage, path, rec.get("size", ""), str(rec.get("sha256", ""))[:12]))
         if inp:
             shown = inp[:40]
-            parts.append("<h3>Inputs</h3>" + _table(("first used by", "file (relative to the config)", "bytes",
-                                                     "sha256"), shown, num_cols=(2,)))
-            if len(inp) > len(shown):
-                parts.append(f'<p class="muted">and {len(inp) - len(shown)} more input files.</p>')
+            more = (f'<p class="muted">and {len(inp) - len(shown)} more input files.</p>'
+                    if len(inp) > len(shown) else "")
+            parts.append(f"<details><summary>Inputs: {len(inp)} files (sizes and sha256)</summary>"
+                         + _table(("first used by", "file (relative to the config)", "bytes", "sha256"), shown,
+                                  num_cols=(2,)) + more + "</details>")
         st = []
         for stage, m in man.items():
             settings = {k: v for k, v in (m.get("settings") or {}).items() if k not in _file_params(stage)}
@@ -343,7 +344,7 @@ def _summary(data: RunData, run: RunFiles, keys: dict) -> tuple[str, bool]:
                      "so inputs, settings and timings are unknown.</p>")
     timed = [(s, m["seconds"]) for s, m in man.items() if isinstance(m.get("seconds"), (int, float))]
     if timed:
-        fig, ax = _figure(9, 0.5 + 0.32 * len(timed))
+        fig, ax = _figure(6, 0.45 + 0.22 * len(timed))
         ax = ax[0, 0]
         names = [s for s, _ in timed][::-1]
         secs = [v for _, v in timed][::-1]
