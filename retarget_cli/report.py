@@ -64,7 +64,7 @@ def _matplotlib():
         import matplotlib
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
-    except ImportError as exc:  # pragma: no cover - exercised only without the extra
+    except ImportError as exc:
         raise RetargetError("retarget report needs matplotlib: pip install 'retarget[report]' "
                             "(make demo installs it)") from exc
     return matplotlib, Figure, FigureCanvasAgg
@@ -542,8 +542,6 @@ def _curve(run: RunFiles, keys: dict) -> str | None:
 def _weights(data: RunData) -> str | None:
     if not data.regions:
         return None
-    import matplotlib as _  # noqa: F401  (ensures the extra is present before drawing)
-
     n = len(data.regions)
     fig, ax = _figure(9, 0.6 + 2.4 * n, n, 1, sharex=True)
     cmap = _matplotlib()[0].colormaps["tab20"]
@@ -687,8 +685,9 @@ def _rig(data: RunData, run: RunFiles) -> str | None:
     rows = [(m, label, f"{v.mean():.4g}", f"{v.max():.4g}") for m, s in sorted(metrics.items())
             for label, v in sorted(s.items())]
     body = _table(("metric", "series", "mean", "max"), rows, num_cols=(2, 3))
-    body += _figure_html(_png_fig(fig), "Rig-solve cardinality (weights above 0.01) and objective per frame.")
-    return _section("rig", "Rig solve: cardinality and objective", body)
+    body += _figure_html(_png_fig(fig), "Cardinality (weights above 0.01) and objective per frame, as stored by a "
+                                        "rig solve or the decomposition (series: file or region).")
+    return _section("rig", "Cardinality and objective", body)
 
 
 # --------------------------------------------------------------------------- assembly
@@ -709,7 +708,7 @@ def _read_keys_lenient(path: Path | None) -> dict:
 SECTION_TITLES = {
     "summary": "Run summary", "tracking": "Tracking confidence", "keys": "Key shapes",
     "curve": "Reconstruction error against k", "weights": "Weight curves",
-    "residuals": "Residual and jitter per frame", "rig": "Rig solve: cardinality and objective",
+    "residuals": "Residual and jitter per frame", "rig": "Cardinality and objective",
 }
 
 

@@ -227,6 +227,16 @@ def test_report_of_weights_alone_omits_what_is_missing(ran_take, tmp_path):
     assert "No stage manifests" in text
 
 
+def test_report_without_matplotlib_says_how_to_install_it(ran_take, tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # makes `import matplotlib` raise ImportError
+    result = CliRunner().invoke(main, ["report", str(ran_take / "config.yaml"), "-o", str(tmp_path / "r.html")])
+    assert result.exit_code == 1
+    assert "pip install 'retarget[report]'" in result.stderr
+    assert not (tmp_path / "r.html").exists()
+
+
 def test_report_and_preview_need_a_run(tmp_path):
     result = CliRunner().invoke(main, ["report", str(tmp_path), "-o", str(tmp_path / "r.html")])
     assert result.exit_code == 1
