@@ -30,7 +30,7 @@ from ._validate import check_array
 from .errors import ShapeError
 
 #: Largest number of pixel tests broadcast at once (bounds the temporary memory).
-_CHUNK = 1 << 21
+_CHUNK = 1 << 18
 #: Depth is quantised to this many levels inside the scene's depth range.
 _DEPTH_LEVELS = (1 << 31) - 1
 _EMPTY = np.iinfo(np.int64).max
