@@ -174,7 +174,8 @@ def rasterize(xy: np.ndarray, depth: np.ndarray, tris: np.ndarray, size: tuple[i
         Vertex positions in pixels (x right, y down).
     depth : ndarray, shape (N,)
         A per-vertex depth that is linear in screen space (smaller is
-        nearer); non-finite values drop the triangles that use them.
+        nearer). Triangles with a non-finite depth or position are dropped
+        (e.g. vertices behind a perspective camera).
     tris : ndarray, shape (M, 3), int
     size : (width, height)
 
@@ -186,13 +187,17 @@ def rasterize(xy: np.ndarray, depth: np.ndarray, tris: np.ndarray, size: tuple[i
         Barycentric coordinates of the pixel centre in its triangle (zeros on
         the background).
     """
-    xy = check_array(xy, "xy", ndim=2)
+    xy = check_array(xy, "xy", ndim=2, finite=False)
     if xy.shape[1] != 2:
         raise ShapeError(f"xy: expected shape (N, 2), got {xy.shape}")
     depth = np.asarray(depth, dtype=np.float64)
     if depth.shape != (len(xy),):
         raise ShapeError(f"depth: expected shape ({len(xy)},), got {depth.shape}")
-    tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+    tris = np.asarray(tris, dtype=np.int64)
+    if tris.size == 0:
+        tris = tris.reshape(0, 3)
+    if tris.ndim != 2 or tris.shape[1] != 3:
+        raise ShapeError(f"tris: expected shape (M, 3) (see triangulate for polygons), got {tris.shape}")
     if tris.size and (tris.min() < 0 or tris.max() >= len(xy)):
         raise ShapeError(f"tris: vertex ids must lie in [0, {len(xy)}), got [{tris.min()}, {tris.max()}]")
     W, H = (int(s) for s in size)

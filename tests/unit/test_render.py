@@ -137,6 +137,14 @@ def test_camera_view_and_depth_order_in_3d():
     assert np.all(depth[: len(v1)] < depth[len(v1):])
 
 
+def test_triangles_behind_the_camera_or_not_finite_are_dropped():
+    xy = np.array([[1.0, 1.0], [14.0, 1.0], [1.0, 14.0], [np.nan, 3.0]])
+    tri_id, _ = rasterize(xy, np.array([0.0, 0.0, 0.0, 0.0]), [[0, 1, 2], [0, 1, 3]], (16, 16))
+    assert set(np.unique(tri_id)) == {-1, 0}
+    tri_id, _ = rasterize(xy, np.array([0.0, np.inf, 0.0, 0.0]), [[0, 1, 2]], (16, 16))
+    assert np.all(tri_id == -1)
+
+
 def test_triangulate_fans_ngons():
     tris = triangulate([[0, 1, 2], [3, 4, 5, 6, 7]])
     np.testing.assert_array_equal(tris, [[0, 1, 2], [3, 4, 5], [3, 5, 6], [3, 6, 7]])
@@ -153,6 +161,8 @@ def test_bad_inputs_are_shape_errors():
         rasterize(np.zeros((3, 3)), np.zeros(3), [[0, 1, 2]], (8, 8))
     with pytest.raises(ShapeError, match="vertex ids"):
         rasterize(np.zeros((3, 2)), np.zeros(3), [[0, 1, 3]], (8, 8))
+    with pytest.raises(ShapeError, match=r"tris: expected shape \(M, 3\)"):
+        rasterize(np.zeros((4, 2)), np.zeros(4), [[0, 1, 2, 3]], (8, 8))
     verts, quads = plane()
     r = MeshRenderer(quads, verts, size=(16, 16))
     with pytest.raises(ShapeError, match=r"expected shape \(144, 3\)"):
