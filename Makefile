@@ -9,12 +9,16 @@ STAMP  := $(VENV)/.installed-stamp
 # Reinstall only when the package metadata changes.
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,report]'
 	@touch $@
 
 demo: $(STAMP)
 	$(BIN)/retarget run configs/sample.yaml
+	$(BIN)/retarget -q preview configs/sample.yaml -o build/sample/preview.mp4
+	$(BIN)/retarget -q report configs/sample.yaml -o build/sample/report.html
 	@echo "Outputs: build/sample/ (landmarks.npz, keys.json, weights.npz, weights.csv, targets/, frames/: frame_*.obj, weights.csv, animation.exr/.json, animation.glb)"
+	@echo "Preview: build/sample/preview.mp4"
+	@echo "Report:  build/sample/report.html"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

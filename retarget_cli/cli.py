@@ -302,6 +302,116 @@ def run(config, force, start, stop, overrides):
             click.echo(f"{name}\t{p}")
 
 
+def _camera_options(f):
+    """--yaw/--pitch/--fov/--distance/--shading, shared by render, preview and report."""
+    opts = [
+        click.option("--yaw", type=float, default=-20.0, show_default=True,
+                     help="Camera turn about the mesh's vertical axis, in degrees."),
+        click.option("--pitch", type=float, default=10.0, show_default=True,
+                     help="Camera tilt in degrees (positive looks down on the mesh)."),
+        click.option("--fov", type=click.FloatRange(0, 170, max_open=True), default=30.0, show_default=True,
+                     help="Vertical field of view in degrees; 0 for an orthographic view."),
+        click.option("--distance", type=click.FloatRange(1, min_open=True), default=None,
+                     help="Camera distance in bounding radii (default: the mesh fills the view)."),
+        click.option("--shading", type=click.Choice(["gouraud", "flat"]), default="gouraud", show_default=True,
+                     help="Interpolated (gouraud) or per-face (flat) lighting."),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def _camera(yaw, pitch, fov, distance):
+    from .render import Camera
+
+    return Camera(yaw=yaw, pitch=pitch, fov=fov, distance=distance)
+
+
+def _parse_size(text: str, param: str = "--size") -> tuple[int, int]:
+    """``WxH`` or ``N`` (square) to (width, height)."""
+    try:
+        parts = [int(v) for v in text.lower().split("x")]
+        w, h = (parts[0], parts[0]) if len(parts) == 1 else parts
+    except ValueError:
+        raise click.BadParameter(f"expected WxH or N, such as 512x512, got {text!r}", param_hint=param) from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise click.BadParameter(f"width and height must lie in [16, 8192], got {text}", param_hint=param)
+    return w, h
+
+
+@main.command()
+@click.argument("mesh", metavar="MESH_OR_SEQUENCE")
+@output_option(None, "Image (.png, .jpg) for one OBJ; video (.mp4, .avi) for a sequence.")
+@click.option("--size", default="512", show_default=True, help="Image size WxH, or N for N x N pixels.")
+@click.option("--fps", type=click.FloatRange(0, 240, min_open=True), default=30.0, show_default=True,
+              help="Frame rate of a video output.")
+@_camera_options
+def render(mesh, output, size, fps, yaw, pitch, fov, distance, shading):
+    """Render an OBJ (to an image) or an OBJ sequence (a directory or glob, to a video).
+
+    Uses the built-in software rasteriser (no GPU or display needed); the camera
+    is framed on the first mesh and stays fixed.
+    """
+    from .preview import write_render
+
+    out = write_render(mesh, output, size=_parse_size(size), fps=fps, camera=_camera(yaw, pitch, fov, distance),
+                       shading=shading, progress=progress)
+    click.echo(str(out))
+
+
+@main.command()
+@click.argument("run_path", metavar="RUN_DIR_OR_CONFIG", type=click.Path(exists=True))
+@output_option("preview.mp4", "Video file.", required=False)
+@click.option("--frames", "frame_range", metavar="A:B", default=None, help="Frame range (Python slice), e.g. 0:120.")
+@click.option("--size", type=click.IntRange(32, 2160), default=360, show_default=True,
+              help="Height of each panel in pixels.")
+@click.option("--fps", type=click.FloatRange(0, 240, min_open=True), default=None,
+              help="Frame rate (default: the take's).")
+@click.option("--video", type=click.Path(dir_okay=False), default=None,
+              help="Source video (default: the one the run's config or track manifest names).")
+@_camera_options
+def preview(run_path, output, frame_range, size, fps, video, yaw, pitch, fov, distance, shading):
+    """Side-by-side video of a run: tracked source | retargeted character | weights.
+
+    RUN_DIR_OR_CONFIG is a config YAML (paths resolved as `retarget run` does) or
+    a run's output directory with the default file names.
+    """
+    from .io.runfiles import locate_run
+    from .preview import write_preview
+
+    run_files = locate_run(run_path, video=video)
+    try:
+        out = write_preview(run_files, output, frames=frame_range, height=size, fps=fps,
+                            camera=_camera(yaw, pitch, fov, distance), shading=shading, progress=progress)
+    except ValueError as exc:
+        if str(exc).startswith("--frames"):
+            raise click.BadParameter(str(exc)) from None
+        raise
+    click.echo(str(out))
+
+
+@main.command()
+@click.argument("run_path", metavar="RUN_DIR_OR_CONFIG", type=click.Path(exists=True))
+@output_option("report.html", "HTML file (self-contained: images embedded).", required=False)
+@click.option("--video", type=click.Path(dir_okay=False), default=None,
+              help="Source video (default: the one the run's config or track manifest names).")
+@click.option("--worst", type=click.IntRange(0, 50), default=6, show_default=True,
+              help="Worst frames listed and thumbnailed.")
+@_camera_options
+def report(run_path, output, video, worst, yaw, pitch, fov, distance, shading):
+    """One self-contained HTML page about a run: summary, tracking, keys, weights, residuals.
+
+    Needs matplotlib: pip install 'retarget[report]'.
+    """
+    from .io.runfiles import locate_run
+    from .report import write_report
+
+    run_files = locate_run(run_path, video=video)
+    out = write_report(run_files, output, worst=worst, camera=_camera(yaw, pitch, fov, distance), shading=shading,
+                       progress=progress)
+    click.echo(str(out))
+
+
 @main.command()
 @click.argument("outdir", type=click.Path(file_okay=False))
 @click.option("--frames", type=click.IntRange(2, 100000), default=240, show_default=True, help="Number of frames.")

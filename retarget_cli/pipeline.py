@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -280,13 +281,19 @@ def check_up_to_date(cfg: Config, name: str, kw: dict) -> tuple[bool, str]:
 
 
 def run_stage(cfg: Config, name: str, kw: dict, progress=None) -> list[Path]:
-    """Run one stage and write its manifest after its outputs."""
+    """Run one stage and write its manifest after its outputs.
+
+    The manifest also records the stage's wall-clock run time (``seconds``,
+    for reports; not part of the up-to-date check).
+    """
     stage = STAGES[name]
     inputs = _inputs(stage, kw)
     call = dict(kw)
     if stage.uses_progress and progress is not None:
         call["progress"] = progress
+    t0 = time.perf_counter()
     outputs = stage.runner(**call)
+    seconds = round(time.perf_counter() - t0, 3)
     man = {
         "stage": name,
         "version": __version__,
@@ -294,6 +301,7 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None) -> list[Path]:
         "settings": _settings(stage, kw, cfg),
         "inputs": {_rel(p, cfg.base_dir): _record(p) for p in inputs},
         "outputs": {_rel(p, cfg.base_dir): _record(p) for p in outputs},
+        "seconds": seconds,
     }
     write_json(manifest_path(cfg, name), man)
     return outputs
