@@ -270,6 +270,8 @@ class Rig:
     neutral: Path
     shapes: dict
     range: tuple = (0.0, 1.0)
+    #: Raw ``correctives`` list from the YAML (parsed by :mod:`retarget_cli.io.rigfiles`), or None.
+    correctives: list | None = None
 
     def files(self) -> list[Path]:
         return [self.neutral, *self.shapes.values()]
@@ -281,11 +283,12 @@ def read_rig(path: str | os.PathLike) -> Rig:
     data = _load_yaml(path, "rig")
     if not isinstance(data, dict) or not isinstance(data.get("neutral"), str) or not isinstance(data.get("shapes"), dict):
         raise InputError(f"{path}: expected 'neutral: file.obj' and 'shapes: {{name: file.obj}}'")
-    unknown = set(data) - {"neutral", "shapes", "range"}
+    unknown = set(data) - {"neutral", "shapes", "range", "correctives"}
     if unknown:
-        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected neutral, shapes, range")
+        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected neutral, shapes, range, correctives")
     rng = tuple(data.get("range", (0.0, 1.0)))
-    return Rig(path, path.parent / data["neutral"], {str(k): path.parent / v for k, v in data["shapes"].items()}, rng)
+    return Rig(path, path.parent / data["neutral"], {str(k): path.parent / v for k, v in data["shapes"].items()}, rng,
+               data.get("correctives"))
 
 
 __all__ = [
