@@ -58,7 +58,7 @@ log = logging.getLogger(__name__)
 SOLVERS = ("lbfgsb", "mm", "bounded", "ridge", "sequential")
 DEFAULT_SOLVER = "lbfgsb"
 #: Weight of the sparsity term α·1ᵀw of eq. 8 (objective units: squared mesh units).
-DEFAULT_ALPHA = 1.0
+DEFAULT_ALPHA = 0.1
 #: Relative tolerance: stop when an iteration lowers the objective by less than tol × objective.
 DEFAULT_TOL = 1e-7
 #: Iteration cap T (mm: outer iterations of Algorithm 2; lbfgsb: L-BFGS-B iterations).
@@ -138,7 +138,7 @@ class QuadraticRig:
         self.b0 = neutral.reshape(-1).copy()
         self.B = np.ascontiguousarray(deltas.reshape(m, -1).T)
         self.pairs = pairs
-        C = sparse.csr_matrix(correctives.reshape(len(pairs), -1).T)
+        C = sparse.csr_matrix(correctives.reshape(len(pairs), 3 * n).T)
         C.eliminate_zeros()
         C.sort_indices()
         self.C = C
@@ -239,6 +239,49 @@ class QuadraticRig:
         return {"BB": self.B.T @ self.B, "BC": BC, "CC": CC, "BF2": float(np.sum(self.B**2))}
 
     @cached_property
+    def _jf2_terms(self) -> dict:
+        """Index arrays for :math:`\\|J(\\mathbf w)\\|_F^2` in O(P + Σ_j deg_j²) (see :func:`mm_coefficients`).
+
+        :math:`J = B + CS(\\mathbf w)`, so :math:`\\|J\\|_F^2 = \\|B\\|_F^2 + 2\\,\\mathrm{tr}(G_{BC}S)
+        + \\sum_j \\mathbf s_j^T G_{CC} \\mathbf s_j` where column :math:`\\mathbf s_j` of S is
+        nonzero only on the pairs p containing shape j, with value :math:`w_{\\text{other}(p, j)}`.
+        """
+        P, pairs = self.n_pairs, self.pairs
+        by_shape: dict[int, list[tuple[int, int]]] = {}
+        for p, (i, j) in enumerate(pairs.tolist()):
+            by_shape.setdefault(i, []).append((p, j))
+            by_shape.setdefault(j, []).append((p, i))
+        tp, tq, op, oq = [], [], [], []
+        for lst in by_shape.values():
+            for p, a in lst:
+                for q, b in lst:
+                    tp.append(p)
+                    tq.append(q)
+                    op.append(a)
+                    oq.append(b)
+        G = self.gram
+        ar = np.arange(P)
+        return {"g0": G["BC"][pairs[:, 0], ar], "g1": G["BC"][pairs[:, 1], ar],
+                "gcc": G["CC"][np.asarray(tp, dtype=np.int64), np.asarray(tq, dtype=np.int64)],
+                "op": np.asarray(op, dtype=np.int64), "oq": np.asarray(oq, dtype=np.int64)}
+
+    @cached_property
+    def _corrective_rows(self) -> dict:
+        """Coordinates whose :math:`\\mathbf D^{(i)}` is nonzero, with their rows of B and C and spectra."""
+        rows = np.flatnonzero(np.diff(self.C.indptr))
+        return {"rows": rows, "B": np.ascontiguousarray(self.B[rows]), "C": self.C[rows],
+                "lam_min": self.lam_min[rows], "lam_max": self.lam_max[rows]}
+
+    def jacobian_fro2(self, w: np.ndarray) -> float:
+        """:math:`\\sum_i \\|\\mathbf h_i\\|^2 = \\|J(\\mathbf w)\\|_F^2` without forming J."""
+        G = self.gram
+        if not self.n_pairs:
+            return G["BF2"]
+        t = self._jf2_terms
+        cross = t["g0"] @ w[self.pairs[:, 1]] + t["g1"] @ w[self.pairs[:, 0]]
+        return float(G["BF2"] + 2 * cross + t["gcc"] @ (w[t["op"]] * w[t["oq"]]))
+
+    @cached_property
     def s_coefficient(self) -> float:
         """``s`` of eq. 18: :math:`2m\\sum_i \\sigma^2(\\mathbf D^{(i)})` (the same every iteration)."""
         return float(2 * self.n_shapes * np.sum(self.sigma**2))
@@ -323,14 +366,16 @@ def quartic_argmin(q, r, s, lo, hi) -> np.ndarray:
         root1 = np.where(u != 0, u - P / (3 * np.where(u != 0, u, 1.0)), 0.0)
         cands.append(np.where(one, root1, np.nan))
         three = quartic & (disc < 0)
-        Pn = np.where(three, P, -1.0)  # P < 0 there
-        amp = 2 * np.sqrt(-Pn / 3)
-        arg = np.clip((3 * Q / (2 * Pn)) * np.sqrt(-3 / Pn), -1.0, 1.0)
-        phi = np.arccos(arg) / 3
-        for k in range(3):
-            cands.append(np.where(three, amp * np.cos(phi - 2 * np.pi * k / 3), np.nan))
-        # s == 0: a quadratic (r > 0) has its vertex; otherwise only the ends matter
-        cands.append(np.where(~quartic & (r > 0), -q / (2 * np.where(r > 0, r, 1.0)), np.nan))
+        if np.any(three):
+            Pn = np.where(three, P, -1.0)  # P < 0 there
+            amp = 2 * np.sqrt(-Pn / 3)
+            arg = np.clip((3 * Q / (2 * Pn)) * np.sqrt(-3 / Pn), -1.0, 1.0)
+            phi = np.arccos(arg) / 3
+            for k in range(3):
+                cands.append(np.where(three, amp * np.cos(phi - 2 * np.pi * k / 3), np.nan))
+        if not np.all(quartic):
+            # s == 0: a quadratic (r > 0) has its vertex; otherwise only the ends matter
+            cands.append(np.where(~quartic & (r > 0), -q / (2 * np.where(r > 0, r, 1.0)), np.nan))
         X = np.stack(cands)
         # one Newton step on the cubic for the roots (not the ends)
         d1 = q + 2 * r * X[2:] + 4 * s * X[2:] ** 3
@@ -377,20 +422,20 @@ def mm_coefficients(rig: QuadraticRig, w, b, alpha: float, *, bt=None):
         Eq. 8 at ``w`` (= ψ(0), Condition 2).
     """
     G = rig.gram
+    b = np.asarray(b, dtype=np.float64)
     yB, yC = bt if bt is not None else (rig.B.T @ b, rig.C.T @ b)
     p = rig.products(w)
-    g = rig.B @ w + rig.C @ p - b
     Btg = G["BB"] @ w + G["BC"] @ p - yB
     Ctg = G["BC"].T @ w + G["CC"] @ p - yC
     q = 2 * (Btg + rig._St(Ctg, w)) + alpha
-    if rig.n_pairs:
-        CS = (rig.C @ rig._S(w)).tocoo()
-        JF2 = G["BF2"] + 2 * float(rig.B[CS.row, CS.col] @ CS.data) + float(CS.data @ CS.data)
-        lam = np.where(g < 0, rig.lam_min, rig.lam_max)
-        r = 2 * (float(g @ lam) + JF2)
-    else:
-        r = 2 * G["BF2"]
-    return q, r, rig.s_coefficient, float(g @ g + alpha * np.sum(w))
+    gl = 0.0
+    if rig.n_pairs:  # g_i is needed only where D^(i) != 0 (elsewhere lambda_M = 0)
+        cr = rig._corrective_rows
+        g = cr["B"] @ w + cr["C"] @ p - b[cr["rows"]]
+        gl = float(g @ np.where(g < 0, cr["lam_min"], cr["lam_max"]))
+    r = 2 * (gl + rig.jacobian_fro2(w))
+    g2 = w @ Btg + p @ Ctg - (yB @ w + yC @ p - b @ b)  # ||g||^2 = (Bw + Cp - b)^T g
+    return q, r, rig.s_coefficient, float(g2 + alpha * np.sum(w))
 
 
 def mm_surrogate(rig: QuadraticRig, w, v, target, alpha: float) -> float:
@@ -668,6 +713,8 @@ def solve(rig: QuadraticRig, targets, *, solver: str = DEFAULT_SOLVER, alpha: fl
     else:
         YC = np.asarray((rig.C.T @ Bmat.T).T) if rig.n_pairs else np.zeros((T, 0))
         one = _bounded_factory(rig, alpha) if solver == "bounded" else None
+        if solver == "lbfgsb":
+            import scipy.optimize  # noqa: F401  (imported once, outside the per-frame timing)
         prev = init
         for t in range(T):
             t0 = time.perf_counter()
