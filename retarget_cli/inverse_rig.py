@@ -489,17 +489,18 @@ def mm_frame(rig: QuadraticRig, b, w0, *, alpha: float, tol: float, max_iter: in
     """
     w = np.clip(np.asarray(w0, dtype=np.float64), 0.0, 1.0)
     it = 0
-    for it in range(1, max_iter + 1):
-        q, r, s, obj = mm_coefficients(rig, w, b, alpha, bt=bt)
-        if history is not None and it == 1:
+    while it < max_iter:
+        it += 1
+        q, r, s, obj = mm_coefficients(rig, w, b, alpha, bt=bt)  # obj = ψ(0) = eq. 8 at w_(t)
+        if history is not None:
             history.append(obj)
         v = quartic_argmin(q, r, s, -w, 1.0 - w)
         dpsi = float(np.sum(q * v + r * v**2 + s * v**4))  # ψ(v̂) − ψ(0) <= 0
         w = np.clip(w + v, 0.0, 1.0)
-        if history is not None:
-            history.append(rig.objective(w, b + rig.b0, alpha))
         if abs(dpsi) < tol * obj:
             break
+    if history is not None:
+        history.append(rig.objective(w, b + rig.b0, alpha))
     return w, it
 
 
@@ -651,7 +652,7 @@ def metrics(rig: QuadraticRig, weights, targets, alpha: float):
 
 def solve(rig: QuadraticRig, targets, *, solver: str = DEFAULT_SOLVER, alpha: float = DEFAULT_ALPHA,
           tol: float = DEFAULT_TOL, max_iter: int = DEFAULT_MAX_ITER, init=None,
-          callback: Callable[[int], None] | None = None) -> InverseRigResult:
+          callback: Callable[[int], None] | None = None, history: list | None = None) -> InverseRigResult:
     """Slider weights in [0, 1] that reproduce each target mesh (the inverse rig, eq. 8).
 
     Parameters
@@ -674,6 +675,9 @@ def solve(rig: QuadraticRig, targets, *, solver: str = DEFAULT_SOLVER, alpha: fl
         ``lbfgsb`` starts every later frame from the previous frame's answer.
     callback : callable, optional
         Called with 1 after each frame (progress).
+    history : list, optional
+        ``mm`` only: receives, per frame, the list of objective values (eq. 8)
+        before every iteration and at the end.
 
     Returns
     -------
@@ -723,8 +727,11 @@ def solve(rig: QuadraticRig, targets, *, solver: str = DEFAULT_SOLVER, alpha: fl
             else:
                 w0 = prev if prev is not None else np.clip(_ridge(rig, Y[t:t + 1], alpha)[0], 0, 1)
                 if solver == "mm":
+                    h = [] if history is not None else None
                     W[t], iters[t] = mm_frame(rig, Bmat[t], w0, alpha=alpha, tol=tol, max_iter=max_iter,
-                                              bt=(Y[t], YC[t]))
+                                              bt=(Y[t], YC[t]), history=h)
+                    if h is not None:
+                        history.append(h)
                 else:
                     W[t], iters[t] = _lbfgsb_frame(rig, (Y[t], YC[t]), float(Bmat[t] @ Bmat[t]), w0,
                                                    alpha=alpha, tol=tol, max_iter=max_iter)
