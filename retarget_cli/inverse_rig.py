@@ -142,7 +142,7 @@ class QuadraticRig:
         C.eliminate_zeros()
         C.sort_indices()
         self.C = C
-        self.lam_min, self.lam_max, self.sigma = _corrective_spectra(C, pairs)
+        self.lam_min, self.lam_max, self.sigma = _corrective_spectra(C, pairs, m)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -287,7 +287,7 @@ class QuadraticRig:
         return float(2 * self.n_shapes * np.sum(self.sigma**2))
 
 
-def _corrective_spectra(C, pairs):
+def _corrective_spectra(C, pairs, m: int):
     """Eigen- and singular values of every :math:`\\mathbf D^{(i)}` (Algorithm 2, first loop).
 
     Coordinates with the same set of nonzero correctives share one small dense
@@ -303,7 +303,6 @@ def _corrective_spectra(C, pairs):
     n3 = C.shape[0]
     lam_min = np.zeros(n3)
     lam_max = np.zeros(n3)
-    m_total = int(pairs.max()) + 1 if len(pairs) else 0
     counts = np.diff(C.indptr)
     groups: dict[bytes, list[int]] = {}
     for i in np.flatnonzero(counts):
@@ -318,7 +317,7 @@ def _corrective_spectra(C, pairs):
         M[:, local[:, 0], local[:, 1]] = 0.5 * vals
         M[:, local[:, 1], local[:, 0]] = 0.5 * vals
         ev = np.linalg.eigvalsh(M)
-        pad = len(shapes) < m_total  # D^(i) has further zero eigenvalues
+        pad = len(shapes) < m  # D^(i) has further zero eigenvalues
         lam_min[rows] = np.minimum(ev[:, 0], 0.0) if pad else ev[:, 0]
         lam_max[rows] = np.maximum(ev[:, -1], 0.0) if pad else ev[:, -1]
     sigma = np.maximum(np.abs(lam_min), np.abs(lam_max))  # D^(i) is symmetric
