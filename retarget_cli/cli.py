@@ -102,6 +102,13 @@ def main(verbose: int, quiet: bool):
     logging.getLogger("retarget_cli").setLevel(level)
 
 
+def _inverse_rig_default(name):
+    """A constant of :mod:`retarget_cli.inverse_rig` (numpy only, cheap to import)."""
+    from . import inverse_rig
+
+    return getattr(inverse_rig, name)
+
+
 def _print_outputs(paths):
     for p in paths:
         click.echo(str(p))
@@ -280,6 +287,38 @@ def auto_pose(keys, landmarks, rig, landmark_vertices, masks, alpha, mu, output)
 
     _print_outputs(run_auto_pose(keys=keys, landmarks=landmarks, rig=rig, landmark_vertices=landmark_vertices,
                                  output=output, masks=_parse_masks(masks), alpha=alpha, mu=mu))
+
+
+@main.command("solve-rig")
+@click.argument("rig", type=click.Path(dir_okay=False))
+@click.argument("meshes")
+@output_option(None, "Slider curves (NPZ: curves, names, per-frame metrics).")
+@click.option("--solver", type=click.Choice(_inverse_rig_default("SOLVERS")),
+              default=_inverse_rig_default("DEFAULT_SOLVER"), show_default=True,
+              help="lbfgsb (fast, eq. 8), mm (Racković et al. Alg. 2), bounded, ridge (eq. 6), sequential (eq. 7).")
+@click.option("--alpha", type=click.FloatRange(0), default=_inverse_rig_default("DEFAULT_ALPHA"), show_default=True,
+              help="Sparsity weight alpha of eq. 8 (squared mesh units per unit weight).")
+@click.option("--tol", type=click.FloatRange(0, min_open=True), default=_inverse_rig_default("DEFAULT_TOL"),
+              show_default=True, help="mm/lbfgsb: stop when an iteration lowers the objective by less than tol x it.")
+@click.option("--max-iter", type=click.IntRange(1), default=_inverse_rig_default("DEFAULT_MAX_ITER"),
+              show_default=True, help="mm/lbfgsb: iteration cap per frame.")
+@click.option("--metrics", type=click.Path(dir_okay=False), default=None,
+              help="Also write per-frame metrics with wall times as CSV.")
+def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics):
+    """Slider weights in [0, 1] of RIG (with corrective shapes) that reproduce MESHES.
+
+    MESHES is a directory of frame_*.obj, a glob such as 'scans/*.obj', or an
+    NPZ with positions (T, N, 3).
+    """
+    from .stages import run_solve_rig
+
+    written, s = run_solve_rig(rig=rig, meshes=meshes, output=output, solver=solver, alpha=alpha, tol=tol,
+                               max_iter=max_iter, metrics=metrics, progress=progress)
+    click.echo(f"{s['frames']} frames, {s['vertices']} vertices, {s['shapes']} shapes, "
+               f"{s['correctives']} correctives; solver {solver}, alpha {alpha:g}")
+    click.echo(f"mean rmse {s['rmse']:.6g}  cardinality {s['cardinality']:.2f}  objective {s['objective']:.6g}  "
+               f"iterations {s['iterations']:.1f}  seconds/frame {s['seconds_per_frame']:.4f}")
+    _print_outputs(written)
 
 
 @main.command()

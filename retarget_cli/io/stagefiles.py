@@ -303,7 +303,8 @@ class Rig:
     ranges: dict = field(default_factory=dict)
     shapes_are: str = "absolute"
     library: dict = field(default_factory=dict)
-    correctives: object = None
+    #: Raw ``correctives`` list from the YAML (parsed by :mod:`retarget_cli.io.rigfiles`), or None.
+    correctives: list | None = None
 
     def files(self) -> list[Path]:
         return [self.neutral, *self.shapes.values()]
