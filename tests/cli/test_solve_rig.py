@@ -7,7 +7,7 @@ import pytest
 from click.testing import CliRunner
 
 from retarget_cli.cli import main
-from retarget_cli.errors import InputError
+from retarget_cli.errors import InputError, RetargetError
 from retarget_cli.io.atomic import load_npz
 from retarget_cli.io.obj import format_obj
 from retarget_cli.io.rigfiles import read_meshes, read_quadratic_rig
@@ -60,7 +60,7 @@ def test_read_rig_keeps_correctives_and_still_rejects_unknown_keys(tmp_path):
     spec = read_rig(rig_yaml)
     assert [c["shapes"] for c in spec.correctives] == [list(p) for p in CORRECTIVES]
     (tmp_path / "bad.yaml").write_text("neutral: neutral.obj\nshapes: {}\ncorrectivs: []\n")
-    with pytest.raises(InputError, match="unknown key 'correctivs'"):
+    with pytest.raises(RetargetError, match="unknown key .correctivs.; did you mean .correctives."):
         read_rig(tmp_path / "bad.yaml")
 
 
