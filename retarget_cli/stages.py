@@ -151,10 +151,9 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
     with *plot*, the curves as a picture (Fig. 6 of Chuang & Bregler 2002).
     With *contact_sheet*, the key frames cropped from *video* with their landmarks.
     """
-    from .decompose import reconstruction_error
     from .io.landmarks import load_landmarks
     from .io.stagefiles import write_keys, write_targets
-    from .select import curve_winner, evaluation_curve, select_keys
+    from .select import curve_winner, evaluation_curve, key_error, select_keys
 
     landmarks = _require(landmarks, "landmarks file")
     outs = [o for o in (output, template, evaluate, plot, contact_sheet) if o]
@@ -184,7 +183,7 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
                                                     seed=seed, progress=bar.update)
             except ValueError as exc:
                 raise InputError(f"{landmarks}: region {name!r}: {exc}") from exc
-            err = reconstruction_error(X, X[frames])
+            err = key_error(X, frames)
             chosen_k[name] = len(frames)
             result[name] = {"points": idx, "method": method, "frames": [int(f) for f in frames], "error": round(err, 6)}
             tmpl[name] = {"keys": {int(f): f"target/{name}/key_{int(f):05d}.obj" for f in frames}}
