@@ -48,7 +48,7 @@ def main() -> None:
     rows.append({"curve": "greedy-swap", "k": 10, "error": reconstruction_error(X, X[f10])})
     at = {(r["curve"], r["k"]): r["error"] for r in rows}
     hull = [r for r in rows if r["curve"] == "convex-hull"][0]
-    print(f"\n| method | E at k = 10 (px²) | E at k = 20 (px²) |\n|---|---|---|")
+    print("\n| method | E at k = 10 (px²) | E at k = 20 (px²) |\n|---|---|---|")
     for c in ("pca-extremes", "kmeans-2pc", "kmeans-3pc", "greedy", "greedy-swap"):
         print(f"| {c} | {at[(c, 10)]:,.0f} | {at[(c, 20)]:,.0f} |")
     print(f"| convex-hull (k = {hull['k']}, its own size) | {hull['error']:,.0f} | |")
