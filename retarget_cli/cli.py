@@ -135,45 +135,65 @@ def track(video, init, output, **settings):
 @click.argument("landmarks", type=click.Path(dir_okay=False))
 @output_option("keys.json", "Key frames per region (keys.json).", required=False)
 @click.option("-k", "k", type=click.IntRange(1, 1000), default=_param("select", "k").default, show_default=True,
-              help=_param("select", "k").help)
+              help=_param("select", "k").help + " Ignored by convex-hull, whose size the data sets (a warning says so).")
 @setting("select", "method")
+@setting("select", "kmeans_components")
 @click.option("--neutral-frame", type=click.IntRange(0), default=_param("select", "neutral_frame").default,
               show_default=True, help=_param("select", "neutral_frame").help)
 @click.option("--no-neutral", is_flag=True, help="Let the method choose all k keys.")
-@click.option("--region", "regions", multiple=True, metavar="NAME=SPEC",
-              help="A region and its landmarks, e.g. mouth=48-67,3-13 or face=all. Repeatable; default face=all.")
+@click.option("--region", "regions", multiple=True, metavar="NAME[=SPEC][:K]",
+              help="A region, its landmarks and optionally its own k, e.g. mouth=48-67,3-13:8, face=all, or a "
+                   "68-point preset by name: brows-eyes, mouth, face (mouth:8). Repeatable; default face=all.")
 @click.option("--template", type=click.Path(dir_okay=False), default=None,
               help="Also write a targets.yaml template for the artist (never overwrites a file select did not write).")
+@click.option("--evaluate", type=click.Path(dir_okay=False), default=None, metavar="CURVE.csv",
+              help=_param("select", "evaluate").help)
+@click.option("--plot", type=click.Path(dir_okay=False), default=None, metavar="CURVE.png",
+              help=_param("select", "plot").help)
+@setting("select", "evaluate_k")
+@click.option("--contact-sheet", type=click.Path(dir_okay=False), default=None, metavar="KEYS.png",
+              help=_param("select", "contact_sheet").help)
+@click.option("--video", type=click.Path(dir_okay=False), default=None, help="The take's video (for --contact-sheet).")
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True, help="Random seed.")
-def select(landmarks, output, k, method, neutral_frame, no_neutral, regions, template, seed):
-    """Choose key frames from LANDMARKS (PCA extremes, Chuang & Bregler §4.2)."""
+def select(landmarks, output, k, method, kmeans_components, neutral_frame, no_neutral, regions, template, evaluate,
+           plot, evaluate_k, contact_sheet, video, seed):
+    """Choose key frames from LANDMARKS (Chuang & Bregler §4.2) and optionally evaluate every method."""
     from .stages import run_select
 
     _print_outputs(run_select(landmarks=landmarks, output=output, template=template, method=method, k=k,
                               regions=_parse_regions(regions), neutral_frame=None if no_neutral else neutral_frame,
-                              seed=seed))
+                              kmeans_components=kmeans_components, evaluate=evaluate, plot=plot,
+                              evaluate_k=evaluate_k, contact_sheet=contact_sheet, video=video, seed=seed,
+                              progress=progress))
 
 
 def _parse_regions(specs) -> dict | None:
-    """``NAME=all`` or ``NAME=a-b,c,...`` (inclusive ranges) to ``{name: "all" | [ids]}``."""
+    """``NAME``, ``NAME=all`` or ``NAME=a-b,c,...`` (inclusive ranges), each optionally ``:K``, to region specs."""
     if not specs:
         return None
     out = {}
     for spec in specs:
-        name, sep, body = spec.partition("=")
+        head, colon, kk = spec.rpartition(":") if ":" in spec else (spec, "", "")
+        name, sep, body = head.partition("=")
         try:
-            if not sep or not name:
+            if not name or (sep and not body):
                 raise ValueError
-            if body == "all":
-                out[name] = "all"
-                continue
-            ids = []
-            for part in body.split(","):
-                lo, _, hi = part.partition("-")
-                ids += list(range(int(lo), int(hi or lo) + 1))
-            out[name] = ids
+            k = int(kk) if colon else None
+            if k is not None and k < 1:
+                raise ValueError
+            if not sep:
+                pts = None
+            elif body == "all":
+                pts = "all"
+            else:
+                pts = []
+                for part in body.split(","):
+                    lo, _, hi = part.partition("-")
+                    pts += list(range(int(lo), int(hi or lo) + 1))
+            out[name] = pts if k is None else {"points": pts, "k": k}
         except ValueError:
-            raise click.BadParameter(f"expected NAME=all or NAME=a-b,c,..., got {spec!r}", param_hint="--region") from None
+            raise click.BadParameter(f"expected NAME, NAME=all or NAME=a-b,c,... optionally followed by :K, got {spec!r}",
+                                     param_hint="--region") from None
     return out
 
 

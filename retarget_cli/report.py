@@ -483,7 +483,8 @@ def read_curve(path: Path) -> dict:
             return False
 
     num = [j for j in range(len(header)) if j != ki and numeric(j)]
-    text = [j for j in range(len(header)) if j != ki and j not in num]
+    # A ``frames`` column (the key frames of each row, as select writes) names no series.
+    text = [j for j in range(len(header)) if j != ki and j not in num and low[j] != "frames"]
     val = next((j for j in num if low[j] in ("e", "error", "reconstruction_error")), None)
     panels: dict = {}
     ri = low.index("region") if "region" in low else None

@@ -88,51 +88,109 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
 # --------------------------------------------------------------------------- select
 
 
-def region_points(regions, n_points: int) -> dict[str, list[int]]:
-    """Resolve region definitions (``"all"`` or index lists) to index lists."""
+#: Default regions of the 68-point layout (the synthetic take's config uses the same lists).
+REGION_PRESETS_68 = {
+    "brows-eyes": list(range(17, 27)) + list(range(36, 48)),
+    "mouth": list(range(3, 14)) + list(range(48, 68)),
+    "face": "all",
+}
+
+
+def region_specs(regions, n_points: int, k: int | None = None) -> dict[str, tuple[list[int], int | None]]:
+    """Resolve region definitions to ``{name: (landmark ids, k)}``.
+
+    A region is ``"all"``, a list of landmark ids, ``null`` (a preset of the
+    68-point layout: ``brows-eyes``, ``mouth``, ``face``) or a mapping
+    ``{points: ..., k: ...}`` where either key may be left out (preset points,
+    the stage's k).
+    """
     regions = regions or {"face": "all"}
     out = {}
-    for name, pts in regions.items():
-        if pts == "all":
-            out[name] = list(range(n_points))
+    for name, spec in regions.items():
+        rk = k
+        if isinstance(spec, dict):
+            bad = sorted(set(spec) - {"points", "k"})
+            if bad:
+                raise InputError(f"regions: {name!r} has unknown key {bad[0]!r}; expected 'points' and/or 'k'")
+            rk = spec.get("k", k)
+            if isinstance(rk, bool) or not isinstance(rk, int) or rk < 1:
+                raise InputError(f"regions: {name!r} k must be an integer >= 1, got {rk!r}")
+            spec = spec.get("points")
+        if spec is None:
+            if name not in REGION_PRESETS_68:
+                raise InputError(f"regions: {name!r} needs 'points' (presets: {', '.join(REGION_PRESETS_68)})")
+            if n_points != 68 and REGION_PRESETS_68[name] != "all":
+                raise InputError(f"regions: preset {name!r} is for the 68-point layout but the take has {n_points} points; "
+                                 "give its landmark ids")
+            spec = REGION_PRESETS_68[name]
+        if spec == "all":
+            out[name] = (list(range(n_points)), rk)
             continue
-        if not isinstance(pts, list) or not pts or not all(isinstance(i, int) for i in pts):
-            raise InputError(f"regions: {name!r} must be 'all' or a list of landmark indices")
-        bad = [i for i in pts if not 0 <= i < n_points]
+        if not isinstance(spec, list) or not spec or not all(isinstance(i, int) and not isinstance(i, bool) for i in spec):
+            raise InputError(f"regions: {name!r} must be 'all', a list of landmark indices or {{points, k}}")
+        bad = [i for i in spec if not 0 <= i < n_points]
         if bad:
             raise InputError(f"regions: {name!r} names landmark {bad[0]} but the take has {n_points} (0..{n_points - 1})")
-        out[name] = list(pts)
+        out[name] = (list(spec), rk)
     return out
 
 
+def region_points(regions, n_points: int) -> dict[str, list[int]]:
+    """Resolve region definitions (``"all"`` or index lists) to index lists."""
+    return {name: pts for name, (pts, _) in region_specs(regions, n_points).items()}
+
+
+
 def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12, regions=None,
-               neutral_frame=0, seed=0) -> list[Path]:
-    """Choose key frames per region; write ``keys.json`` and a ``targets.yaml`` template."""
-    from .decompose import reconstruction_error
+               neutral_frame=0, kmeans_components=2, evaluate=None, plot=None, evaluate_k=40,
+               contact_sheet=None, video=None, seed=0, progress=_no_progress) -> list[Path]:
+    """Choose key frames per region; write ``keys.json`` and a ``targets.yaml`` template.
+
+    With *evaluate*, also the error curve of every method (CSV), a JSON summary
+    of the winner at each region's k (*evaluate* with suffix ``.json``) and,
+    with *plot*, the curves as a picture (Fig. 6 of Chuang & Bregler 2002).
+    With *contact_sheet*, the key frames cropped from *video* with their landmarks.
+    """
     from .io.landmarks import load_landmarks
     from .io.stagefiles import write_keys, write_targets
-    from .select import select_keys
+    from .select import curve_winner, evaluation_curve, key_error, select_keys
 
     landmarks = _require(landmarks, "landmarks file")
-    check_not_input(output, [landmarks])
+    outs = [o for o in (output, template, evaluate, plot, contact_sheet) if o]
+    for o in outs:
+        check_not_input(o, [landmarks] + ([video] if video else []))
+    if evaluate and Path(evaluate).with_suffix(".json") in [Path(o) for o in (output, template, plot, contact_sheet) if o]:
+        raise InputError(f"{evaluate}: its summary {Path(evaluate).with_suffix('.json')} would overwrite another output")
+    if plot and not evaluate:
+        raise InputError(f"{plot}: a plot needs the evaluation (--evaluate curve.csv)")
+    if contact_sheet and not video:
+        raise InputError(f"{contact_sheet}: a contact sheet needs the video (--video, or select.video)")
     lm = load_landmarks(landmarks)
     stab = lm.stabilized.astype(np.float64)
-    result, tmpl = {}, {}
-    for name, idx in region_points(regions, lm.n_points).items():
-        X = stab[:, idx].reshape(lm.n_frames, -1)
-        try:
-            include = () if neutral_frame is None else (neutral_frame,)
-            frames = select_keys(X, k, method=method, include=include)
-        except ValueError as exc:
-            raise InputError(f"{landmarks}: region {name!r}: {exc}") from exc
-        err = reconstruction_error(X, X[frames])
-        result[name] = {"points": idx, "method": method, "frames": [int(f) for f in frames], "error": round(err, 6)}
-        tmpl[name] = {"keys": {int(f): f"target/{name}/key_{int(f):05d}.obj" for f in frames}}
-        log.info("region %s: keys %s, E = %.4g (eq. 5)", name, result[name]["frames"], err)
+    include = () if neutral_frame is None else (neutral_frame,)
+    if neutral_frame is not None and neutral_frame >= lm.n_frames:
+        raise InputError(f"neutral_frame: frame {neutral_frame} is outside the take ({lm.n_frames} frames in {landmarks})")
+    specs = region_specs(regions, lm.n_points, k)
+    result, tmpl, curves, chosen_k = {}, {}, {}, {}
+    with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
+        for name, (idx, rk) in specs.items():
+            X = stab[:, idx].reshape(lm.n_frames, -1)
+            try:
+                frames = select_keys(X, rk, method=method, include=include, seed=seed, components=kmeans_components)
+                bar.update(1)
+                if evaluate:
+                    curves[name] = evaluation_curve(X, max(evaluate_k, len(frames)), k=len(frames), include=include,
+                                                    seed=seed, progress=bar.update)
+            except ValueError as exc:
+                raise InputError(f"{landmarks}: region {name!r}: {exc}") from exc
+            err = key_error(X, frames)
+            chosen_k[name] = len(frames)
+            result[name] = {"points": idx, "method": method, "frames": [int(f) for f in frames], "error": round(err, 6)}
+            tmpl[name] = {"keys": {int(f): f"target/{name}/key_{int(f):05d}.obj" for f in frames}}
+            log.info("region %s: keys %s, E = %.4g (eq. 5)", name, result[name]["frames"], err)
     write_keys(output, landmarks, result)
     written = [Path(output)]
     if template:
-        check_not_input(template, [landmarks])
         t = Path(template)
         if t.exists() and not t.read_text(encoding="utf-8", errors="replace").startswith(TEMPLATE_MARK):
             raise InputError(f"{t}: exists and was not written by 'retarget select'; "
@@ -142,6 +200,32 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
             "expression in that frame. Paths are relative to this file. Copy this file\n"
             "before editing: select rewrites it."))
         written.append(t)
+    if evaluate:
+        from .io.atomic import write_json
+        from .select_report import curve_csv, write_curve_plot
+
+        write_text(evaluate, curve_csv(curves))
+        summary = {"method": method, "regions": {}}
+        for name, rows in curves.items():
+            try:
+                summary["regions"][name] = curve_winner(rows, chosen_k[name])
+            except ValueError:  # chosen k below 2: nothing evaluated there
+                summary["regions"][name] = {"k": chosen_k[name], "winner": None}
+            summary["regions"][name]["selected_error"] = result[name]["error"]
+            log.info("region %s: at k = %d the lowest E is %s", name, chosen_k[name], summary["regions"][name]["winner"])
+        summary_path = Path(evaluate).with_suffix(".json")
+        write_json(summary_path, summary)
+        written += [Path(evaluate), summary_path]
+        if plot:
+            write_curve_plot(plot, curves, chosen_k)
+            written.append(Path(plot))
+    if contact_sheet:
+        from .select_report import write_contact_sheet
+
+        video = _require(video, "video file")
+        write_contact_sheet(contact_sheet, video, lm.points,
+                            {n: (r["points"], r["frames"]) for n, r in result.items()})
+        written.append(Path(contact_sheet))
     return written
 
 

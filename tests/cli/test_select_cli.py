@@ -1,0 +1,48 @@
+"""`retarget select` with methods, regions, evaluation, plot and contact sheet (issue 4)."""
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from retarget_cli.cli import _parse_regions, main
+
+
+def test_region_specs_parse_presets_ranges_and_per_region_k():
+    assert _parse_regions(["mouth", "brows-eyes:6", "lips=48-50,60:4", "face=all"]) == {
+        "mouth": None, "brows-eyes": {"points": None, "k": 6}, "lips": {"points": [48, 49, 50, 60], "k": 4},
+        "face": "all"}
+
+
+def test_select_evaluate_plot_contact_sheet(small_take, tmp_path):
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "o"
+    args = ["select", str(small_take / "truth_landmarks.npz"), "-o", str(out / "keys.json"), "-k", "5",
+            "--method", "greedy", "--region", "brows-eyes", "--region", "mouth:6",
+            "--evaluate", str(out / "curve.csv"), "--plot", str(out / "curve.png"), "--evaluate-k", "8",
+            "--contact-sheet", str(out / "sheet.png"), "--video", str(small_take / "face.mp4")]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output + r.stderr
+    keys = json.loads((out / "keys.json").read_text())["regions"]
+    assert len(keys["brows-eyes"]["frames"]) == 5 and len(keys["mouth"]["frames"]) == 6
+    assert keys["mouth"]["points"] == list(range(3, 14)) + list(range(48, 68))
+    summary = json.loads((out / "curve.json").read_text())["regions"]
+    assert summary["mouth"]["k"] == 6 and summary["mouth"]["winner"] in summary["mouth"]["errors"]
+    assert summary["mouth"]["selected_error"] == pytest.approx(summary["mouth"]["errors"]["greedy"], abs=1e-6)
+    csv = (out / "curve.csv").read_text().splitlines()
+    assert csv[0] == "region,curve,method,k,error,frames" and any(",kmeans-3pc," in line for line in csv)
+    png = (out / "curve.png").read_bytes()
+    sheet = (out / "sheet.png").read_bytes()
+    assert png[:4] == b"\x89PNG" and sheet[:4] == b"\x89PNG"
+    # Deterministic: a second run writes the same bytes.
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0
+    assert (out / "curve.png").read_bytes() == png and (out / "sheet.png").read_bytes() == sheet
+
+
+def test_contact_sheet_needs_the_video_and_presets_need_68_points(small_take, tmp_path):
+    lm = str(small_take / "truth_landmarks.npz")
+    r = CliRunner().invoke(main, ["select", lm, "-o", str(tmp_path / "k.json"), "--contact-sheet", str(tmp_path / "s.png")])
+    assert r.exit_code == 1 and "needs the video" in r.stderr
+    r = CliRunner().invoke(main, ["select", lm, "-o", str(tmp_path / "k.json"), "--region", "nose"])
+    assert r.exit_code == 1 and "'nose' needs 'points'" in r.stderr
