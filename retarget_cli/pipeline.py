@@ -94,7 +94,7 @@ STAGES: dict[str, Stage] = {
                       nullable=True),
                 Param("contact_sheet", "output", str, None,
                       "Image of the key frames cropped from the video with their landmarks.", nullable=True),
-                Param("method", "setting", str, "pca-extremes", "Selection method (convex-hull chooses its own k).",
+                Param("method", "setting", str, "greedy", "Selection method (convex-hull chooses its own k).",
                       choices=("pca-extremes", "kmeans", "convex-hull", "greedy", "greedy-swap")),
                 Param("k", "setting", int, 12, "Number of key shapes per region.", min=1, max=1000),
                 Param("kmeans_components", "setting", int, 2, "Principal components clustered by kmeans.",

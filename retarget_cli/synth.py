@@ -1233,7 +1233,7 @@ track:
   video: face.mp4
   init: face_00000.pts
 select:
-  method: pca-extremes
+  method: greedy
   k: 12
   regions:           # modelled separately and blended on the target (Chuang & Bregler §5)
     brows-eyes: [17, 18, 19, 20, 21, 22, 23, 24, 25, 26, 36, 37, 38, 39, 40, 41, 42, 43, 44, 45, 46, 47]

@@ -12,7 +12,7 @@ from retarget_cli.io.obj import read_obj
 
 #: Mean vertex error of the retargeted sequence relative to the mean vertex
 #: displacement of the ground-truth expressions (stated in the README).
-RELATIVE_TOLERANCE = 0.25
+RELATIVE_TOLERANCE = 0.15
 #: Mean landmark tracking error in pixels on the synthetic take.
 TRACK_TOLERANCE_PX = 1.0
 
