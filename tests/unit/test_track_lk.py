@@ -1,0 +1,84 @@
+import numpy as np
+import pytest
+
+from retarget_cli.errors import ShapeError
+from retarget_cli.io.atomic import load_npz
+from retarget_cli.io.video import VideoReader
+from retarget_cli.track.head import RIGID_68
+from retarget_cli.track.lk import FaceLostError, normalize_annotations, track_lk
+from retarget_cli.track.prior import ShapePrior
+
+
+@pytest.fixture(scope="module")
+def clip(small_take_template):
+    frames = list(VideoReader(small_take_template / "face.mp4"))
+    truth = load_npz(small_take_template / "truth_landmarks.npz")["points"].astype(np.float64)
+    return frames, truth
+
+
+def test_lk_error_bound_from_one_annotation(clip):
+    frames, truth = clip
+    pts, conf = track_lk(frames, truth[0])
+    err = np.linalg.norm(pts - truth, axis=2)
+    assert pts.shape == truth.shape and conf.shape == truth.shape[:2]
+    assert err.mean() < 0.6, err.mean()
+    # rigid points never leave the head similarity (teeth appearing near the nose used to drag them 7 px)
+    assert err[:, list(RIGID_68)].max() < 3.0
+    assert conf.mean() > 0.8
+
+
+def test_lk_reanchors_on_every_annotated_frame(clip):
+    frames, truth = clip
+    pts, conf = track_lk(frames, {0: truth[0], 30: truth[30]})
+    np.testing.assert_allclose(pts[30], truth[30], atol=1e-9)
+    assert np.all(conf[30] == 1)
+    single, _ = track_lk(frames, truth[0])
+    after = slice(31, None)
+    e2 = np.linalg.norm(pts[after] - truth[after], axis=2).mean()
+    e1 = np.linalg.norm(single[after] - truth[after], axis=2).mean()
+    assert e2 <= e1 + 0.02
+
+
+def test_lk_downscale_reports_full_resolution(clip):
+    frames, truth = clip
+    pts, _ = track_lk(frames[:20], truth[0], downscale=0.5, window=11)
+    np.testing.assert_allclose(pts[0], truth[0], atol=1e-9)
+    assert np.linalg.norm(pts - truth[:20], axis=2).mean() < 1.5
+
+
+def test_lk_face_lost_is_reported(clip):
+    frames, truth = clip
+    blank = [np.zeros_like(frames[0])] * 15
+    with pytest.raises(FaceLostError, match=r"lost from frame (\d+)") as exc:
+        track_lk(frames[:10] + blank, truth[0], lost_frames=5)
+    assert 10 <= exc.value.frame <= 12
+    assert exc.value.points.shape[0] == exc.value.frame
+
+
+def test_annotation_count_mismatch_names_both_counts():
+    with pytest.raises(ShapeError, match="frame 5 has 3 points but frame 0 has 2"):
+        normalize_annotations({0: np.zeros((2, 2)), 5: np.zeros((3, 2))})
+
+
+def test_annotation_outside_image(clip):
+    frames, truth = clip
+    bad = truth[0].copy()
+    bad[7] = (500, 10)
+    with pytest.raises(ShapeError, match="point 7 .* outside the 192x192 image"):
+        track_lk(frames[:3], bad)
+
+
+def test_shape_prior_recovers_missing_points(clip):
+    _, truth = clip
+    prior = ShapePrior(truth[::12])
+    w = np.ones(68)
+    w[48:68] = 0  # whole mouth unreliable
+    target = truth[37].copy()
+    garbage = target.copy()
+    garbage[48:68] += 40
+    fit = prior.fit(garbage, w)
+    assert np.linalg.norm(fit[48:68] - target[48:68], axis=1).mean() < 2.0
+    # one annotated frame: mean shape under the similarity
+    one = ShapePrior(truth[0])
+    assert len(one.sd) == 0
+    np.testing.assert_allclose(one.fit(truth[0], np.ones(68)), truth[0], atol=1e-6)
