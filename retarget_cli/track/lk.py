@@ -226,6 +226,9 @@ def track_lk(
     check_inside(P0, (w, h), "annotations: frame 0")
     prior = ShapePrior(np.stack(list(ann.values()))) if shape_prior else ShapePrior(P0[None])
     refs = [_Reference(first, P0, offset0)]
+    # Silhouette points are then refined along their normal by matching the
+    # annotated frame's intensity profile across the edge (ASM-style).
+    profile = _Profiles(first, P0[contour], offset0[contour]) if contour.size else None
     pts, conf = [scale_back(P0)], [np.ones(L)]
     Q0 = P0 + offset0
     prev, c_prev = first, Q0.copy()
@@ -272,6 +275,8 @@ def track_lk(
             c_est = np.where(use[:, None], afw.reshape(-1, 2), c_est)
             err = np.where(use, aerr, err)
             est = c_est - off
+        if contour.size and profile is not None:
+            est[contour] = profile.refine(cur, est[contour], off[contour])
         # 3. rigid points that left the head's similarity are unreliable, then
         # unreliable points are recovered from the shape prior
         good = err < 3 * fb_threshold
@@ -301,6 +306,55 @@ def track_lk(
     if 0 < lost_run:
         log.warning("the last %d frames have fewer than %d reliable landmarks", lost_run, max(3, L // 4))
     return np.stack(pts), np.clip(np.stack(conf), 0.0, 1.0)
+
+
+class _Profiles:
+    """Intensity profiles across the silhouette, for refining contour points along their normal.
+
+    Active-shape-model style: at each contour point of the reference frame an
+    intensity profile is sampled along the inward normal (mostly skin, plus
+    the edge); in a new frame the profile is searched along the current
+    normal around the proxy-based estimate by normalised cross-correlation.
+    """
+
+    def __init__(self, image, points, offsets, *, inside: float = 8.0, outside: float = 2.0,
+                 search: float = 4.0, step: float = 0.5, min_ncc: float = 0.7):
+        self.u = np.arange(-outside, inside + step / 2, step)
+        self.shifts = np.arange(-search, search + step / 2, step)
+        self.step, self.min_ncc = step, min_ncc
+        n = offsets / np.maximum(np.linalg.norm(offsets, axis=1, keepdims=True), 1e-9)
+        self.ref = self._norm(self._sample(image, points, n, self.u))
+
+    @staticmethod
+    def _norm(p):
+        d = np.diff(p, axis=-1)
+        d = d - d.mean(-1, keepdims=True)
+        return d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
+
+    @staticmethod
+    def _sample(image, points, normals, u):
+        import cv2
+
+        xy = points[:, None, :] + u[None, :, None] * normals[:, None, :]
+        m = xy.astype(np.float32)
+        return cv2.remap(image, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                         ).astype(np.float64)
+
+    def refine(self, image, points, offsets) -> np.ndarray:
+        n = offsets / np.maximum(np.linalg.norm(offsets, axis=1, keepdims=True), 1e-9)
+        uu = (self.shifts[:, None] + self.u[None, :]).ravel()
+        prof = self._sample(image, points, n, uu).reshape(len(points), len(self.shifts), len(self.u))
+        ncc = (self._norm(prof) * self.ref[:, None, :]).sum(-1)
+        k = ncc.argmax(1)
+        best = ncc[np.arange(len(k)), k]
+        # sub-sample parabola through the peak
+        km, kp = np.clip(k - 1, 0, len(self.shifts) - 1), np.clip(k + 1, 0, len(self.shifts) - 1)
+        a, b, c = ncc[np.arange(len(k)), km], best, ncc[np.arange(len(k)), kp]
+        den = a - 2 * b + c
+        frac = np.where((k > 0) & (k < len(self.shifts) - 1) & (den < 0), 0.5 * (a - c) / np.where(den < 0, den, -1), 0)
+        shift = self.shifts[k] + frac * self.step
+        ok = best > self.min_ncc
+        return np.where(ok[:, None], points + shift[:, None] * n, points)
 
 
 def _shape_distance(a, b, w) -> float:
