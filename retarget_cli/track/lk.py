@@ -121,7 +121,7 @@ def track_lk(
     contour_points=None,
     shape_prior: bool = True,
     downscale: float = 1.0,
-    rigid_tolerance: float = 2.0,
+    rigid_tolerance: float = 1.5,
     lost_frames: int = 10,
     progress=None,
 ):
@@ -232,6 +232,7 @@ def track_lk(
     pts, conf = [scale_back(P0)], [np.ones(L)]
     Q0 = P0 + offset0
     prev, c_prev = first, Q0.copy()
+    is_rigid = np.isin(np.arange(L), rigid)
     lost_run = 0
     for t, frame in enumerate(it, start=1):
         cur = prep(frame)
@@ -287,7 +288,12 @@ def track_lk(
         if (~good).any():
             fitw = np.where(good, c, 0.0)
             if fitw.sum() > 0:
-                est = np.where(good[:, None], est, prior.fit(est, fitw))
+                rec = prior.fit(est, fitw)
+                if len(prior.sd) == 0 and fitw[rigid].sum() > 0 and (~good & is_rigid).any():
+                    # the mean shape cannot follow expressions: place lost rigid
+                    # points by the reliable rigid points only
+                    rec[is_rigid] = prior.fit(est, np.where(is_rigid, fitw, 0.0))[is_rigid]
+                est = np.where(good[:, None], est, rec)
                 c_est = est + off
         if good.sum() < max(3, L // 4) or good[rigid].sum() < 2:
             lost_run += 1

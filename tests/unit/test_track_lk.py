@@ -82,3 +82,37 @@ def test_shape_prior_recovers_missing_points(clip):
     one = ShapePrior(truth[0])
     assert len(one.sd) == 0
     np.testing.assert_allclose(one.fit(truth[0], np.ones(68)), truth[0], atol=1e-6)
+
+
+def _rot_scale(h):
+    return np.degrees(np.arctan2(h[:, 1, 0], h[:, 0, 0])), np.hypot(h[:, 0, 0], h[:, 1, 0])
+
+
+def test_head_motion_recovered_from_tracked_clip(clip, small_take_template):
+    from retarget_cli.track.head import estimate_head
+
+    frames, truth = clip
+    true_head = load_npz(small_take_template / "truth_landmarks.npz")["head"].astype(np.float64)
+    pts, conf = track_lk(frames, truth[0])
+    head, _ = estimate_head(pts, conf)
+    (r, s), (rt, st) = _rot_scale(head), _rot_scale(true_head)
+    assert np.ptp(rt) > 2.0  # the clip really moves
+    assert np.abs(r - rt).max() < 1.0
+    assert np.abs(s / st - 1).max() < 0.02
+
+
+def test_smooth_head_reduces_jitter_and_keeps_identity(small_take_template):
+    from retarget_cli.track.head import smooth_head
+
+    true_head = load_npz(small_take_template / "truth_landmarks.npz")["head"].astype(np.float64)
+    rng = np.random.default_rng(0)
+    noisy = true_head.copy()
+    noisy[1:, :, 2] += rng.normal(0, 0.5, (len(noisy) - 1, 2))
+    sm = smooth_head(noisy, 9)
+    np.testing.assert_allclose(sm[0], np.eye(2, 3), atol=1e-12)
+    # relative to frame 0, the smoothed track is closer to the truth than the noisy one
+    def rel_err(h):
+        return np.abs(h[1:, :, 2] - true_head[1:, :, 2]).mean()
+    assert rel_err(sm) < 0.6 * rel_err(noisy)
+    (r, s), (rt, st) = _rot_scale(sm), _rot_scale(true_head)
+    assert np.abs(r - rt).max() < 1.0 and np.abs(s / st - 1).max() < 0.02
