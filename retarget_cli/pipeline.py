@@ -101,7 +101,9 @@ STAGES: dict[str, Stage] = {
                       min=0, max=301),
                 Param("keep_partial", "setting", bool, False,
                       "On a truncated video or a lost face, keep what was tracked up to then."),
-                Param("method", "setting", str, "lk", "Tracker.", choices=("lk",)),
+                Param("method", "setting", str, "lk",
+                      "Tracker: lk (Lucas-Kanade, one or more annotated frames) or eigenpoints (the paper's "
+                      "tracker, trained on the annotated frames; give 5 or more).", choices=("lk", "eigenpoints")),
                 Param("window", "setting", int, 21, "Lucas-Kanade window side in pixels (odd).", min=5, max=101),
                 Param("levels", "setting", int, 3, "Pyramid levels.", min=0, max=8),
                 Param("fb_threshold", "setting", float, 1.0, "Forward-backward error scale in pixels.",

@@ -66,8 +66,8 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     extra = [Path(base_dir or ".") / a for a in (annotations or [])]
     for a in extra:
         _require(a, "annotation file")
-    if method != "lk":
-        raise ValueError(f"method: expected 'lk', got {method!r}")
+    if method not in ("lk", "eigenpoints"):
+        raise ValueError(f"method: expected 'lk' or 'eigenpoints', got {method!r}")
     ann, src = read_annotations([init, *extra], frame=init_frame)
     with FrameSource(video, start=start, end=end, step=step, fps=fps) as source:
         check_not_input(output, source.files() + [init, *extra])
@@ -103,9 +103,17 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
             n_expected = max(0, (last - start + step - 1) // step)
         with progress(n_expected, "track") as bar:
             try:
-                points, conf = track_lk(frames(), index, window=window, levels=levels, fb_threshold=fb_threshold,
-                                        anchor=anchor, rigid_points=rigid_points, downscale=downscale,
-                                        progress=lambda t: bar.update(1))
+                if method == "eigenpoints":
+                    from .track.eigenpoints import track_eigenpoints
+
+                    if downscale != 1:
+                        log.warning("downscale applies to the lk tracker only; eigenpoints uses its own window")
+                    points, conf = track_eigenpoints(frames(), index, rigid_points=rigid_points,
+                                                     progress=lambda t: bar.update(1))
+                else:
+                    points, conf = track_lk(frames(), index, window=window, levels=levels,
+                                            fb_threshold=fb_threshold, anchor=anchor, rigid_points=rigid_points,
+                                            downscale=downscale, progress=lambda t: bar.update(1))
             except FaceLostError as exc:
                 where = source.frames[exc.frame] if exc.frame < len(source.frames) else exc.frame
                 msg = f"{source.path}: {str(exc).replace(f'frame {exc.frame}', f'frame {where}')}"
@@ -128,7 +136,7 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
         head = smooth_head_fn(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
     meta = {
-        "tracker": "lk",
+        "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
                        "downscale": downscale, "start": start, "end": end, "step": step,
                        "smooth_head": smooth_head},

@@ -169,3 +169,16 @@ def test_import_bad_inputs(tmp_path):
     (tmp_path / "hdr.csv").write_text("f,p,x,y\n")
     r = run("import", tmp_path / "hdr.csv", "-o", tmp_path / "x.npz")
     assert r.exit_code == 1 and "expected the header 'frame,point,x,y'" in r.output
+
+
+def test_track_eigenpoints_from_five_annotations(small_take, truth, tmp_path):
+    extra = []
+    for f in (10, 20, 30, 40):
+        write_pts(tmp_path / f"face_{f:05d}.pts", truth["points"][f])
+        extra += ["--annotation", tmp_path / f"face_{f:05d}.pts"]
+    out = tmp_path / "eig.npz"
+    r = run("track", small_take / "face.mp4", "--init", small_take / "face_00000.pts", *extra,
+            "--method", "eigenpoints", "-o", out, "--end", 50)
+    assert r.exit_code == 0, r.output
+    assert error(out, truth, slice(0, 50)) < 1.0
+    assert '"tracker": "eigenpoints"' in str(load_npz(out)["meta"])
