@@ -120,8 +120,9 @@ def track_lk(
     rigid_points=None,
     contour_points=None,
     shape_prior: bool = True,
+    contour_refine: bool = True,
     downscale: float = 1.0,
-    rigid_tolerance: float = 1.5,
+    rigid_tolerance: float = 3.0,
     lost_frames: int = 10,
     progress=None,
 ):
@@ -153,6 +154,9 @@ def track_lk(
     shape_prior : bool
         Recover unreliable points from the shape model of the annotated
         frames (otherwise from the first annotation under the head similarity).
+    contour_refine : bool
+        Refine silhouette points along their normal by matching the annotated
+        frame's intensity profile across the edge.
     downscale : float
         Factor in (0, 1] applied to the frames before tracking; coordinates
         are returned at full resolution.
@@ -228,7 +232,7 @@ def track_lk(
     refs = [_Reference(first, P0, offset0)]
     # Silhouette points are then refined along their normal by matching the
     # annotated frame's intensity profile across the edge (ASM-style).
-    profile = _Profiles(first, P0[contour], offset0[contour]) if contour.size else None
+    profile = _Profiles(first, P0[contour], offset0[contour]) if contour.size and contour_refine else None
     pts, conf = [scale_back(P0)], [np.ones(L)]
     Q0 = P0 + offset0
     prev, c_prev = first, Q0.copy()
@@ -252,7 +256,7 @@ def track_lk(
         # 1. frame-to-frame flow of the carriers, checked forward-backward
         c0 = c_prev.astype(np.float32).reshape(-1, 1, 2)
         fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, c0, None, **lk)
-        bwd, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, fwd, c0.copy(), **lk_init)
+        bwd, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, fwd, None, **lk)
         fb = np.linalg.norm((bwd - c0).reshape(-1, 2), axis=1)
         ok = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb)
         err = np.where(ok, fb, np.inf)
@@ -267,8 +271,8 @@ def track_lk(
             M = similarity(ref.points, est, wts)
             tmpl, c_tmpl = ref.template(M, (w, h))
             c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
-            afw, sa1, _ = cv2.calcOpticalFlowPyrLK(tmpl, cur, c_t, None, **lk)
-            abw, sa2, _ = cv2.calcOpticalFlowPyrLK(cur, tmpl, afw, c_t.copy(), **lk_init)
+            afw, sa1, _ = cv2.calcOpticalFlowPyrLK(tmpl, cur, c_t, fwd.copy(), **lk_init)
+            abw, sa2, _ = cv2.calcOpticalFlowPyrLK(cur, tmpl, afw, None, **lk)
             afb = np.linalg.norm((abw - c_t).reshape(-1, 2), axis=1)
             aok = (sa1.ravel() == 1) & (sa2.ravel() == 1) & np.isfinite(afb)
             aerr = np.where(aok, afb, np.inf)
