@@ -182,3 +182,29 @@ def test_track_eigenpoints_from_five_annotations(small_take, truth, tmp_path):
     assert r.exit_code == 0, r.output
     assert error(out, truth, slice(0, 50)) < 1.0
     assert '"tracker": "eigenpoints"' in str(load_npz(out)["meta"])
+
+
+def test_run_config_with_image_sequence_and_annotations(small_take, truth, tmp_path):
+    cap = cv2.VideoCapture(str(small_take / "face.mp4"))
+    seq = small_take / "seq"
+    seq.mkdir()
+    for i in range(20):
+        ok, frame = cap.read()
+        cv2.imwrite(str(seq / f"{i:04d}.jpg"), frame, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    write_pts(small_take / "face_00010.pts", truth["points"][10])
+    cfg = small_take / "track.yaml"
+    cfg.write_text("output_dir: out2\ntrack:\n  video: seq/%04d.jpg\n  init: face_00000.pts\n"
+                   "  annotations: [face_00010.pts]\n  smooth_head: 5\n")
+    r = run("run", cfg)
+    assert r.exit_code == 0, r.output
+    lm = load_npz(small_take / "out2" / "landmarks.npz")
+    assert lm["points"].shape == (20, 68, 2)
+    np.testing.assert_allclose(lm["head"][0], np.eye(2, 3), atol=1e-6)
+    r = run("run", cfg)
+    assert r.exit_code == 0 and "track: skipped" in r.stderr
+    # changing one frame of the sequence reruns the stage
+    img = cv2.imread(str(seq / "0005.jpg"))
+    cv2.imwrite(str(seq / "0005.jpg"), 255 - img)
+    r = run("run", cfg)
+    assert r.exit_code == 0
+    assert "track: ran" in r.stderr
