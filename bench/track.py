@@ -3,7 +3,8 @@
 Generates synthetic takes with ``retarget synth`` (ground truth known): the
 default take and a *stressed* one with the perturbations turned up (sensor
 noise, blur, JPEG compression, stronger lighting drift, 2.5x faster head
-motion; every take has roll within ±15°, scale within ±10% and blinks). For
+motion; every take has roll within ±15°, scale within ±10% and blinks), and
+one with painted dots on the landmarks for the markers tracker. For
 each take and tracker it measures in the same run:
 
 - decode-only frames/s of the video (the peer: reading with OpenCV and nothing else);
@@ -35,6 +36,8 @@ from retarget_cli.synth import write_take
 
 #: Perturbations of the stressed take (keyword options of retarget_cli.synth.write_take).
 STRESS = dict(noise=5.0, blur=1.0, jpeg=40, light=2.5, speed=2.5)
+#: The default take with a painted dot (radius 1.6 px) on every landmark, for the markers tracker.
+DOTS = dict(dots=1.6)
 
 
 def _annotated(truth, n):
@@ -59,14 +62,22 @@ def methods():
     return out
 
 
-def bench_take(d: Path, label: str) -> list[tuple]:
+def marker_methods():
+    from retarget_cli.track.lk import track_lk
+    from retarget_cli.track.markers import track_markers
+
+    return {"markers (1 annotated frame)": lambda fr, tr: track_markers(fr, _annotated(tr, 1)),
+            "lk (1 annotated frame)": lambda fr, tr: track_lk(fr, _annotated(tr, 1))}
+
+
+def bench_take(d: Path, label: str, trackers=None) -> list[tuple]:
     truth = load_npz(d / "truth_landmarks.npz")["points"].astype(np.float64)
     t0 = time.perf_counter()
     with VideoReader(d / "face.mp4") as r:
         n = sum(1 for _ in r)
     decode = n / (time.perf_counter() - t0)
     rows = [(label, "decode only (OpenCV)", None, None, None, decode, 1.0)]
-    for name, fn in methods().items():
+    for name, fn in (trackers or methods()).items():
         t0 = time.perf_counter()
         with VideoReader(d / "face.mp4") as r:
             pts, _ = fn(r, truth)
@@ -97,10 +108,10 @@ def main() -> None:
     w, h = (int(v) for v in args.size.split("x"))
     rows, rel = [], None
     with tempfile.TemporaryDirectory() as tmp:
-        for label, opts in (("default", {}), ("stressed", STRESS)):
+        for label, opts in (("default", {}), ("stressed", STRESS), ("painted dots", DOTS)):
             d = Path(tmp) / label
             write_take(d, n_frames=args.frames, size=(w, h), seed=args.seed, **opts)
-            rows += bench_take(d, label)
+            rows += bench_take(d, label, marker_methods() if opts is DOTS else None)
         if not args.no_pipeline:
             rel = pipeline_error(Path(tmp) / "default")
     print(f"synthetic takes: {args.frames} frames at {w}x{h}, seed {args.seed}; stressed = {STRESS}")

@@ -103,7 +103,8 @@ STAGES: dict[str, Stage] = {
                       "On a truncated video or a lost face, keep what was tracked up to then."),
                 Param("method", "setting", str, "lk",
                       "Tracker: lk (Lucas-Kanade, one or more annotated frames) or eigenpoints (the paper's "
-                      "tracker, trained on the annotated frames; give 5 or more).", choices=("lk", "eigenpoints")),
+                      "tracker, trained on the annotated frames; give 5 or more) or markers (painted dots on the "
+                      "landmarks).", choices=("lk", "eigenpoints", "markers")),
                 Param("window", "setting", int, 21, "Lucas-Kanade window side in pixels (odd).", min=5, max=101),
                 Param("levels", "setting", int, 3, "Pyramid levels.", min=0, max=8),
                 Param("fb_threshold", "setting", float, 1.0, "Forward-backward error scale in pixels.",

@@ -66,8 +66,8 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     extra = [Path(base_dir or ".") / a for a in (annotations or [])]
     for a in extra:
         _require(a, "annotation file")
-    if method not in ("lk", "eigenpoints"):
-        raise ValueError(f"method: expected 'lk' or 'eigenpoints', got {method!r}")
+    if method not in ("lk", "eigenpoints", "markers"):
+        raise ValueError(f"method: expected 'lk', 'eigenpoints' or 'markers', got {method!r}")
     ann, src = read_annotations([init, *extra], frame=init_frame)
     with FrameSource(video, start=start, end=end, step=step, fps=fps) as source:
         check_not_input(output, source.files() + [init, *extra])
@@ -110,6 +110,10 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
                         log.warning("downscale applies to the lk tracker only; eigenpoints uses its own window")
                     points, conf = track_eigenpoints(frames(), index, rigid_points=rigid_points,
                                                      progress=lambda t: bar.update(1))
+                elif method == "markers":
+                    from .track.markers import track_markers
+
+                    points, conf = track_markers(frames(), index, progress=lambda t: bar.update(1))
                 else:
                     points, conf = track_lk(frames(), index, window=window, levels=levels,
                                             fb_threshold=fb_threshold, anchor=anchor, rigid_points=rigid_points,

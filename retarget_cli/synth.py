@@ -609,10 +609,10 @@ class _Renderer:
     """Canonical face image, static background and the per-frame warp."""
 
     def __init__(self, size, seed: int, fps: float, noise: float = _NOISE_SIGMA, blur: float = 0.0,
-                 jpeg: int | None = None, light: float = 1.0):
+                 jpeg: int | None = None, light: float = 1.0, dots: float = 0.0):
         import cv2
 
-        self.noise, self.blur, self.jpeg, self.light = noise, blur, jpeg, light
+        self.noise, self.blur, self.jpeg, self.light, self.dots = noise, blur, jpeg, light, dots
         self.w, self.h = size
         self.fps = fps
         self.seed = seed
@@ -865,6 +865,14 @@ class _Renderer:
             teeth = np.concatenate([upper, (upper + [0, 0.032 * self.k * scale])[::-1]])
             _blend(roi, show * m * _fill(shp, [teeth - off]), [200, 215, 222])
 
+    def _draw_dots(self, img: np.ndarray, pts: np.ndarray, scale: float) -> None:
+        """Painted make-up dots (dark blue, anti-aliased discs) centred on the landmarks."""
+        m = np.zeros((self.h, self.w), np.uint8)
+        r = int(round(self.dots * scale * 16))
+        for x, y in pts:
+            self.cv2.circle(m, (int(round(x * 16)), int(round(y * 16))), r, 255, -1, self.cv2.LINE_AA, 4)
+        _blend(img, m.astype(np.float32) / 255, [90, 40, 30])
+
     def _lighting(self, t: int) -> np.ndarray:
         """Multiplicative light field (H, W) for frame *t*: gain ±10% and a drifting linear gradient."""
         ts = t / self.fps
@@ -888,6 +896,8 @@ class _Renderer:
         self._draw_eye(img, pts[36:42], scale)
         self._draw_eye(img, pts[42:48], scale)
         self._draw_mouth(img, pts[60:68], scale)
+        if self.dots > 0:
+            self._draw_dots(img, pts, scale)
         img *= self._lighting(t)[..., None]
         if self.blur > 0:
             img = self.cv2.GaussianBlur(img, (0, 0), self.blur)
@@ -902,7 +912,8 @@ class _Renderer:
 
 
 def render_frames(points, *, size, seed: int = 0, fps: float = 30.0, noise: float = _NOISE_SIGMA,
-                  blur: float = 0.0, jpeg: int | None = None, light: float = 1.0) -> Iterator[np.ndarray]:
+                  blur: float = 0.0, jpeg: int | None = None, light: float = 1.0,
+                  dots: float = 0.0) -> Iterator[np.ndarray]:
     """Render a textured synthetic face following the given landmarks.
 
     One canonical head (textured skin with band-limited noise, pores and
@@ -939,6 +950,9 @@ def render_frames(points, *, size, seed: int = 0, fps: float = 30.0, noise: floa
         JPEG quality (1-100): each frame is JPEG-compressed and decoded.
     light : float
         Multiplier of the lighting drift's gain and gradient amplitudes.
+    dots : float
+        Radius in pixels (at the frame-0 scale) of painted dots centred on
+        every landmark, for marker tracking (0: none).
 
     The defaults give the committed sample's exact bytes; the other values are
     the perturbations ``bench/track.py`` turns up.
@@ -960,7 +974,9 @@ def render_frames(points, *, size, seed: int = 0, fps: float = 30.0, noise: floa
         raise ValueError(f"noise, blur and light must be >= 0, got {noise}, {blur}, {light}")
     if jpeg is not None and not 1 <= int(jpeg) <= 100:
         raise ValueError(f"jpeg: expected a quality in [1, 100], got {jpeg}")
-    return _render_iter(points, (w, h), seed, fps, dict(noise=noise, blur=blur, jpeg=jpeg, light=light))
+    if not dots >= 0:
+        raise ValueError(f"dots: expected a radius >= 0, got {dots}")
+    return _render_iter(points, (w, h), seed, fps, dict(noise=noise, blur=blur, jpeg=jpeg, light=light, dots=dots))
 
 
 def _render_iter(points, size, seed, fps, opts):
@@ -1196,7 +1212,7 @@ def write_take(outdir, *, n_frames: int = 240, size=(320, 320), seed: int = 0, f
         Head-motion speed factor (see :func:`head_motion`).
     **render
         Perturbations passed to :func:`render_frames` (``noise``, ``blur``,
-        ``jpeg``, ``light``). The defaults reproduce ``sample_data/``.
+        ``jpeg``, ``light``, ``dots``). The defaults reproduce ``sample_data/``.
 
     Returns
     -------

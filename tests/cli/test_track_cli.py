@@ -208,3 +208,15 @@ def test_run_config_with_image_sequence_and_annotations(small_take, truth, tmp_p
     r = run("run", cfg)
     assert r.exit_code == 0
     assert "track: ran" in r.stderr
+
+
+def test_track_markers_cli(tmp_path):
+    from retarget_cli.synth import write_take
+
+    d = tmp_path / "dots"
+    write_take(d, n_frames=30, size=(192, 192), seed=4, dots=1.6)
+    out = tmp_path / "m.npz"
+    r = run("track", d / "face.mp4", "--init", d / "face_00000.pts", "--method", "markers", "-o", out)
+    assert r.exit_code == 0, r.output
+    truth = load_npz(d / "truth_landmarks.npz")
+    assert np.linalg.norm(load_npz(out)["points"] - truth["points"], axis=2).mean() < 0.8

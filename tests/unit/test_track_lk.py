@@ -143,3 +143,30 @@ def test_eigenpoints_error_bound_from_five_annotations(clip):
     e1 = np.linalg.norm(model.fit(g, M, iterations=1)[0] - truth[t], axis=1).mean()
     e8 = np.linalg.norm(model.fit(g, M, iterations=8)[0] - truth[t], axis=1).mean()
     assert e8 < 1.0 and e8 < e1, (e1, e8)
+
+
+def test_markers_track_painted_dots(tmp_path_factory):
+    from retarget_cli.synth import write_take
+    from retarget_cli.track.markers import detect_dots, track_markers
+
+    d = tmp_path_factory.mktemp("dots")
+    write_take(d, n_frames=40, size=(192, 192), seed=2, dots=1.4)
+    frames = list(VideoReader(d / "face.mp4"))
+    truth = load_npz(d / "truth_landmarks.npz")["points"].astype(np.float64)
+    pts, conf = track_markers(frames, truth[0], radius=1.4)
+    err = np.linalg.norm(pts - truth, axis=2)
+    assert err.mean() < 0.8, err.mean()
+    assert err[conf == 1].mean() < 0.6  # dots found
+    assert 0.7 < conf.mean() <= 1.0
+    # a dot that vanishes is flagged, then re-found: paint over point 30's dot in frames 10-14
+    import cv2
+
+    hidden = [f.copy() for f in frames]
+    for t in range(10, 15):
+        x, y = truth[t, 30]
+        cv2.circle(hidden[t], (int(round(x)), int(round(y))), 4, tuple(int(v) for v in hidden[t][int(y), int(x) + 6]), -1)
+    pts2, conf2 = track_markers(hidden, truth[0], radius=1.4)
+    assert np.all(conf2[10:15, 30] == 0)
+    assert np.all(conf2[17:, 30] == 1)
+    assert np.linalg.norm(pts2[17:, 30] - truth[17:, 30], axis=1).max() < 1.0
+    assert len(detect_dots(cv2.cvtColor(frames[0], cv2.COLOR_BGR2GRAY), radius=1.4)) >= 50
