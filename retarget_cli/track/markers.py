@@ -68,8 +68,8 @@ def detect_dots(gray, *, radius: float = 2.0, min_contrast: float = 25.0) -> np.
     return np.stack([(v * px).sum(1) / s, (v * py).sum(1) / s], 1)
 
 
-def track_markers(frames: Iterable[np.ndarray], annotations, *, radius: float = 2.0, gate: float = 3.0,
-                  contrast: float = 25.0,
+def track_markers(frames: Iterable[np.ndarray], annotations, *, radius: float = 2.0, gate: float = 2.0,
+                  contrast: float = 25.0, ambiguity: float = 1.5,
                   window: int = 11, levels: int = 3, lost_frames: int = 10, progress=None):
     """Track painted dots, one per landmark, from annotated frames.
 
@@ -85,6 +85,10 @@ def track_markers(frames: Iterable[np.ndarray], annotations, *, radius: float = 
         Minimum darkness of a dot below its surroundings (smoothed black-hat), grey levels.
     gate : float
         Largest distance in pixels between a landmark's prediction and the dot it is assigned.
+    ambiguity : float
+        A match is skipped (the landmark flagged and carried by its flow) when
+        another dot, or another landmark's prediction, lies within
+        ``ambiguity * gate``: crowded dots would otherwise swap identities.
     window, levels : int
         Lucas–Kanade window and pyramid levels of the prediction.
     lost_frames : int
@@ -146,6 +150,13 @@ def track_markers(frames: Iterable[np.ndarray], annotations, *, radius: float = 
             cost = np.where(D <= gate, D, 1e6)
             rows, cols = linear_sum_assignment(cost)
             ok = cost[rows, cols] < 1e6
+            # ambiguous matches (another dot, or another landmark's prediction,
+            # nearly as close) would swap identities of crowded dots: skip them
+            Ds = np.sort(D, axis=1)
+            second_dot = Ds[rows, 1] if D.shape[1] > 1 else np.full(len(rows), np.inf)
+            Dc = np.sort(D[:, cols], axis=0)
+            second_lm = Dc[1] if D.shape[0] > 1 else np.full(len(rows), np.inf)
+            ok &= (second_dot > ambiguity * gate) & (second_lm > ambiguity * gate)
             new[rows[ok]] = dots[cols[ok]]
             found[rows[ok]] = True
         if found.sum() >= 3:
