@@ -1,15 +1,21 @@
-"""Benchmark: tracking speed against decode-only reading, and end-to-end accuracy.
+"""Benchmark: tracking accuracy, drift and speed per method, against decode-only reading.
 
-Generates a synthetic take with ``retarget synth`` (ground truth known), then
-measures in the same run:
+Generates synthetic takes with ``retarget synth`` (ground truth known): the
+default take and a *stressed* one with the perturbations turned up (sensor
+noise, blur, JPEG compression, stronger lighting drift, 2.5x faster head
+motion; every take has roll within ±15°, scale within ±10% and blinks), and
+one with painted dots on the landmarks for the markers tracker. For
+each take and tracker it measures in the same run:
 
 - decode-only frames/s of the video (the peer: reading with OpenCV and nothing else);
-- ``track`` (LK) frames/s on the same video, and the ratio;
-- landmark error against the truth (mean, first and last 10 % of frames);
-- the retargeted OBJ sequence's mean vertex error relative to the mean
-  ground-truth expression displacement, after ``retarget run``.
+- the tracker's frames/s on the same video (decoding included), and the ratio;
+- mean landmark error against the truth, and the mean over the first and the
+  last 10 % of frames (drift ratio = last / first).
 
-Run: ``python bench/track.py [--frames 600] [--size 320x320] [--seed 0]``.
+Then ``retarget run`` on the default take gives the retargeted OBJ sequence's
+mean vertex error relative to the mean ground-truth expression displacement.
+
+Run: ``python bench/track.py [--frames 600] [--size 320x320] [--seed 0] [--no-pipeline]``.
 """
 
 from __future__ import annotations
@@ -28,42 +34,96 @@ from retarget_cli.io.video import VideoReader
 from retarget_cli.pipeline import run_pipeline, stage_params
 from retarget_cli.synth import write_take
 
+#: Perturbations of the stressed take (keyword options of retarget_cli.synth.write_take).
+STRESS = dict(noise=5.0, blur=1.0, jpeg=40, light=2.5, speed=2.5)
+#: The default take with a painted dot (radius 1.6 px) on every landmark, for the markers tracker.
+DOTS = dict(dots=1.6)
+
+
+def _annotated(truth, n):
+    """n annotated frames spread over the take (frame 0 first), from the ground truth."""
+    frames = np.linspace(0, len(truth) - 1, n + 1).astype(int)[:n] if n > 1 else [0]
+    return {int(f): truth[f] for f in frames}
+
+
+def methods():
+    from retarget_cli.track.lk import track_lk
+
+    out = {
+        "lk (1 annotated frame)": lambda fr, tr: track_lk(fr, _annotated(tr, 1)),
+        "lk (5 annotated frames)": lambda fr, tr: track_lk(fr, _annotated(tr, 5)),
+        "lk downscale 0.5": lambda fr, tr: track_lk(fr, _annotated(tr, 1), downscale=0.5, window=11),
+    }
+    try:
+        from retarget_cli.track.eigenpoints import track_eigenpoints
+    except ImportError:
+        return out
+    out["eigenpoints (5 annotated frames)"] = lambda fr, tr: track_eigenpoints(fr, _annotated(tr, 5))
+    return out
+
+
+def marker_methods():
+    from retarget_cli.track.lk import track_lk
+    from retarget_cli.track.markers import track_markers
+
+    return {"markers (1 annotated frame)": lambda fr, tr: track_markers(fr, _annotated(tr, 1)),
+            "lk (1 annotated frame)": lambda fr, tr: track_lk(fr, _annotated(tr, 1))}
+
+
+def bench_take(d: Path, label: str, trackers=None) -> list[tuple]:
+    truth = load_npz(d / "truth_landmarks.npz")["points"].astype(np.float64)
+    t0 = time.perf_counter()
+    with VideoReader(d / "face.mp4") as r:
+        n = sum(1 for _ in r)
+    decode = n / (time.perf_counter() - t0)
+    rows = [(label, "decode only (OpenCV)", None, None, None, decode, 1.0)]
+    for name, fn in (trackers or methods()).items():
+        t0 = time.perf_counter()
+        with VideoReader(d / "face.mp4") as r:
+            pts, _ = fn(r, truth)
+        fps = n / (time.perf_counter() - t0)
+        err = np.linalg.norm(pts - truth, axis=2).mean(1)
+        tenth = max(len(err) // 10, 1)
+        rows.append((label, name, err.mean(), err[:tenth].mean(), err[-tenth:].mean(), fps, fps / decode))
+    return rows
+
+
+def pipeline_error(d: Path) -> float:
+    cfg = load_config(d / "config.yaml", stage_params())
+    run_pipeline(cfg)
+    target = load_npz(d / "truth.npz")["target"].astype(np.float64)
+    neutral = read_obj(d / "target" / "neutral.obj").vertices
+    frames = sorted((d / "out" / "frames").glob("frame_*.obj"))
+    out = np.stack([read_obj(f).vertices for f in frames])
+    return np.linalg.norm(out - target, axis=2).mean() / np.linalg.norm(target - neutral, axis=2).mean()
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--size", default="320x320")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-pipeline", action="store_true", help="Skip the end-to-end retargeting error.")
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
+    rows, rel = [], None
     with tempfile.TemporaryDirectory() as tmp:
-        d = Path(tmp)
-        write_take(d, n_frames=args.frames, size=(w, h), seed=args.seed)
-        t0 = time.perf_counter()
-        with VideoReader(d / "face.mp4") as r:
-            n = sum(1 for _ in r)
-        decode = time.perf_counter() - t0
-        cfg = load_config(d / "config.yaml", stage_params())
-        t0 = time.perf_counter()
-        run_pipeline(cfg, stop="track")
-        track = time.perf_counter() - t0
-        run_pipeline(cfg)
-        got, truth = load_npz(d / "out" / "landmarks.npz"), load_npz(d / "truth_landmarks.npz")
-        err = np.linalg.norm(got["points"] - truth["points"], axis=2).mean(1)
-        tenth = max(len(err) // 10, 1)
-        target = load_npz(d / "truth.npz")["target"].astype(np.float64)
-        neutral = read_obj(d / "target" / "neutral.obj").vertices
-        frames = sorted((d / "out" / "frames").glob("frame_*.obj"))
-        out = np.stack([read_obj(f).vertices for f in frames])
-        rel = np.linalg.norm(out - target, axis=2).mean() / np.linalg.norm(target - neutral, axis=2).mean()
-    print(f"synthetic take: {n} frames at {w}x{h}, seed {args.seed}")
-    print(f"{'reader':<24}{'frames/s':>10}")
-    print(f"{'decode only (OpenCV)':<24}{n / decode:>10.1f}")
-    print(f"{'track (lk)':<24}{n / track:>10.1f}")
-    print(f"track throughput vs decode-only: {decode / track:.3f}x")
-    print(f"landmark error px: mean {err.mean():.3f}, first 10% {err[:tenth].mean():.3f}, "
-          f"last 10% {err[-tenth:].mean():.3f} (drift ratio {err[-tenth:].mean() / err[:tenth].mean():.2f})")
-    print(f"retargeted mesh error: {100 * rel:.1f}% of the mean expression displacement")
+        for label, opts in (("default", {}), ("stressed", STRESS), ("painted dots", DOTS)):
+            d = Path(tmp) / label
+            write_take(d, n_frames=args.frames, size=(w, h), seed=args.seed, **opts)
+            rows += bench_take(d, label, marker_methods() if opts is DOTS else None)
+        if not args.no_pipeline:
+            rel = pipeline_error(Path(tmp) / "default")
+    print(f"synthetic takes: {args.frames} frames at {w}x{h}, seed {args.seed}; stressed = {STRESS}")
+    print("| take | method | mean px | first 10% | last 10% | drift (last/first) | frames/s | vs decode-only |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, name, m, f, la, fps, ratio in rows:
+        if m is None:
+            print(f"| {label} | {name} | | | | | {fps:.0f} | 1 |")
+        else:
+            print(f"| {label} | {name} | {m:.2f} | {f:.2f} | {la:.2f} | {la / max(f, 1e-9):.2f}x | {fps:.0f} | {ratio:.3f}x |")
+    if rel is not None:
+        print(f"retargeted mesh error (default take, lk via retarget run): {100 * rel:.1f}% of the mean expression displacement")
 
 
 if __name__ == "__main__":

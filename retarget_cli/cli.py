@@ -117,18 +117,71 @@ def _print_outputs(paths):
 @main.command()
 @click.argument("video", type=click.Path(dir_okay=False))
 @click.option("--init", "init", type=click.Path(dir_okay=False), required=True,
-              help="iBUG .pts annotation of the first frame.")
+              help="Annotation of the first tracked frame: iBUG .pts (frame from a name like face_00120.pts) "
+                   "or a frame,point,x,y CSV.")
+@click.option("--annotation", "annotations", multiple=True, type=click.Path(dir_okay=False),
+              help="More annotated frames (.pts or CSV); each re-anchors the track. Repeatable.")
+@setting("track", "init_frame")
 @output_option("landmarks.npz", "Landmarks file.", required=False)
+@click.option("--overlay", type=click.Path(dir_okay=False), default=None,
+              help="Also write an mp4 with the landmarks (green = confident, red = lost) and the head frame.")
 @setting("track", "method")
 @setting("track", "window")
 @setting("track", "levels")
 @setting("track", "fb_threshold")
 @setting("track", "anchor")
-def track(video, init, output, **settings):
-    """Track facial landmarks through VIDEO (Lucas-Kanade with drift correction)."""
+@setting("track", "start")
+@setting("track", "end")
+@setting("track", "step")
+@setting("track", "downscale")
+@setting("track", "fps")
+@setting("track", "smooth_head")
+@click.option("--rigid-points", default=None, metavar="SPEC",
+              help="Landmarks that define head motion, e.g. 27-31,33,35,36,39,42,45 (default: eye corners "
+                   "and nose for 68 points, else all).")
+@setting("track", "keep_partial")
+def track(video, init, annotations, output, rigid_points, **settings):
+    """Track facial landmarks through VIDEO (a video file or an image-sequence pattern such as
+    'frames/%05d.png' or 'frames/*.exr'), from one or more annotated frames."""
     from .stages import run_track
 
-    _print_outputs(run_track(video=video, init=init, output=output, progress=progress, **settings))
+    rigid = None
+    if rigid_points:
+        rigid = _parse_regions([f"r={rigid_points}"])["r"]
+        if rigid == "all":
+            raise click.BadParameter("expected indices such as 27-31,36,39", param_hint="--rigid-points")
+    _print_outputs(run_track(video=video, init=init, annotations=list(annotations), output=output,
+                             rigid_points=rigid, progress=progress, **settings))
+
+
+@main.command("import")
+@click.argument("source", type=click.Path())
+@output_option("landmarks.npz", "Landmarks file (landmarks.npz contract).", required=False)
+@click.option("--fps", type=click.FloatRange(min=0.01, min_open=False), default=None,
+              help="Frame rate (default: the source's, else 30).")
+@click.option("--frame-size", default=None, metavar="WxH", help="Frame size of the source video, e.g. 1920x1080.")
+@click.option("--rigid-points", default=None, metavar="SPEC", help="Landmarks that define head motion.")
+@click.option("--smooth-head", type=click.IntRange(0, 301), default=0, show_default=True,
+              help="Temporal smoothing of the head track (Savitzky-Golay window in frames).")
+def import_(source, output, fps, frame_size, rigid_points, smooth_head):
+    """Bring landmarks from another tool into landmarks.npz, with head motion and stabilization.
+
+    SOURCE is a frame,point,x,y CSV, an NPZ with 'points' (T, L, 2) or a folder of .pts files (frame number
+    from each name, e.g. face_00120.pts)."""
+    from .stages import run_import
+
+    rigid = None
+    if rigid_points:
+        rigid = _parse_regions([f"r={rigid_points}"])["r"]
+    size = None
+    if frame_size:
+        try:
+            size = tuple(int(v) for v in frame_size.lower().split("x"))
+            assert len(size) == 2
+        except (ValueError, AssertionError):
+            raise click.BadParameter(f"expected WxH, got {frame_size!r}", param_hint="--frame-size") from None
+    _print_outputs(run_import(source=source, output=output, fps=fps, frame_size=size, rigid_points=rigid,
+                              smooth_head=smooth_head))
 
 
 @main.command()

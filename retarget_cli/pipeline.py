@@ -34,6 +34,8 @@ class Stage:
     params: list
     runner: Callable
     extra_inputs: Callable = field(default=lambda kw: [])
+    #: Maps a declared input (param name, path) to the files it stands for (an image-sequence pattern).
+    expand_input: Callable = field(default=lambda name, path: [path])
     uses_progress: bool = False
     uses_seed: bool = False
     uses_base_dir: bool = False
@@ -46,6 +48,16 @@ def _targets_files(kw) -> list[Path]:
     from .io.stagefiles import read_targets
 
     return read_targets(kw["targets"]).files()
+
+
+def _track_files(kw) -> list[Path]:
+    return [Path(kw.get("base_dir") or ".") / a for a in (kw.get("annotations") or [])]
+
+
+def _track_expand(name, path) -> list[Path]:
+    from .io.frames import is_sequence, sequence_files
+
+    return sequence_files(path) if name == "video" and is_sequence(path) else [path]
 
 
 def _pose_files(kw) -> list[Path]:
@@ -62,10 +74,38 @@ STAGES: dict[str, Stage] = {
             "track",
             "Track landmarks through a video from an annotated first frame.",
             [
-                Param("video", "input", str, help="Video file (mp4, mov, avi)."),
-                Param("init", "input", str, help="iBUG .pts annotation of the first frame."),
+                Param("video", "input", str,
+                      help="Video file (mp4, mov, avi, mkv, m4v) or image-sequence pattern (printf or glob; "
+                           "png, jpg, exr)."),
+                Param("init", "input", str,
+                      help="Annotation of the first tracked frame: iBUG .pts or frame,point,x,y CSV."),
                 Param("output", "output", str, "landmarks.npz", "Landmarks file (landmarks.npz contract)."),
-                Param("method", "setting", str, "lk", "Tracker.", choices=("lk",)),
+                Param("overlay", "output", str, None,
+                      "Also write an mp4 with the landmarks (coloured by confidence) and the head frame.",
+                      nullable=True),
+                Param("annotations", "setting", list, None,
+                      "More annotated frames (.pts named like face_00120.pts, or CSV); each re-anchors the track.",
+                      nullable=True),
+                Param("init_frame", "setting", int, None,
+                      "Frame of the init .pts when its name ends in no number (default 0).", min=0, nullable=True),
+                Param("start", "setting", int, 0, "First frame to track (0-based).", min=0),
+                Param("end", "setting", int, None, "Stop before this frame (default: the last).", min=1,
+                      nullable=True),
+                Param("step", "setting", int, 1, "Track every step-th frame.", min=1, max=1000),
+                Param("downscale", "setting", float, 1.0,
+                      "Track on frames scaled by this factor (coordinates stay at full resolution).",
+                      min=0.05, max=1.0),
+                Param("fps", "setting", float, None, "Frame rate of an image sequence (default 30).",
+                      min=0.01, nullable=True),
+                Param("smooth_head", "setting", int, 0,
+                      "Temporal smoothing of the head track: Savitzky-Golay window in frames (0: none).",
+                      min=0, max=301),
+                Param("keep_partial", "setting", bool, False,
+                      "On a truncated video or a lost face, keep what was tracked up to then."),
+                Param("method", "setting", str, "lk",
+                      "Tracker: lk (Lucas-Kanade, one or more annotated frames) or eigenpoints (the paper's "
+                      "tracker, trained on the annotated frames; give 5 or more) or markers (painted dots on the "
+                      "landmarks).", choices=("lk", "eigenpoints", "markers")),
                 Param("window", "setting", int, 21, "Lucas-Kanade window side in pixels (odd).", min=5, max=101),
                 Param("levels", "setting", int, 3, "Pyramid levels.", min=0, max=8),
                 Param("fb_threshold", "setting", float, 1.0, "Forward-backward error scale in pixels.",
@@ -76,7 +116,10 @@ STAGES: dict[str, Stage] = {
                       nullable=True),
             ],
             stages.run_track,
+            extra_inputs=_track_files,
+            expand_input=_track_expand,
             uses_progress=True,
+            uses_base_dir=True,
         ),
         Stage(
             "select",
@@ -250,7 +293,8 @@ def _matches(path: Path, rec: dict) -> bool:
 
 
 def _inputs(stage: Stage, kw: dict) -> list[Path]:
-    files = [Path(kw[p.name]) for p in stage.params if p.kind == "input" and kw[p.name] is not None]
+    files = [f for p in stage.params if p.kind == "input" and kw[p.name] is not None
+             for f in stage.expand_input(p.name, Path(kw[p.name]))]
     for f in files:
         if not f.exists():
             raise InputError(f"{f}: input of stage '{stage.name}' not found")

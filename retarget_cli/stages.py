@@ -43,45 +43,205 @@ def _require(path, what: str) -> Path:
 
 
 def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_threshold=1.0, anchor=True,
-              rigid_points=None, progress=_no_progress) -> list[Path]:
-    """Track landmarks through *video* from the ``.pts`` annotation of its first frame.
+              rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
+              fps=None, smooth_head=0, overlay=None, keep_partial=False, base_dir=None,
+              progress=_no_progress) -> list[Path]:
+    """Track landmarks through *video* (a video file or an image-sequence pattern).
 
-    Writes the ``landmarks.npz`` contract to *output*.
+    *init* and *annotations* are ``.pts`` or ``frame,point,x,y`` CSV files; a
+    ``.pts`` file's frame is the number ending its name (else *init_frame*).
+    Frame numbers are 0-based positions in the source; the first tracked
+    frame (*start*) must be annotated. Writes the ``landmarks.npz`` contract
+    to *output* (plus ``frames``, the source frame numbers) and, if asked, an
+    *overlay* video.
     """
-    from .io.annotations import read_pts
+    from .io.annotations import read_annotations
+    from .io.frames import FrameSource, TruncatedInputError
     from .io.landmarks import Landmarks, save_landmarks
-    from .io.video import VideoReader
-    from .track.head import estimate_head
-    from .track.lk import track_lk
+    from .track.head import apply_similarity, estimate_head, invert_similarity
+    from .track.head import smooth_head as smooth_head_fn
+    from .track.lk import FaceLostError, check_inside, track_lk
 
-    video, init = _require(video, "video file"), _require(init, "annotation file")
-    check_not_input(output, [video, init])
-    if method != "lk":
-        raise ValueError(f"method: expected 'lk', got {method!r}")
-    P0 = read_pts(init)
-    with VideoReader(video) as reader:
-        W, H = reader.frame_size
-        with progress(reader.frame_count or None, "track") as bar:
+    init = _require(init, "annotation file")
+    extra = [Path(base_dir or ".") / a for a in (annotations or [])]
+    for a in extra:
+        _require(a, "annotation file")
+    if method not in ("lk", "eigenpoints", "markers"):
+        raise ValueError(f"method: expected 'lk', 'eigenpoints' or 'markers', got {method!r}")
+    ann, src = read_annotations([init, *extra], frame=init_frame)
+    with FrameSource(video, start=start, end=end, step=step, fps=fps) as source:
+        check_not_input(output, source.files() + [init, *extra])
+        if overlay:
+            check_not_input(overlay, source.files() + [init, *extra])
+        W, H = source.frame_size
+        if start not in ann:
+            raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
+                             f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
+        index = {}
+        for f, P in ann.items():
             try:
-                points, conf = track_lk(reader, P0, window=window, levels=levels, fb_threshold=fb_threshold,
-                                        anchor=anchor, rigid_points=rigid_points,
-                                        progress=lambda t: bar.update(1))
+                check_inside(P, (W, H), f"frame {f}")
+            except ValueError as exc:
+                raise InputError(f"{src[f]}: {exc}") from None
+            if f < start or (end is not None and f >= end):
+                log.info("%s: frame %d is outside the tracked range, ignored", src[f], f)
+            elif (f - start) % step:
+                raise InputError(f"{src[f]}: frame {f} is not tracked with start {start} and step {step}")
+            else:
+                index[(f - start) // step] = P
+        stopped = []
+
+        def frames():
+            try:
+                yield from source
+            except TruncatedInputError as exc:
+                stopped.append(exc)
+
+        n_expected = None
+        if source.frame_count:
+            last = source.frame_count if end is None else min(end, source.frame_count)
+            n_expected = max(0, (last - start + step - 1) // step)
+        with progress(n_expected, "track") as bar:
+            try:
+                if method == "eigenpoints":
+                    from .track.eigenpoints import track_eigenpoints
+
+                    if downscale != 1:
+                        log.warning("downscale applies to the lk tracker only; eigenpoints uses its own window")
+                    points, conf = track_eigenpoints(frames(), index, rigid_points=rigid_points,
+                                                     progress=lambda t: bar.update(1))
+                elif method == "markers":
+                    from .track.markers import track_markers
+
+                    points, conf = track_markers(frames(), index, progress=lambda t: bar.update(1))
+                else:
+                    points, conf = track_lk(frames(), index, window=window, levels=levels,
+                                            fb_threshold=fb_threshold, anchor=anchor, rigid_points=rigid_points,
+                                            downscale=downscale, progress=lambda t: bar.update(1))
+            except FaceLostError as exc:
+                where = source.frames[exc.frame] if exc.frame < len(source.frames) else exc.frame
+                msg = f"{source.path}: {str(exc).replace(f'frame {exc.frame}', f'frame {where}')}"
+                if not keep_partial or exc.frame < 1:
+                    raise InputError(msg + ("; rerun with --keep-partial to keep the frames before it"
+                                            if exc.frame >= 1 else "")) from None
+                log.warning("%s; keeping the %d frames tracked before it (--keep-partial)", msg, exc.frame)
+                points, conf = exc.points, exc.confidence
             except ValueError as exc:
                 raise InputError(f"{init}: {exc}") from exc
-        fps = reader.fps
-    lost = conf < 1e-3
-    if np.all(lost[1:]) and len(conf) > 1:
-        raise InputError(f"{video}: the face was lost in every frame after the first")
+        if stopped:
+            if not keep_partial:
+                raise InputError(f"{stopped[0]}; rerun with --keep-partial to keep the {len(points)} frames "
+                                 f"tracked up to then")
+            log.warning("%s; keeping the %d frames tracked (--keep-partial)", stopped[0], len(points))
+        frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
+        files = source.files()
     head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+    if smooth_head:
+        head = smooth_head_fn(head, smooth_head)
+        stab = apply_similarity(invert_similarity(head), points)
     meta = {
-        "tracker": "lk",
-        "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor},
+        "tracker": method,
+        "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
+                       "downscale": downscale, "start": start, "end": end, "step": step,
+                       "smooth_head": smooth_head},
         "source": Path(video).name,
-        "source_sha256": sha256_file(video),
-        "annotation": Path(init).name,
+        "source_sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
+        "annotation": [Path(p).name for p in [init, *extra]],
+        "annotated_frames": [int(f) for f in ann],
     }
-    save_landmarks(output, Landmarks(points, conf, head, stab, fps, np.array([W, H]), None, meta))
+    save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
+                                     frames=frame_numbers))
+    written = [Path(output)]
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
+    if overlay:
+        from .io.overlay import write_overlay
+
+        with FrameSource(video, start=start, end=end, step=step, fps=fps) as again, \
+                progress(len(points), "overlay") as bar:
+            def upto():
+                try:
+                    yield from again
+                except TruncatedInputError:
+                    return
+            write_overlay(overlay, upto(), points, conf, head, fps=source.fps, frame_size=(W, H),
+                          progress=lambda t: bar.update(1))
+        written.append(Path(overlay))
+    return written
+
+
+def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0) -> list[Path]:
+    """Bring landmarks from another tool into the ``landmarks.npz`` contract.
+
+    *source* is a ``frame,point,x,y`` CSV, an NPZ holding ``points`` (T, L, 2)
+    (``confidence``, ``fps``, ``frame_size``, ``frames`` optional), or a
+    folder of ``.pts`` files named with their frame number. Head motion and
+    stabilization are computed with :func:`~retarget_cli.track.head.estimate_head`
+    (the routine ``track`` uses), optionally smoothed in time.
+    """
+    from .io.annotations import read_annotations, read_csv_landmarks
+    from .io.atomic import load_npz
+    from .io.landmarks import Landmarks, save_landmarks
+    from .track.head import apply_similarity, estimate_head, invert_similarity
+    from .track.head import smooth_head as _smooth
+
+    src = _require(source, "landmarks source")
+    check_not_input(output, [src])
+    conf = None
+    size = frame_size
+    if src.is_dir():
+        files = sorted(src.glob("*.pts"))
+        if not files:
+            raise InputError(f"{src}: folder holds no .pts file")
+        by_frame, _ = read_annotations(files)
+        digest = digest_files(files)
+    elif src.suffix.lower() == ".csv":
+        by_frame = read_csv_landmarks(src)
+        digest = sha256_file(src)
+    elif src.suffix.lower() == ".npz":
+        data = load_npz(src)
+        if "points" not in data:
+            raise InputError(f"{src}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
+        P = np.asarray(data["points"], dtype=np.float64)
+        if P.ndim != 3 or P.shape[2] != 2 or 0 in P.shape:
+            raise InputError(f"{src}: 'points' must have shape (T, L, 2), got {P.shape}")
+        frames = np.asarray(data.get("frames", np.arange(len(P))), dtype=np.int64)
+        if frames.shape != (len(P),):
+            raise InputError(f"{src}: 'frames' must have shape {(len(P),)}, got {frames.shape}")
+        by_frame = dict(zip(frames.tolist(), P))
+        if "confidence" in data:
+            conf = np.asarray(data["confidence"], dtype=np.float64)
+            if conf.shape != P.shape[:2]:
+                raise InputError(f"{src}: 'confidence' must have shape {P.shape[:2]}, got {conf.shape}")
+        fps = fps or (float(data["fps"]) if "fps" in data else None)
+        if size is None and "frame_size" in data:
+            size = tuple(int(v) for v in np.asarray(data["frame_size"]).ravel()[:2])
+        digest = sha256_file(src)
+    else:
+        raise InputError(f"{src}: unsupported landmarks source; expected a .csv, a .npz or a folder of .pts files")
+    frames = np.array(sorted(by_frame), dtype=np.int64)
+    points = np.stack([by_frame[f] for f in frames])
+    finite = np.isfinite(points).all(-1)
+    conf = finite.astype(np.float64) if conf is None else np.where(finite, np.clip(conf, 0, 1), 0.0)
+    if not finite.all():
+        # a missing point keeps the contract's finite coordinates: carried from its nearest finite frame
+        for i in range(points.shape[1]):
+            ok = np.flatnonzero(finite[:, i])
+            if ok.size == 0:
+                raise InputError(f"{src}: landmark {i} has no finite coordinate in any frame")
+            near = ok[np.abs(np.arange(len(points))[:, None] - ok[None]).argmin(1)]
+            points[:, i] = points[near, i]
+    try:
+        head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+    except ValueError as exc:
+        raise InputError(f"{src}: {exc}") from exc
+    if smooth_head:
+        head = _smooth(head, smooth_head)
+        stab = apply_similarity(invert_similarity(head), points)
+    meta = {"tracker": "import", "source": src.name, "source_sha256": digest,
+            "parameters": {"smooth_head": smooth_head, "rigid_points": rigid_points}}
+    save_landmarks(output, Landmarks(points, conf, head, stab, fps or 30.0,
+                                     np.array(size if size else (0, 0)), None, meta, frames=frames))
+    log.info("imported %d frames x %d points from %s", len(points), points.shape[1], src)
     return [Path(output)]
 
 
@@ -693,3 +853,6 @@ def run_solve_rig(*, rig, meshes, output, solver, alpha, tol, max_iter, metrics=
         write_metrics_csv(metrics, res, sources)
         written.append(Path(metrics))
     return written, summary
+
+
+__all__ = ["run_track", "run_import", "run_select", "run_decompose", "run_pose", "run_apply", "__version__", "json"]

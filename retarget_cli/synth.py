@@ -459,7 +459,7 @@ def _smooth_signal(rng: np.random.Generator, t: np.ndarray, fmin: float, fmax: f
     return np.sin(np.pi / 4 * r)  # |r| <= 2 -> [-1, 1], boosts mid-range values
 
 
-def head_motion(n_frames: int, *, size=(320, 320), seed: int = 0, fps: float = 30.0) -> np.ndarray:
+def head_motion(n_frames: int, *, size=(320, 320), seed: int = 0, fps: float = 30.0, speed: float = 1.0) -> np.ndarray:
     """Smooth random head motion as per-frame 2D similarities.
 
     Roll stays within ±15°, scale within ±10% and translation within ±6% of
@@ -474,6 +474,9 @@ def head_motion(n_frames: int, *, size=(320, 320), seed: int = 0, fps: float = 3
         Frame ``(W, H)`` in pixels.
     seed : int
     fps : float
+    speed : float
+        Time-scale factor of the motion (> 0); 3 makes the same path three
+        times faster (fast head motion). 1 is the default take.
 
     Returns
     -------
@@ -485,8 +488,10 @@ def head_motion(n_frames: int, *, size=(320, 320), seed: int = 0, fps: float = 3
     w, h = _check_size(size)
     seed = _check_seed(seed)
     fps = _check_fps(fps)
+    if not (isinstance(speed, (int, float)) and speed > 0):
+        raise ValueError(f"speed: expected a number > 0, got {speed!r}")
     rng = np.random.default_rng([seed, _STREAM_HEAD])
-    t = np.arange(n_frames) / fps
+    t = np.arange(n_frames) / fps * speed
     roll = np.deg2rad(15.0) * _smooth_signal(rng, t, 0.05, 0.35)
     scale = 1.0 + 0.10 * _smooth_signal(rng, t, 0.04, 0.25)
     dx = 0.06 * w * _smooth_signal(rng, t, 0.04, 0.30)
@@ -502,13 +507,13 @@ def head_motion(n_frames: int, *, size=(320, 320), seed: int = 0, fps: float = 3
     return head
 
 
-def _truth_landmarks(n_frames: int, size, seed: int, fps: float):
+def _truth_landmarks(n_frames: int, size, seed: int, fps: float, speed: float = 1.0):
     """curves (T, E), stabilized (T, 68, 2), head (T, 2, 3), image points (T, 68, 2)."""
     curves = expression_curves(n_frames, fps=fps, seed=seed)
     norm = source_neutral()[None] + np.einsum("te,eld->tld", curves, source_deltas())
     P = place_neutral(size)
     stab = norm @ P[:, :2].T + P[:, 2]
-    head = head_motion(n_frames, size=size, seed=seed, fps=fps)
+    head = head_motion(n_frames, size=size, seed=seed, fps=fps, speed=speed)
     return curves, stab, head, apply_similarity(head, stab)
 
 
@@ -602,9 +607,11 @@ def _gauss(x, y, cx, cy, sx, sy):
 class _Renderer:
     """Canonical face image, static background and the per-frame warp."""
 
-    def __init__(self, size, seed: int, fps: float):
+    def __init__(self, size, seed: int, fps: float, noise: float = _NOISE_SIGMA, blur: float = 0.0,
+                 jpeg: int | None = None, light: float = 1.0, dots: float = 0.0):
         import cv2
 
+        self.noise, self.blur, self.jpeg, self.light, self.dots = noise, blur, jpeg, light, dots
         self.w, self.h = size
         self.fps = fps
         self.seed = seed
@@ -857,6 +864,14 @@ class _Renderer:
             teeth = np.concatenate([upper, (upper + [0, 0.032 * self.k * scale])[::-1]])
             _blend(roi, show * m * _fill(shp, [teeth - off]), [200, 215, 222])
 
+    def _draw_dots(self, img: np.ndarray, pts: np.ndarray, scale: float) -> None:
+        """Painted make-up dots (dark blue, anti-aliased discs) centred on the landmarks."""
+        m = np.zeros((self.h, self.w), np.uint8)
+        r = int(round(self.dots * scale * 16))
+        for x, y in pts:
+            self.cv2.circle(m, (int(round(x * 16)), int(round(y * 16))), r, 255, -1, self.cv2.LINE_AA, 4)
+        _blend(img, m.astype(np.float32) / 255, [90, 40, 30])
+
     def _lighting(self, t: int) -> np.ndarray:
         """Multiplicative light field (H, W) for frame *t*: gain ±10% and a drifting linear gradient."""
         ts = t / self.fps
@@ -865,9 +880,9 @@ class _Renderer:
             amp = amp / amp.sum()
             r = (amp * (np.sin(2 * np.pi * freq * ts + phase) - np.sin(phase))).sum()
             vals.append(np.sin(np.pi / 4 * r))
-        gain = 1.0 + 0.10 * vals[0]
+        gain = 1.0 + 0.10 * vals[0] * self.light
         theta = np.pi * vals[1] + 0.3
-        slope = 0.05 + 0.03 * vals[2]
+        slope = (0.05 + 0.03 * vals[2]) * self.light
         return (gain * (1 + slope * (np.cos(theta) * self.xn + np.sin(theta) * self.yn))).astype(np.float32)
 
     def frame(self, pts: np.ndarray, head: np.ndarray, t: int) -> np.ndarray:
@@ -880,14 +895,24 @@ class _Renderer:
         self._draw_eye(img, pts[36:42], scale)
         self._draw_eye(img, pts[42:48], scale)
         self._draw_mouth(img, pts[60:68], scale)
+        if self.dots > 0:
+            self._draw_dots(img, pts, scale)
         img *= self._lighting(t)[..., None]
+        if self.blur > 0:
+            img = self.cv2.GaussianBlur(img, (0, 0), self.blur)
         noise = np.random.default_rng([self.seed, _STREAM_NOISE, t]).standard_normal(img.shape, dtype=np.float32)
-        img += noise * np.float32(_NOISE_SIGMA) + np.float32(0.5)
+        img += noise * np.float32(self.noise) + np.float32(0.5)
         np.clip(img, 0, 255, out=img)
-        return img.astype(np.uint8)
+        out = img.astype(np.uint8)
+        if self.jpeg is not None:
+            ok, buf = self.cv2.imencode(".jpg", out, [self.cv2.IMWRITE_JPEG_QUALITY, int(self.jpeg)])
+            out = self.cv2.imdecode(buf, self.cv2.IMREAD_COLOR)
+        return out
 
 
-def render_frames(points, *, size, seed: int = 0, fps: float = 30.0) -> Iterator[np.ndarray]:
+def render_frames(points, *, size, seed: int = 0, fps: float = 30.0, noise: float = _NOISE_SIGMA,
+                  blur: float = 0.0, jpeg: int | None = None, light: float = 1.0,
+                  dots: float = 0.0) -> Iterator[np.ndarray]:
     """Render a textured synthetic face following the given landmarks.
 
     One canonical head (textured skin with band-limited noise, pores and
@@ -916,6 +941,20 @@ def render_frames(points, *, size, seed: int = 0, fps: float = 30.0) -> Iterator
         Texture, lighting and noise seed.
     fps : float
         Only sets the speed of the lighting drift.
+    noise : float
+        Std of the Gaussian sensor noise in grey levels (default 2).
+    blur : float
+        Gaussian blur sigma in pixels applied before the noise (0: none).
+    jpeg : int, optional
+        JPEG quality (1-100): each frame is JPEG-compressed and decoded.
+    light : float
+        Multiplier of the lighting drift's gain and gradient amplitudes.
+    dots : float
+        Radius in pixels (at the frame-0 scale) of painted dots centred on
+        every landmark, for marker tracking (0: none).
+
+    The defaults give the committed sample's exact bytes; the other values are
+    the perturbations ``bench/track.py`` turns up.
 
     Yields
     ------
@@ -930,11 +969,17 @@ def render_frames(points, *, size, seed: int = 0, fps: float = 30.0) -> Iterator
         raise ShapeError(f"points: expected shape (T, 68, 2) with T >= 1, got {points.shape}")
     if not np.all(np.isfinite(points)):
         raise ShapeError("points: every coordinate must be finite")
-    return _render_iter(points, (w, h), seed, fps)
+    if not noise >= 0 or not blur >= 0 or not light >= 0:
+        raise ValueError(f"noise, blur and light must be >= 0, got {noise}, {blur}, {light}")
+    if jpeg is not None and not 1 <= int(jpeg) <= 100:
+        raise ValueError(f"jpeg: expected a quality in [1, 100], got {jpeg}")
+    if not dots >= 0:
+        raise ValueError(f"dots: expected a radius >= 0, got {dots}")
+    return _render_iter(points, (w, h), seed, fps, dict(noise=noise, blur=blur, jpeg=jpeg, light=light, dots=dots))
 
 
-def _render_iter(points, size, seed, fps):
-    r = _Renderer(size, seed, fps)
+def _render_iter(points, size, seed, fps, opts):
+    r = _Renderer(size, seed, fps, **opts)
     heads = fit_similarity(r.canon_rigid, points[:, list(RIGID_68)], iterations=0)
     for t in range(len(points)):
         yield r.frame(points[t], heads[t], t)
@@ -1118,7 +1163,8 @@ def _write_video(path: Path, frames, size, fps: float, n_frames: int) -> None:
                 logger.info("synth: rendered %d/%d frames", t + 1, n_frames)
 
 
-def write_take(outdir, *, n_frames: int = 240, size=(320, 320), seed: int = 0, fps: float = 30.0) -> dict:
+def write_take(outdir, *, n_frames: int = 240, size=(320, 320), seed: int = 0, fps: float = 30.0,
+               speed: float = 1.0, **render) -> dict:
     """Generate a synthetic take with its ground truth and target character.
 
     Files written into *outdir* (each atomically; same arguments give
@@ -1145,6 +1191,11 @@ def write_take(outdir, *, n_frames: int = 240, size=(320, 320), seed: int = 0, f
         Frame ``(W, H)``, each >= 64.
     seed : int
     fps : float
+    speed : float
+        Head-motion speed factor (see :func:`head_motion`).
+    **render
+        Perturbations passed to :func:`render_frames` (``noise``, ``blur``,
+        ``jpeg``, ``light``, ``dots``). The defaults reproduce ``sample_data/``.
 
     Returns
     -------
@@ -1167,14 +1218,15 @@ def write_take(outdir, *, n_frames: int = 240, size=(320, 320), seed: int = 0, f
     out.mkdir(parents=True, exist_ok=True)
     logger.info("synth: %d frames at %dx%d, seed %d -> %s", n_frames, w, h, seed, out)
 
-    curves, stab, head, points = _truth_landmarks(n_frames, (w, h), seed, fps)
+    curves, stab, head, points = _truth_landmarks(n_frames, (w, h), seed, fps, speed)
     inside = (points[..., 0] >= 0) & (points[..., 0] <= w - 1) & (points[..., 1] >= 0) & (points[..., 1] <= h - 1)
     if not inside.all():
         logger.warning("synth: %d landmark positions fall outside the frame", int((~inside).sum()))
 
     paths: dict[str, Path] = {}
     paths["video"] = out / "face.mp4"
-    _write_video(paths["video"], render_frames(points, size=(w, h), seed=seed, fps=fps), (w, h), fps, n_frames)
+    _write_video(paths["video"], render_frames(points, size=(w, h), seed=seed, fps=fps, **render), (w, h), fps,
+                 n_frames)
 
     paths["pts"] = out / "face_00000.pts"
     write_pts(paths["pts"], points[0])

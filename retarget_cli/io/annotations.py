@@ -63,3 +63,123 @@ def write_pts(path: str | os.PathLike, points: np.ndarray) -> None:
     lines += [f"{x:.3f} {y:.3f}" for x, y in points]
     lines += ["}", ""]
     write_text(path, "\n".join(lines))
+
+
+_FRAME_IN_NAME = re.compile(r"(\d+)$")
+
+
+def pts_frame(path) -> int | None:
+    """Frame number at the end of a ``.pts`` file's stem (``face_00120.pts`` -> 120), else None."""
+    m = _FRAME_IN_NAME.search(Path(path).stem)
+    return int(m.group(1)) if m else None
+
+
+def read_csv_landmarks(path: str | os.PathLike) -> dict[int, np.ndarray]:
+    """Read a ``frame,point,x,y`` CSV (header line required; 0-based pixel coordinates).
+
+    Returns
+    -------
+    dict of int to ndarray, shape (L, 2)
+        Landmarks per frame; every frame must list points ``0..L-1`` once.
+
+    Raises
+    ------
+    InputError
+        Naming the file and line (bad header or value), or the frame (missing,
+        repeated points, or a point count that differs from another frame's).
+    """
+    import csv
+
+    path = Path(path)
+    try:
+        fh = path.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: landmarks CSV not found") from None
+    rows: dict[int, dict[int, tuple[float, float]]] = {}
+    with fh:
+        reader = csv.reader(fh)
+        header = [h.strip().lower() for h in next(reader, [])]
+        if header[:4] != ["frame", "point", "x", "y"]:
+            raise InputError(f"{path}: expected the header 'frame,point,x,y', got {','.join(header)!r}")
+        for line, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            try:
+                f, p, x, y = int(row[0]), int(row[1]), float(row[2]), float(row[3])
+            except (ValueError, IndexError):
+                raise InputError(f"{path}: line {line}: expected integers frame,point and numbers x,y, "
+                                 f"got {','.join(row)!r}") from None
+            if f < 0 or p < 0 or not (np.isfinite(x) and np.isfinite(y)):
+                raise InputError(f"{path}: line {line}: frame and point must be >= 0 and x, y finite")
+            if p in rows.setdefault(f, {}):
+                raise InputError(f"{path}: line {line}: frame {f} lists point {p} twice")
+            rows[f][p] = (x, y)
+    if not rows:
+        raise InputError(f"{path}: no landmark rows")
+    out, first = {}, None
+    for f in sorted(rows):
+        n = len(rows[f])
+        if sorted(rows[f]) != list(range(n)):
+            missing = sorted(set(range(max(rows[f]) + 1)) - set(rows[f]))
+            raise InputError(f"{path}: frame {f} lacks point {missing[0]} (points must be numbered 0..L-1)")
+        if first is None:
+            first = (f, n)
+        elif n != first[1]:
+            raise InputError(f"{path}: frame {f} has {n} points but frame {first[0]} has {first[1]}")
+        out[f] = np.array([rows[f][p] for p in range(n)], dtype=np.float64)
+    return out
+
+
+def write_csv_landmarks(path: str | os.PathLike, points, frames=None) -> None:
+    """Atomically write landmarks (T, L, 2) as a ``frame,point,x,y`` CSV (0-based pixels)."""
+    points = np.asarray(points, dtype=np.float64)
+    frames = range(len(points)) if frames is None else frames
+    lines = ["frame,point,x,y"]
+    for f, P in zip(frames, points):
+        lines += [f"{int(f)},{i},{x:.4f},{y:.4f}" for i, (x, y) in enumerate(P)]
+    write_text(path, "\n".join(lines) + "\n")
+
+
+def read_annotations(paths, *, frame: int | None = None) -> tuple[dict[int, np.ndarray], dict[int, Path]]:
+    """Annotations of one or several frames from ``.pts`` and ``frame,point,x,y`` CSV files.
+
+    The frame of a ``.pts`` file is the number ending its name
+    (``face_00120.pts``), else *frame* (default 0) when it is the only file.
+
+    Returns
+    -------
+    points : dict of int to ndarray (L, 2)
+    sources : dict of int to Path
+        The file each frame came from (for error messages).
+
+    Raises
+    ------
+    InputError
+        Two files for one frame, a ``.pts`` without a frame number among
+        several files, or point counts that differ (naming both files and counts).
+    """
+    paths = [Path(p) for p in ([paths] if isinstance(paths, (str, os.PathLike)) else paths)]
+    pts: dict[int, np.ndarray] = {}
+    src: dict[int, Path] = {}
+    for p in paths:
+        if p.suffix.lower() == ".csv":
+            got = read_csv_landmarks(p)
+        elif p.suffix.lower() == ".pts":
+            f = pts_frame(p) if frame is None else frame
+            if f is None:
+                if len(paths) > 1:
+                    raise InputError(f"{p}: no frame number in the file name (expected e.g. face_00120.pts)")
+                f = 0
+            got = {f: read_pts(p)}
+        else:
+            raise InputError(f"{p}: unsupported annotation type {p.suffix!r}; expected .pts or .csv")
+        for f, P in got.items():
+            if f in pts:
+                raise InputError(f"{p}: frame {f} is also annotated in {src[f]}")
+            pts[f], src[f] = P, p
+    first = min(pts)
+    for f, P in pts.items():
+        if len(P) != len(pts[first]):
+            raise InputError(f"{src[f]}: frame {f} has {len(P)} points but {src[first]} (frame {first}) has "
+                             f"{len(pts[first])}")
+    return dict(sorted(pts.items())), src

@@ -40,6 +40,8 @@ class Landmarks:
         ``[width, height]``; ``[0, 0]`` when unknown.
     names : ndarray, shape (L,), str, optional
     meta : dict
+    frames : ndarray, shape (T,), int, optional
+        Source frame number of each row (when a range or step was tracked).
     """
 
     points: np.ndarray
@@ -50,6 +52,7 @@ class Landmarks:
     frame_size: np.ndarray = field(default_factory=lambda: np.zeros(2, dtype=np.int64))
     names: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+    frames: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -76,6 +79,10 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
             raise ValueError(f"{key}: expected shape {shape}, got {arrays[key].shape}")
     if lm.names is not None:
         arrays["names"] = np.asarray(lm.names, dtype=str)
+    if lm.frames is not None:
+        arrays["frames"] = np.asarray(lm.frames, dtype=np.int64)
+        if arrays["frames"].shape != (T,):
+            raise ValueError(f"frames: expected shape {(T,)}, got {arrays['frames'].shape}")
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)
@@ -133,5 +140,6 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         fps=float(data["fps"]) if "fps" in data else 30.0,
         frame_size=np.asarray(data.get("frame_size", np.zeros(2)), dtype=np.int64),
         names=data.get("names"),
+        frames=data.get("frames"),
         meta=meta,
     )

@@ -163,3 +163,42 @@ def estimate_head(points, confidence=None, *, rigid_points=None, reference_frame
     head = fit_similarity(ref, points[:, idx], conf)
     stabilized = apply_similarity(invert_similarity(head), points)
     return head, stabilized
+
+
+def smooth_head(head, window: int) -> np.ndarray:
+    """Temporal smoothing of a head track, keeping frame 0 the identity.
+
+    The similarity parameters ``(s cos θ, s sin θ, tx, ty)`` are filtered
+    with a Savitzky–Golay filter (quadratic, *window* frames), then the track
+    is re-expressed relative to its smoothed frame 0.
+
+    Parameters
+    ----------
+    head : ndarray, shape (T, 2, 3)
+    window : int
+        Filter length in frames (odd >= 3; even values are rounded up). Tracks
+        shorter than the window are returned unchanged.
+
+    Returns
+    -------
+    ndarray, shape (T, 2, 3)
+    """
+    from scipy.signal import savgol_filter
+
+    head = np.asarray(head, dtype=np.float64)
+    if head.ndim != 3 or head.shape[1:] != (2, 3):
+        raise ShapeError(f"head: expected shape (T, 2, 3), got {head.shape}")
+    window = int(window) | 1
+    if window < 3 or len(head) < window:
+        return head.copy()
+    p = np.stack([head[:, 0, 0], head[:, 1, 0], head[:, 0, 2], head[:, 1, 2]], 1)
+    p = savgol_filter(p, window, 2, axis=0, mode="interp")
+    out = np.empty_like(head)
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = p[:, 0], -p[:, 1], p[:, 2]
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = p[:, 1], p[:, 0], p[:, 3]
+    inv0 = invert_similarity(out[:1])[0]
+    A = out[:, :, :2] @ inv0[:, :2]
+    t = np.einsum("tij,j->ti", out[:, :, :2], inv0[:, 2]) + out[:, :, 2]
+    res = np.concatenate([A, t[:, :, None]], axis=2)
+    res[0] = np.eye(2, 3)
+    return res
