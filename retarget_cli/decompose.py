@@ -48,7 +48,7 @@ FORMULATIONS = ("whole", "convex", "delta")
 #: Solvers that do not support ``formulation="convex"``.
 NO_CONVEX = ("ridge-clipped", "sequential", "temporal")
 #: Default regularisation strength (relative to the keys' spread) per solver.
-DEFAULT_ALPHA = {"ridge": 0.01, "ridge-clipped": 0.01, "temporal": 0.1, "temporal-causal": 0.1, "sparse": 0.01}
+DEFAULT_ALPHA = {"ridge": 0.01, "ridge-clipped": 0.01, "temporal": 0.1, "temporal-causal": 0.1, "sparse": 0.05}
 #: Upper bound of ``bounded`` and ``ridge-clipped`` when none is given.
 DEFAULT_UPPER = 1.0
 #: A weight above this counts towards the frame's cardinality.
