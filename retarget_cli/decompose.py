@@ -390,7 +390,7 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     primal active-set method (Nocedal & Wright 2006, Algorithm 16.3).
 
     A singular *H* (duplicated or dependent keys) is handled by adding
-    ``1e-12·max(diag H)`` to the reduced diagonals, which changes the
+    ``1e-14·max(diag H)`` to the reduced diagonals, which changes the
     objective by a relative amount of that order (minimum-norm limit).
 
     Parameters
@@ -426,7 +426,7 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     if T == 0 or K == 0:
         return X
     hscale = max(float(np.abs(np.diag(H)).max()), 1e-300)
-    Hd = H + 1e-12 * hscale * np.eye(K)
+    Hd = H + 1e-14 * hscale * np.eye(K)
     X0 = _equality_ls(Hd, Q, sum_to)
     finish = []
     with _one_blas_thread(T):

@@ -236,10 +236,10 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
         card = cardinality(W)
         regions[name] = (W, frames, res)
         extras[name] = {"cardinality": card, "lost": lost}
-        diagnostics[name] = {
-            "mean_residual_px": round(float(res[~lost].mean() / np.sqrt(len(pts))), 6),
-            "mean_cardinality": round(float(card.mean()), 6),
-            "jitter": round(jitter(W), 9),
+        diagnostics[name] = {  # 6 significant digits keep the JSON short and deterministic
+            "mean_residual_px": float(f"{res[~lost].mean() / np.sqrt(len(pts)):.6g}"),
+            "mean_cardinality": float(f"{card.mean():.6g}"),
+            "jitter": float(f"{jitter(W):.6g}"),
             "lost_frames": int(lost.sum()),
         }
         log.info("region %s: %d frames, mean residual %.4g px, mean cardinality %.2f, jitter %.3g", name, T,
