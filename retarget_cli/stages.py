@@ -211,7 +211,7 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
                              "a key shape needs every landmark")
         lost_keys = [int(f) for f in frames if lost_pt[f].any()]
         if lost_keys:
-            log.warning("region %s: key frame %d has lost landmarks; its key shape may be inaccurate", name, lost_keys[0])
+            log.info("region %s: key frame %d has lost landmarks; its key shape may be inaccurate", name, lost_keys[0])
         X = np.where(nan[..., None], 0.0, P).reshape(T, -1)
         weight = np.repeat(np.where(lost_pt, 0.0, C if confidence else 1.0), 2, axis=1)
         kw = {}
