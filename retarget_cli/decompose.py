@@ -22,12 +22,14 @@ at once:
 Every constrained problem here is a box-constrained quadratic programme with
 a Hessian shared by all frames, ``min ½ wᵀHw − q_tᵀw, lo ≤ w ≤ hi``
 (optionally ``1ᵀw = 1``). :func:`box_qp` solves all frames together by a
-primal–dual active-set iteration (Hintermüller, Ito & Kunisch 2002) in which
-frames with the same active set share one factorisation of the reduced
-Hessian; each frame's answer is certified by its KKT conditions, and the few
-frames that do not settle are finished by an exact per-frame primal active-set
-method (Nocedal & Wright, Algorithm 16.3). The result is the exact optimum,
-not an approximation.
+primal–dual active-set iteration (Hintermüller, Ito & Kunisch 2002) whose
+per-frame reduced systems are solved as stacked LAPACK solves, bucketed by
+free-set size; each frame's answer is certified by its KKT conditions, and the
+few frames that do not settle are finished by an exact per-frame primal
+active-set method (Nocedal & Wright, Algorithm 16.3). The result is the exact
+optimum, not an approximation. With per-frame confidence weights the Hessian
+differs per frame, and frames with distinct confidence rows are solved one
+call at a time.
 """
 
 from __future__ import annotations
