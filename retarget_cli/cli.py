@@ -256,11 +256,27 @@ def _parse_regions(specs) -> dict | None:
 @output_option("weights.npz", "Weights file (weights.npz).", required=False)
 @click.option("--csv", type=click.Path(dir_okay=False), default=None, help="Also write the weights as CSV.")
 @setting("decompose", "solver")
-def decompose(landmarks, keys, output, csv, solver):
-    """Decompose every frame into non-negative key-shape weights (eq. 4)."""
+@setting("decompose", "formulation")
+@setting("decompose", "alpha")
+@setting("decompose", "upper")
+@setting("decompose", "neutral_frame")
+@setting("decompose", "confidence")
+@setting("decompose", "lost_fraction")
+@click.option("--summary/--no-summary", default=True, show_default=True,
+              help="Print a per-region table of residual, cardinality, jitter and lost frames after the file names.")
+def decompose(landmarks, keys, output, csv, summary, **settings):
+    """Decompose every frame into key-shape weights (non-negative by default, eq. 4)."""
+    from .io.stagefiles import load_weights
     from .stages import run_decompose
 
-    _print_outputs(run_decompose(landmarks=landmarks, keys=keys, output=output, csv=csv, solver=solver))
+    written = run_decompose(landmarks=landmarks, keys=keys, output=output, csv=csv, **settings)
+    _print_outputs(written)
+    if summary:
+        diag = load_weights(written[0])[1].get("diagnostics", {})
+        click.echo(f"{'region':<16}{'residual px':>12}{'cardinality':>12}{'jitter':>12}{'lost':>6}")
+        for name, d in sorted(diag.items()):
+            click.echo(f"{name:<16}{d['mean_residual_px']:>12.4f}{d['mean_cardinality']:>12.2f}"
+                       f"{d['jitter']:>12.3g}{d['lost_frames']:>6d}")
 
 
 @main.command("pose-keys")

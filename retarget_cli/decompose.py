@@ -1,9 +1,35 @@
-"""Decomposition: each frame as non-negative weights over the key shapes.
+"""Decomposition: each frame as weights over the key shapes.
 
 Chuang & Bregler (2002, §4.1) model a frame's landmark vector ``S_t`` as a
 linear combination of key shapes ``S_i`` (eq. 3) and recover the weights by
 non-negative least squares (eq. 4), which avoids the large cancelling weights
-of unconstrained least squares that distort the retargeted result.
+of unconstrained least squares that distort the retargeted result (their
+Figs. 4–5).
+
+This module provides that solver and its variants, all solved for every frame
+at once:
+
+* formulations ``whole`` (eq. 3), ``convex`` (also ``Σ w = 1``, the
+  barycentric form of Lewis et al. 2005, §3) and ``delta`` (relative to a
+  neutral shape ``S_0``: ``S_t − S_0 ≈ Σ w_i (S_i − S_0)``);
+* solvers ``ls``, ``nnls``, ``bounded``, ``ridge`` / ``ridge-clipped``
+  (Racković et al. 2023, eqs. 5–6), ``temporal-causal`` (Lewis & Anjyo 2010,
+  eq. 2 with the previous frame as ``w_0``), ``temporal`` (a second-difference
+  roughness penalty over the whole take, one banded problem), ``sparse`` (an
+  L1 term, which with ``w ≥ 0`` is ``α 1ᵀw``) and ``sequential`` (Seol et al.
+  2011, Racković et al. 2023 eq. 7).
+
+Every constrained problem here is a box-constrained quadratic programme with
+a Hessian shared by all frames, ``min ½ wᵀHw − q_tᵀw, lo ≤ w ≤ hi``
+(optionally ``1ᵀw = 1``). :func:`box_qp` solves all frames together by a
+primal–dual active-set iteration (Hintermüller, Ito & Kunisch 2002) whose
+per-frame reduced systems are solved as stacked LAPACK solves, bucketed by
+free-set size; each frame's answer is certified by its KKT conditions, and the
+few frames that do not settle are finished by an exact per-frame primal
+active-set method (Nocedal & Wright, Algorithm 16.3). The result is the exact
+optimum, not an approximation. With per-frame confidence weights the Hessian
+differs per frame, and frames with distinct confidence rows are solved one
+call at a time.
 """
 
 from __future__ import annotations
@@ -18,19 +44,68 @@ from .errors import ShapeError
 log = logging.getLogger(__name__)
 
 #: Solvers available to :func:`decompose`.
-SOLVERS = ("nnls", "ls")
+SOLVERS = ("nnls", "ls", "bounded", "ridge", "ridge-clipped", "temporal", "temporal-causal", "sparse", "sequential")
+#: Formulations available to :func:`decompose`.
+FORMULATIONS = ("whole", "convex", "delta")
+#: Solvers that do not support ``formulation="convex"``.
+NO_CONVEX = ("ridge-clipped", "sequential", "temporal")
+#: Default regularisation strength (relative to the keys' spread) per solver.
+DEFAULT_ALPHA = {"ridge": 0.01, "ridge-clipped": 0.01, "temporal": 0.1, "temporal-causal": 0.1, "sparse": 0.05}
+#: Upper bound of ``bounded`` and ``ridge-clipped`` when none is given.
+DEFAULT_UPPER = 1.0
+#: A weight above this counts towards the frame's cardinality.
+CARDINALITY_THRESHOLD = 0.01
+
+_EPS = np.finfo(np.float64).eps
 
 
-def decompose(frames, keys, *, solver: str = "nnls"):
+# --------------------------------------------------------------------------- public API
+
+
+def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole", alpha: float | None = None,
+              upper: float | None = None, neutral=None, confidence=None):
     """Weights ``w_t`` with ``S_t ≈ Σ_i w_{t,i} S_i`` for every frame.
+
+    The default is Chuang & Bregler's eq. 4:
 
     .. math::
 
-        \\min_{w_t} \\| S_t - \\sum_{i=1}^{k} w_{t,i} S_i \\|^2
+        \\min_{w_t} \\| S_t - \\sum_{i=1}^{k} w_{t,i} S_i \\|_{C_t}^2
         \\quad \\text{s.t. } w_{t,i} \\ge 0
 
-    (Chuang & Bregler 2002, eq. 3 and 4; ``solver="ls"`` drops the
-    constraint, as in their Fig. 4, to show why it is needed).
+    where ``‖r‖²_C = Σ_d c_{t,d} r_d²`` weights each coordinate by its
+    landmark's confidence (all ones by default). Other solvers add to or
+    replace the constraint (``λ = alpha · mean_i ‖S_i − S̄‖²``, so *alpha* is
+    relative to the spread of the key shapes and has no units):
+
+    ``ls``
+        no constraint (their Fig. 4, to show the distortion);
+    ``nnls``
+        ``w ≥ 0`` (eq. 4; ``w ≤ upper`` too when *upper* is given);
+    ``bounded``
+        ``0 ≤ w ≤ upper`` (*upper* defaults to 1);
+    ``ridge``
+        ``+ λ‖w‖²`` unconstrained, the closed form ``(BᵀB + λI)⁻¹Bᵀb`` of
+        Racković et al. 2023, eqs. 5–6;
+    ``ridge-clipped``
+        ``ridge`` clipped to ``[0, upper]`` (*upper* defaults to 1), their
+        initialisation;
+    ``temporal-causal``
+        ``+ λ‖w_t − w_{t−1}‖²``, ``w ≥ 0``, frame by frame (Lewis & Anjyo
+        2010, eq. 2 with the previous frame's weights as ``w_0``);
+    ``temporal``
+        ``+ λ Σ_t ‖w_{t−1} − 2w_t + w_{t+1}‖²`` over the whole take, ``w ≥ 0``,
+        solved jointly (:func:`temporal_whole`);
+    ``sparse``
+        ``+ λ 1ᵀw``, ``w ≥ 0`` (the L1 norm on the non-negative orthant);
+    ``sequential``
+        Seol et al. 2011 (Racković et al. 2023, eq. 7): keys visited in order
+        of decreasing mean offset, each fitted alone to the remaining residual
+        and clipped to ``[0, upper]``.
+
+    Formulations: ``whole`` (eq. 3), ``convex`` (also ``Σ_i w_{t,i} = 1``,
+    Lewis et al. 2005 §3) and ``delta`` (``S_t − S_0 ≈ Σ_i w_{t,i} (S_i − S_0)``
+    with *neutral* ``S_0``; a key equal to the neutral gets weight 0).
 
     Parameters
     ----------
@@ -38,29 +113,75 @@ def decompose(frames, keys, *, solver: str = "nnls"):
         Feature vectors per frame (flattened stabilized landmarks).
     keys : ndarray, shape (K, D)
         Key-shape feature vectors.
-    solver : {"nnls", "ls"}
+    solver : str
+        One of :data:`SOLVERS`.
+    formulation : {"whole", "convex", "delta"}
+    alpha : float, optional
+        Regularisation strength of ``ridge``, ``ridge-clipped``, ``temporal``,
+        ``temporal-causal`` and ``sparse`` (default :data:`DEFAULT_ALPHA`).
+    upper : float, optional
+        Upper bound on every weight for the constrained solvers.
+    neutral : ndarray, shape (D,), optional
+        ``S_0``; required by ``formulation="delta"``.
+    confidence : ndarray, shape (T, D), optional
+        Non-negative weight of each coordinate in each frame (row weights).
 
     Returns
     -------
     weights : ndarray, shape (T, K)
     residual : ndarray, shape (T,)
-        Euclidean norm of each frame's reconstruction error.
+        Euclidean norm of each frame's (unweighted) reconstruction error.
+
+    Raises
+    ------
+    ShapeError, ValueError
+        For mismatched shapes, NaN, or unknown or incompatible options.
     """
     S = check_array(frames, "frames", ndim=2)
     B = check_array(keys, "keys", ndim=2)
-    if B.shape[1] != S.shape[1]:
-        raise ShapeError(f"keys: expected shape (K, {S.shape[1]}) to match frames, got {B.shape}")
+    T, D = S.shape
+    if B.shape[1] != D:
+        raise ShapeError(f"keys: expected shape (K, {D}) to match frames, got {B.shape}")
     if solver not in SOLVERS:
         raise ValueError(f"solver: expected one of {SOLVERS}, got {solver!r}")
-    if solver == "ls":
-        W = np.linalg.lstsq(B.T, S.T, rcond=None)[0].T
-    else:
-        from scipy.optimize import nnls
+    if formulation not in FORMULATIONS:
+        raise ValueError(f"formulation: expected one of {FORMULATIONS}, got {formulation!r}")
+    if formulation == "convex" and solver in NO_CONVEX:
+        raise ValueError(f"solver {solver!r} does not support formulation 'convex' "
+                         f"(use one of {tuple(s for s in SOLVERS if s not in NO_CONVEX)})")
+    if alpha is None:
+        alpha = DEFAULT_ALPHA.get(solver, 0.0)
+    if not np.isfinite(alpha) or alpha < 0:
+        raise ValueError(f"alpha: expected a finite number >= 0, got {alpha!r}")
+    if upper is not None and not upper > 0:
+        raise ValueError(f"upper: expected a number > 0, got {upper!r}")
+    if formulation == "delta":
+        if neutral is None:
+            raise ValueError("neutral: formulation 'delta' needs the neutral shape S_0 (D,)")
+        n0 = check_array(neutral, "neutral", ndim=1)
+        if n0.shape != (D,):
+            raise ShapeError(f"neutral: expected shape ({D},), got {n0.shape}")
+        S, B = S - n0, B - n0
+    C = None
+    if confidence is not None:
+        C = check_array(confidence, "confidence", ndim=2)
+        if C.shape != (T, D):
+            raise ShapeError(f"confidence: expected shape ({T}, {D}) like frames, got {C.shape}")
+        if np.any(C < 0):
+            raise ValueError("confidence: weights must be >= 0")
+        if np.all(C == 1):
+            C = None
 
-        A = B.T
-        W = np.empty((S.shape[0], B.shape[0]))
-        for t in range(S.shape[0]):
-            W[t] = nnls(A, S[t])[0]
+    K = B.shape[0]
+    used = np.arange(K)
+    if formulation == "delta":
+        # A key equal to the neutral has no delta: it gets weight 0.
+        norms = np.einsum("kd,kd->k", B, B)
+        used = np.flatnonzero(norms > 1e-20 * max(norms.max(initial=0.0), 1.0))
+    W = np.zeros((T, K))
+    if used.size:
+        W[:, used] = _solve(S, B[used], C, solver=solver, convex=formulation == "convex",
+                            lam=alpha * _spread(B[used]), upper=upper)
     residual = np.linalg.norm(S - W @ B, axis=1)
     return W, residual
 
@@ -81,3 +202,580 @@ def reconstruction_error(frames, keys) -> float:
     """
     _, res = decompose(frames, keys, solver="nnls")
     return float(np.sum(res**2))
+
+
+def nnls_batched(frames, keys, *, upper: float | None = None) -> np.ndarray:
+    """Exact non-negative least squares for every frame at once (eq. 4).
+
+    Solves ``min ‖S_t − Σ w_i S_i‖², w ≥ 0`` (and ``w ≤ upper``) for all
+    frames with one shared Gram matrix ``H = B Bᵀ`` through :func:`box_qp`;
+    agrees with ``scipy.optimize.nnls`` frame by frame.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, D)
+    keys : ndarray, shape (K, D)
+    upper : float, optional
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+    """
+    S = check_array(frames, "frames", ndim=2)
+    B = check_array(keys, "keys", ndim=2)
+    if B.shape[1] != S.shape[1]:
+        raise ShapeError(f"keys: expected shape (K, {S.shape[1]}) to match frames, got {B.shape}")
+    return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=np.inf if upper is None else upper)
+
+
+def cardinality(weights, threshold: float = CARDINALITY_THRESHOLD) -> np.ndarray:
+    """Number of weights above *threshold* in each frame.
+
+    Parameters
+    ----------
+    weights : ndarray, shape (T, K)
+
+    Returns
+    -------
+    ndarray of int64, shape (T,)
+    """
+    W = check_array(weights, "weights", ndim=2)
+    return np.count_nonzero(W > threshold, axis=1).astype(np.int64)
+
+
+def jitter(weights) -> float:
+    """Mean squared second difference of the weight curves, ``mean (w_{t−1} − 2w_t + w_{t+1})²``.
+
+    Parameters
+    ----------
+    weights : ndarray, shape (T, K)
+
+    Returns
+    -------
+    float
+        0 for fewer than three frames.
+    """
+    W = check_array(weights, "weights", ndim=2)
+    if len(W) < 3:
+        return 0.0
+    return float(np.mean(np.diff(W, n=2, axis=0) ** 2))
+
+
+def interpolate_lost(weights, lost) -> np.ndarray:
+    """Replace the weights of *lost* frames by linear interpolation between kept frames.
+
+    Frames before the first (after the last) kept frame take its weights.
+
+    Parameters
+    ----------
+    weights : ndarray, shape (T, K)
+    lost : ndarray of bool, shape (T,)
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+
+    Raises
+    ------
+    ValueError
+        When every frame is lost.
+    """
+    W = check_array(weights, "weights", ndim=2)
+    lost = np.asarray(lost, dtype=bool)
+    if lost.shape != (len(W),):
+        raise ShapeError(f"lost: expected shape ({len(W)},), got {lost.shape}")
+    if lost.all():
+        raise ValueError("every frame is lost; nothing to interpolate from")
+    if not lost.any():
+        return W.copy()
+    t = np.arange(len(W))
+    keep = ~lost
+    out = W.copy()
+    for k in range(W.shape[1]):
+        out[lost, k] = np.interp(t[lost], t[keep], W[keep, k])
+    return out
+
+
+# --------------------------------------------------------------------------- solvers
+
+
+def _spread(B: np.ndarray) -> float:
+    """Scale for *alpha*: ``mean_i ‖S_i − S̄‖²`` (or ``mean ‖S_i‖²`` for one key)."""
+    spread = float(np.mean(np.sum((B - B.mean(0)) ** 2, axis=1))) if len(B) > 1 else 0.0
+    if spread <= 1e-12 * max(float(np.mean(np.sum(B**2, axis=1))), 1e-300):
+        spread = float(np.mean(np.sum(B**2, axis=1)))
+    return spread if spread > 0 else 1.0
+
+
+def _groups(C, T):
+    """Frames sharing a confidence row: yields (frame indices, row or None)."""
+    if C is None:
+        yield np.arange(T), None
+        return
+    uniq, inv = np.unique(C, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    for g in range(len(uniq)):
+        yield np.flatnonzero(inv == g), uniq[g]
+
+
+def _solve(S, B, C, *, solver, convex, lam, upper):
+    """Weights (T, K) for one formulation's frames S (T, D) and keys B (K, D)."""
+    T, K = len(S), len(B)
+    eq = 1.0 if convex else None
+    if solver == "temporal":
+        return temporal_whole(S, B, lam=lam, upper=upper, confidence=C)
+    if solver == "temporal-causal":
+        return _temporal_causal(S, B, C, lam=lam, upper=upper, eq=eq)
+    if solver == "sequential":
+        return _sequential(S, B, C, upper=upper)
+    W = np.empty((T, K))
+    for rows, c in _groups(C, T):
+        Bc = B if c is None else B * c
+        H = Bc @ B.T
+        Q = S[rows] @ Bc.T
+        if solver in ("ridge", "ridge-clipped"):
+            H = H + lam * np.eye(K)
+        if solver in ("ls", "ridge", "ridge-clipped"):
+            X = _equality_ls(H, Q, eq)
+            if solver == "ridge-clipped":
+                X = np.clip(X, 0.0, DEFAULT_UPPER if upper is None else upper)
+        else:
+            hi = DEFAULT_UPPER if (solver == "bounded" and upper is None) else (np.inf if upper is None else upper)
+            if solver == "sparse":
+                Q = Q - lam / 2
+            X = box_qp(H, Q, lower=0.0, upper=hi, sum_to=eq)
+        W[rows] = X
+    return W
+
+
+def _pinv_sym(M: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse of a symmetric matrix (eigenvalues below ``n·eps·max|λ|`` dropped)."""
+    if M.size == 0:
+        return M.copy()
+    lam, V = np.linalg.eigh(M)
+    cut = max(np.abs(lam).max(), 1e-300) * M.shape[0] * _EPS * 4
+    inv = np.where(np.abs(lam) > cut, 1.0 / np.where(lam == 0, 1.0, lam), 0.0)
+    return (V * inv) @ V.T
+
+
+def _equality_ls(H, Q, eq):
+    """Unconstrained minimiser of ``½wᵀHw − qᵀw`` (with ``1ᵀw = eq`` if given); minimum norm when singular."""
+    if eq is None:
+        return Q @ _pinv_sym(H)
+    K = len(H)
+    M = np.zeros((K + 1, K + 1))
+    M[:K, :K], M[:K, K], M[K, :K] = H, 1.0, 1.0
+    R = np.hstack([Q, np.full((len(Q), 1), eq)])
+    return (R @ _pinv_sym(M))[:, :K]
+
+
+def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, chunk: int = 8192) -> np.ndarray:
+    """Exact minimiser of a box-constrained QP for many right-hand sides at once.
+
+    .. math::
+
+        \\min_{x_t} \\tfrac12 x_t^T H x_t - q_t^T x_t
+        \\quad \\text{s.t. } l \\le x_t \\le u \\;(\\text{and } 1^T x_t = s)
+
+    for every row ``q_t`` of *Q*, with *H* shared (``H = BBᵀ`` and
+    ``q_t = B S_t`` give the NNLS of Chuang & Bregler's eq. 4).
+
+    Method: a primal–dual active-set iteration (Hintermüller, Ito & Kunisch
+    2002) run on all frames at once. Each iteration solves every frame's
+    reduced system ``H_FF x_F = q_F − H_FB x_B`` on its current free set F;
+    frames are bucketed by the size of F so that each bucket is one batched
+    LAPACK solve (``numpy.linalg.solve`` on a stack). A frame is finished when
+    its KKT conditions hold (free variables within their bounds, multipliers
+    of the bound ones correctly signed), so the solution on its free set is
+    the exact optimum. Frames still unsettled after *max_iter* iterations (the
+    iteration can cycle on rare frames) are finished one by one by an exact
+    primal active-set method (Nocedal & Wright 2006, Algorithm 16.3).
+
+    A singular *H* (duplicated or dependent keys) is handled by adding
+    ``1e-14·max(diag H)`` to the reduced diagonals, which changes the
+    objective by a relative amount of that order (minimum-norm limit).
+
+    Parameters
+    ----------
+    H : ndarray, shape (K, K)
+        Symmetric positive semi-definite.
+    Q : ndarray, shape (T, K)
+    lower, upper : float or ndarray of shape (K,)
+        Bounds; ``upper`` may be ``inf``.
+    sum_to : float, optional
+        Also require ``Σ_i x_{t,i} = sum_to``.
+    max_iter : int
+        Batched iterations before the per-frame finish.
+    chunk : int
+        Frames solved together (bounds the memory of the stacked systems).
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+    """
+    H = np.asarray(H, dtype=np.float64)
+    Q = np.atleast_2d(np.asarray(Q, dtype=np.float64))
+    T, K = Q.shape
+    if H.shape != (K, K):
+        raise ShapeError(f"H: expected shape ({K}, {K}), got {H.shape}")
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,)).copy()
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,)).copy()
+    if np.any(lo > hi):
+        raise ValueError("bounds: lower must not exceed upper")
+    if sum_to is not None and not (lo.sum() <= sum_to <= hi.sum()):
+        raise ValueError(f"sum_to: {sum_to} cannot be reached within the bounds")
+    X = np.empty((T, K))
+    if T == 0 or K == 0:
+        return X
+    hscale = max(float(np.abs(np.diag(H)).max()), 1e-300)
+    Hd = H + 1e-14 * hscale * np.eye(K)
+    X0 = _equality_ls(Hd, Q, sum_to)
+    finish = []
+    with _one_blas_thread(T):
+        for c0 in range(0, T, chunk):
+            sl = slice(c0, min(c0 + chunk, T))
+            X[sl], left = _pdas(Hd, Q[sl], lo, hi, sum_to, X0[sl], max_iter, hscale)
+            finish += list(left + c0)
+    if finish:
+        log.debug("box_qp: %d of %d frames finished by the per-frame active-set method", len(finish), T)
+    for t in finish:
+        X[t] = _active_set_one(H, Q[t], lo, hi, sum_to)
+    return np.clip(X, lo, hi)
+
+
+def _one_blas_thread(n_rows: int):
+    """Limit BLAS to one thread for large batches: the many small products run faster unthreaded."""
+    import contextlib
+
+    if n_rows < 512:
+        return contextlib.nullcontext()
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(1, user_api="blas")
+
+
+def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
+    """Primal–dual active-set iterations for the frames *Q* (n, K); returns (X, unsettled rows)."""
+    n, K = Q.shape
+    X = np.empty((n, K))
+    status = np.zeros((n, K), dtype=np.int8)  # -1 at lower bound, +1 at upper, 0 free
+    status[X0 < lo] = -1
+    status[X0 > hi] = 1
+    nu = np.zeros(n)
+    pending = np.arange(n)
+    bound_val = np.where(np.isfinite(hi), hi, 0.0)
+    Hflat = np.ascontiguousarray(H).ravel()
+    zero_lo = not np.any(lo)
+    for _ in range(max_iter):
+        st = status[pending]
+        free = st == 0
+        if zero_lo and not np.any(st == 1):
+            xB = np.zeros(st.shape)
+            R = Q[pending]
+        else:
+            xB = np.where(st == -1, lo, np.where(st == 1, bound_val, 0.0))
+            R = Q[pending] - xB @ H  # right-hand side for every coordinate
+        Xp = xB.copy()
+        nup = np.zeros(len(pending))
+        # Bucket the frames by the size of their free set; each bucket is one stacked solve.
+        m = free.sum(1)
+        perm = np.argsort(m, kind="stable")
+        cols = np.nonzero(free[perm])[1]
+        sizes, counts = np.unique(m[perm], return_counts=True)
+        r0 = o0 = 0
+        for size, count in zip(sizes.tolist(), counts.tolist()):
+            rows = perm[r0:r0 + count]
+            F = cols[o0:o0 + count * size].reshape(count, size)
+            r0, o0 = r0 + count, o0 + count * size
+            if size == 0:
+                continue
+            A = Hflat[(F * K)[:, :, None] + F[:, None, :]]
+            b = R[rows[:, None], F]
+            if eq is not None:
+                A = np.concatenate([np.concatenate([A, np.ones((count, size, 1))], 2),
+                                    np.concatenate([np.ones((count, 1, size)), np.zeros((count, 1, 1))], 2)], 1)
+                b = np.concatenate([b, (eq - xB[rows].sum(1))[:, None]], 1)
+            sol = np.linalg.solve(A, b[..., None])[..., 0]
+            Xp[rows[:, None], F] = sol[:, :size]
+            if eq is not None:
+                nup[rows] = sol[:, size]
+        X[pending] = Xp
+        nu[pending] = nup
+        G = Xp @ H - Q[pending] + nup[:, None]
+        xs = 1.0 + np.abs(Xp).max(1, keepdims=True)
+        tolx = 1e-10 * xs
+        tolg = 1e-11 * (np.abs(Q[pending]).max(1, keepdims=True) + hscale * xs)
+        below = free & (Xp < lo - tolx)
+        above = free & (Xp > hi + tolx)
+        wrong = ((st == -1) & (G < -tolg)) | ((st == 1) & (G > tolg))
+        bad = below | above | wrong
+        new = st.copy()
+        new[below] = -1
+        new[above] = 1
+        new[wrong] = 0
+        if eq is not None:
+            nofree = np.flatnonzero(m == 0)
+            if nofree.size:
+                # The sum cannot move: free the variable whose multiplier is most negative.
+                off = np.abs(xB[nofree].sum(1) - eq) > 1e-10
+                bad[nofree[off]] = True
+                j = np.argmin(np.where(st[nofree] == -1, G[nofree], -G[nofree]), axis=1)
+                new[nofree[off], j[off]] = 0
+        ok = ~bad.any(1)
+        status[pending] = new
+        pending = pending[~ok]
+        if pending.size == 0:
+            break
+    return X, pending
+
+
+def _active_set_one(H, q, lo, hi, eq=None, x0=None, max_iter=None) -> np.ndarray:
+    """Exact primal active-set method for one box-constrained QP (Nocedal & Wright, Alg. 16.3).
+
+    ``min ½xᵀHx − qᵀx, lo ≤ x ≤ hi`` (and ``1ᵀx = eq``), starting from the
+    feasible *x0* (default: the lower bounds, or a uniform split of *eq*).
+    Zero-curvature descent directions of a singular *H* are followed to the
+    bound that blocks them.
+    """
+    K = len(q)
+    if x0 is None:
+        if eq is None:
+            x = np.clip(np.zeros(K), lo, hi)
+        else:
+            x = lo.copy()
+            need = eq - x.sum()
+            for i in range(K):  # fill greedily up to each upper bound
+                add = min(need, hi[i] - x[i])
+                x[i] += add
+                need -= add
+    else:
+        x = np.clip(np.asarray(x0, dtype=np.float64), lo, hi)
+    W = np.zeros(K, dtype=np.int8)  # -1 at lower, +1 at upper, 0 free
+    W[x <= lo] = -1
+    W[(x >= hi) & (W == 0)] = 1
+    hscale = max(float(np.abs(np.diag(H)).max()), 1e-300)
+    at_min = False  # x minimises the objective on the current face (after a full step)
+    for _ in range(max_iter or 50 * K + 50):
+        g = H @ x - q
+        F = np.flatnonzero(W == 0)
+        n = len(F)
+        gtol = 1e-10 * (np.abs(q).max() + hscale * (1 + np.abs(x).max()))
+        if eq is None:
+            M, rhs = H[np.ix_(F, F)], -g[F]
+        else:
+            M = np.zeros((n + 1, n + 1))
+            M[:n, :n], M[:n, n], M[n, :n] = H[np.ix_(F, F)], 1.0, 1.0
+            rhs = np.concatenate([-g[F], [0.0]])
+        if n == 0 and eq is None:
+            sol, r = np.zeros(0), np.zeros(0)
+        else:
+            sol = _pinv_sym(M) @ rhs
+            r = rhs - M @ sol
+        unbounded_dir = r.size and np.linalg.norm(r) > gtol
+        p = np.zeros(K)
+        if unbounded_dir:
+            p[F] = r[:n]  # zero curvature, strictly descending
+        else:
+            p[F] = sol[:n]
+        if not unbounded_dir and (at_min or np.abs(p).max(initial=0.0) <= 1e-12 * (1 + np.abs(x).max())):
+            at_min = False
+            nu = sol[n] if eq is not None and n > 0 else 0.0
+            if eq is not None and n == 0:
+                nu = 0.0
+            mu = g + nu
+            viol = np.where(W == -1, -mu, np.where(W == 1, mu, -np.inf))
+            j = int(np.argmax(viol))
+            if viol[j] <= gtol:
+                return x
+            W[j] = 0
+            continue
+        step, block = (np.inf if unbounded_dir else 1.0), -1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lim = np.where(p < 0, (lo - x) / p, np.where(p > 0, (hi - x) / p, np.inf))
+        lim[W != 0] = np.inf
+        j = int(np.argmin(lim))
+        if lim[j] < step:
+            step, block = max(lim[j], 0.0), j
+        if not np.isfinite(step):
+            raise ValueError("the quadratic programme is unbounded below (keys without curvature and no bound)")
+        x = x + step * p
+        at_min = block < 0
+        if block >= 0:
+            W[block] = -1 if p[block] < 0 else 1
+            x[block] = lo[block] if p[block] < 0 else hi[block]
+    log.warning("active-set QP stopped after %d iterations; the weights of this frame may be inexact", max_iter or 50 * K + 50)
+    return x
+
+
+def _temporal_causal(S, B, C, *, lam, upper, eq):
+    """Frame-by-frame ``min ‖Bᵀw − S_t‖²_C + λ‖w − w_{t−1}‖²`` with ``0 ≤ w ≤ upper`` (Lewis & Anjyo eq. 2).
+
+    The first frame has no predecessor and is solved without the penalty.
+    Each frame's active set warm-starts the next.
+    """
+    T, K = len(S), len(B)
+    lo = np.zeros(K)
+    hi = np.full(K, np.inf if upper is None else upper)
+    W = np.empty((T, K))
+    H0 = B @ B.T
+    prev = None
+    for t in range(T):
+        if C is None:
+            H, q = H0, B @ S[t]
+        else:
+            Bc = B * C[t]
+            H, q = Bc @ B.T, Bc @ S[t]
+        if prev is None:
+            W[t] = box_qp(H, q[None], lower=lo, upper=hi, sum_to=eq)[0]
+        else:
+            W[t] = _active_set_one(H + lam * np.eye(K), q + lam * prev, lo, hi, eq, x0=prev)
+        prev = W[t]
+    return W
+
+
+def _sequential(S, B, C, *, upper):
+    """Seol et al. 2011 (Racković et al. 2023, eq. 7) for every frame at once.
+
+    Keys are visited in order of decreasing mean offset (mean per-coordinate
+    magnitude of the key vector); each weight minimises ``‖w_i b_i − r‖²``
+    over the current residual ``r``, clipped to ``[0, upper]``, and its
+    contribution is then removed from ``r``.
+    """
+    T, K = len(S), len(B)
+    hi = np.inf if upper is None else upper
+    order = np.argsort(-np.abs(B).mean(1), kind="stable")
+    R = S.copy()
+    W = np.zeros((T, K))
+    for i in order:
+        b = B[i]
+        if C is None:
+            num, den = R @ b, np.full(T, b @ b)
+        else:
+            num, den = (R * C) @ b, C @ (b * b)
+        w = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+        w = np.clip(w, 0.0, hi)
+        W[:, i] = w
+        R -= w[:, None] * b
+    return W
+
+
+def _second_difference(T: int):
+    """Sparse (T−2, T) second-difference operator."""
+    from scipy import sparse
+
+    if T < 3:
+        return sparse.csr_matrix((0, T))
+    return sparse.diags([np.ones(T - 2), -2 * np.ones(T - 2), np.ones(T - 2)], [0, 1, 2], shape=(T - 2, T), format="csr")
+
+
+def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, confidence=None,
+                   max_iter: int = 60) -> np.ndarray:
+    """Whole-take smooth weights: one sparse banded bound-constrained problem.
+
+    .. math::
+
+        \\min_{W} \\sum_t \\| S_t - B^T w_t \\|_{C_t}^2
+        + \\lambda \\sum_{t=1}^{T-2} \\| w_{t-1} - 2 w_t + w_{t+1} \\|^2
+        \\quad \\text{s.t. } 0 \\le w_{t,i} \\le u
+
+    The Hessian ``blockdiag(B C_t Bᵀ) + λ (D₂ᵀD₂ ⊗ I_K)`` of all ``T·K``
+    unknowns is banded (bandwidth ``3K``). It is solved exactly by a
+    primal–dual active-set iteration (Hintermüller, Ito & Kunisch 2002) started
+    from the per-frame NNLS solution; each iteration is one sparse LU solve
+    (SuperLU, :func:`scipy.sparse.linalg.splu`) of the Hessian reduced to the
+    free variables, and the result satisfies the KKT conditions. If the
+    iteration does not settle, :func:`scipy.optimize.lsq_linear` (trust-region
+    reflective on the equivalent sparse least-squares problem) finishes it.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, D)
+    keys : ndarray, shape (K, D)
+    lam : float
+        Absolute penalty weight λ >= 0.
+    upper : float, optional
+    confidence : ndarray, shape (T, D), optional
+    max_iter : int
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+    """
+    from scipy import sparse
+    from scipy.sparse.linalg import splu
+
+    S = check_array(frames, "frames", ndim=2)
+    B = check_array(keys, "keys", ndim=2)
+    T, K = len(S), len(B)
+    hi_v = np.inf if upper is None else upper
+    C_is_none = confidence is None
+    if C_is_none:
+        Hb = np.broadcast_to(B @ B.T, (T, K, K))
+        Q = S @ B.T
+    else:
+        C = np.asarray(confidence, dtype=np.float64)
+        Hb = np.einsum("kd,td,ld->tkl", B, C, B)
+        Q = (S * C) @ B.T
+    blocks = sparse.bsr_matrix((np.ascontiguousarray(Hb), np.arange(T), np.arange(T + 1)), shape=(T * K, T * K))
+    D2 = _second_difference(T)
+    Hbig = (blocks + lam * sparse.kron(D2.T @ D2, sparse.identity(K), format="csr")).tocsc()
+    q = Q.ravel()
+    # Start: per-frame NNLS, whose active set is usually close.
+    if C_is_none:
+        x = box_qp(B @ B.T, Q, lower=0.0, upper=hi_v).ravel()
+    else:
+        x = np.concatenate([box_qp(Hb[t], Q[t][None], lower=0.0, upper=hi_v)[0] for t in range(T)])
+    if lam == 0 or T < 3:
+        return x.reshape(T, K)
+    n = T * K
+    status = np.zeros(n, dtype=np.int8)
+    status[x <= 0] = -1
+    status[x >= hi_v] = 1
+    hscale = max(float(np.abs(Hbig.diagonal()).max()), 1e-300)
+    seen = set()
+    for it in range(max_iter):
+        F = np.flatnonzero(status == 0)
+        xB = np.where(status == -1, 0.0, np.where(status == 1, hi_v, 0.0))
+        x = xB.copy()
+        if F.size:
+            rhs = q[F] - Hbig[F] @ xB
+            HF = Hbig[F][:, F].tocsc()
+            try:
+                x[F] = splu(HF).solve(rhs)
+            except RuntimeError:  # singular reduced Hessian: least-squares solve
+                from scipy.sparse.linalg import lsqr
+
+                x[F] = lsqr(HF, rhs, atol=1e-14, btol=1e-14)[0]
+        g = Hbig @ x - q
+        xs = 1.0 + np.abs(x).max()
+        tolx, tolg = 1e-10 * xs, 1e-9 * (np.abs(q).max() + hscale * xs)
+        free = status == 0
+        below = free & (x < -tolx)
+        above = free & (x > hi_v + tolx)
+        wrong = ((status == -1) & (g < -tolg)) | ((status == 1) & (g > tolg))
+        nbad = int(below.sum() + above.sum() + wrong.sum())
+        log.debug("temporal: iteration %d, %d free of %d, %d KKT violations", it + 1, F.size, n, nbad)
+        if nbad == 0:
+            return np.clip(x, 0.0, hi_v).reshape(T, K)
+        status[below] = -1
+        status[above] = 1
+        status[wrong] = 0
+        key = hash(status.tobytes())
+        if key in seen:  # cycling
+            break
+        seen.add(key)
+    log.warning("temporal: the active-set iteration did not settle after %d iterations; finishing with "
+                "scipy.optimize.lsq_linear (weights may be slightly inexact; try a larger decompose.alpha)", it + 1)
+    from scipy.optimize import lsq_linear
+
+    if C_is_none:
+        rows = sparse.kron(sparse.identity(T), sparse.csr_matrix(B.T))
+        b = S.ravel()
+    else:
+        rw = np.sqrt(C)
+        rows = sparse.block_diag([sparse.csr_matrix(B.T * rw[t][:, None]) for t in range(T)])
+        b = (S * rw).ravel()
+    A = sparse.vstack([rows, np.sqrt(lam) * sparse.kron(D2, sparse.identity(K))]).tocsr()
+    b = np.concatenate([b, np.zeros(D2.shape[0] * K)])
+    res = lsq_linear(A, b, bounds=(0.0, hi_v), method="trf", lsmr_tol="auto", tol=1e-12, max_iter=200)
+    return np.clip(res.x, 0.0, hi_v).reshape(T, K)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from . import __version__, stages
 from .config import REQUIRED, Config, Param
+from .decompose import FORMULATIONS, SOLVERS
 from .errors import ConfigError, InputError
 from .io.atomic import sha256_file, write_json
 
@@ -162,7 +163,24 @@ STAGES: dict[str, Stage] = {
                 Param("keys", "input", str, help="keys.json.", link="select.output"),
                 Param("output", "output", str, "weights.npz", "Weights per region."),
                 Param("csv", "output", str, None, "Also write the weights as CSV.", nullable=True),
-                Param("solver", "setting", str, "nnls", "Solver.", choices=("nnls", "ls")),
+                Param("solver", "setting", str, "nnls",
+                      "Solver: nnls (eq. 4), ls, bounded, ridge, ridge-clipped, temporal, temporal-causal, sparse, "
+                      "sequential.", choices=SOLVERS),
+                Param("formulation", "setting", str, "whole",
+                      "whole (eq. 3), convex (weights sum to 1) or delta (relative to neutral_frame).",
+                      choices=FORMULATIONS),
+                Param("alpha", "setting", float, None,
+                      "Regularisation of ridge, temporal, temporal-causal, sparse, relative to the keys' spread "
+                      "(null: the solver's default).", min=0, nullable=True),
+                Param("upper", "setting", float, None,
+                      "Upper bound on every weight (bounded and ridge-clipped use 1 when null).", min=1e-6,
+                      nullable=True),
+                Param("neutral_frame", "setting", int, 0, "Neutral frame S_0 of formulation delta (must be a key).",
+                      min=0),
+                Param("confidence", "setting", bool, True, "Weight each landmark by its tracking confidence."),
+                Param("lost_fraction", "setting", float, 0.5,
+                      "A region is lost in a frame when more than this fraction of its landmarks is lost; "
+                      "its weights there are interpolated.", min=0, max=1),
             ],
             stages.run_decompose,
         ),

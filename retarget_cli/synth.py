@@ -1290,8 +1290,10 @@ select:
   regions:           # modelled separately and blended on the target (Chuang & Bregler §5)
     brows-eyes: [17, 18, 19, 20, 21, 22, 23, 24, 25, 26, 36, 37, 38, 39, 40, 41, 42, 43, 44, 45, 46, 47]
     mouth: [3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 48, 49, 50, 51, 52, 53, 54, 55, 56, 57, 58, 59, 60, 61, 62, 63, 64, 65, 66, 67]
-decompose:
-  solver: nnls
+decompose:          # measured best on synthetic takes (README, "Decomposition")
+  solver: sparse
+  formulation: delta
+  alpha: 0.05
   csv: weights.csv
 pose:                # the synthetic artist: the rig posed at each key frame's true sliders
   rig: rig.yaml

@@ -77,7 +77,11 @@ def read_keys(path: str | os.PathLike) -> Keys:
 # --------------------------------------------------------------------------- weights.npz
 
 
-def save_weights(path, regions: dict, meta: dict) -> None:
+#: Per-region keys of ``weights.npz`` besides the weights themselves (``<region><suffix>``).
+WEIGHT_SUFFIXES = ("_frames", "_residual", "_cardinality", "_lost")
+
+
+def save_weights(path, regions: dict, meta: dict, extras: dict | None = None) -> None:
     """Write ``weights.npz``.
 
     Parameters
@@ -86,12 +90,20 @@ def save_weights(path, regions: dict, meta: dict) -> None:
         Region name to ``(weights (T, K), frames (K,), residual (T,))``.
     meta : dict
         Stored as a JSON string under ``meta``.
+    extras : dict, optional
+        Region name to ``{"cardinality": int (T,), "lost": bool (T,)}``,
+        stored as ``<region>_cardinality`` and ``<region>_lost``.
     """
     arrays = {}
     for name, (w, frames, res) in regions.items():
         arrays[name] = np.asarray(w, dtype=np.float64)
         arrays[f"{name}_frames"] = np.asarray(frames, dtype=np.int64)
         arrays[f"{name}_residual"] = np.asarray(res, dtype=np.float64)
+    for name, ex in (extras or {}).items():
+        if "cardinality" in ex:
+            arrays[f"{name}_cardinality"] = np.asarray(ex["cardinality"], dtype=np.int64)
+        if "lost" in ex:
+            arrays[f"{name}_lost"] = np.asarray(ex["lost"], dtype=bool)
     arrays["meta"] = np.array(json.dumps({"version": __version__, **meta}, sort_keys=True))
     savez(path, arrays)
 
@@ -109,7 +121,7 @@ def load_weights(path) -> tuple[dict, dict]:
     data = load_npz(path)
     meta = json.loads(str(data.pop("meta"))) if "meta" in data else {}
     regions = {}
-    for name in sorted(k for k in data if not k.endswith(("_frames", "_residual"))):
+    for name in sorted(k for k in data if not k.endswith(WEIGHT_SUFFIXES)):
         w = data[name]
         frames = data.get(f"{name}_frames")
         if frames is None or w.ndim != 2 or frames.shape != (w.shape[1],):
@@ -387,6 +399,6 @@ def read_rig(path: str | os.PathLike) -> Rig:
 
 
 __all__ = [
-    "Keys", "RIG_KEYS", "Rig", "Targets", "dumps_json", "load_weights", "read_keys", "read_rig", "read_targets",
+    "WEIGHT_SUFFIXES", "Keys", "RIG_KEYS", "Rig", "Targets", "dumps_json", "load_weights", "read_keys", "read_rig", "read_targets",
     "read_vertex_mask", "save_weights", "targets_yaml", "weights_csv", "write_keys", "write_targets",
 ]

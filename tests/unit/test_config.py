@@ -29,7 +29,7 @@ def test_valid_config_resolves_paths_and_links(tmp_path):
         ("select: {kk: 3}\n", r"config.yaml: select: unknown key 'kk'; did you mean 'k'\?"),
         ("select: {k: 0}\n", r"select.k: 0 is out of range; expected int in \[1, 1000\]"),
         ("select: {k: 2.5}\n", r"select.k: expected an integer"),
-        ("decompose: {solver: nnl}\n", r"decompose.solver: 'nnl' is not one of nnls, ls; did you mean 'nnls'\?"),
+        ("decompose: {solver: nnl}\n", r"decompose.solver: 'nnl' is not one of nnls, ls, bounded, .*; did you mean 'nnls'\?"),
         ("track: {anchor: 3}\n", r"track.anchor: expected true or false"),
         ("- a\n- b\n", r"expected a mapping"),
         ("select: [1, 2\n", r"config.yaml:\d+: invalid YAML"),

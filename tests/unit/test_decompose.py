@@ -53,3 +53,282 @@ def test_bad_input():
         decompose(np.full((4, 10), np.nan), np.zeros((3, 10)))
     with pytest.raises(ValueError, match="solver"):
         decompose(np.zeros((4, 10)), np.zeros((3, 10)), solver="magic")
+
+
+# --------------------------------------------------------------------------- every solver, known answers
+
+from scipy.optimize import lsq_linear  # noqa: E402
+
+from retarget_cli.decompose import (  # noqa: E402
+    DEFAULT_ALPHA,
+    SOLVERS,
+    _spread,
+    box_qp,
+    cardinality,
+    interpolate_lost,
+    jitter,
+    nnls_batched,
+)
+
+
+def orthogonal_keys(K=4, D=12, seed=0):
+    """Keys with orthogonal rows of different lengths: every solver has a closed form per key."""
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(D, K)))
+    return q.T * np.array([1.0, 2.0, 0.5, 3.0])[:K, None]
+
+
+def objective_gap(S, B, W):
+    """(f - f_scipy) / max(f_scipy, 1e-10 |s|^2) per frame."""
+    f = np.sum((S - W @ B) ** 2, axis=1)
+    ref = np.array([nnls(B.T, s)[1] ** 2 for s in S])
+    return (f - ref) / np.maximum(ref, 1e-10 * np.sum(S**2, axis=1))
+
+
+def test_ls_recovers_signed_combinations():
+    rng = np.random.default_rng(4)
+    B = rng.normal(size=(5, 20))
+    W_true = rng.normal(size=(9, 5))
+    W, res = decompose(W_true @ B, B, solver="ls")
+    np.testing.assert_allclose(W, W_true, atol=1e-9)
+    assert res.max() < 1e-9
+
+
+@pytest.mark.parametrize("upper", [None, 0.7])
+def test_bounded_sparse_sequential_and_nnls_closed_forms_on_orthogonal_keys(upper):
+    B = orthogonal_keys()
+    rng = np.random.default_rng(5)
+    S = rng.normal(size=(30, 4)) @ B + 0.1 * rng.normal(size=(30, 12))
+    proj = (S @ B.T) / np.sum(B**2, axis=1)  # per-key least-squares weight
+    hi = np.inf if upper is None else upper
+    np.testing.assert_allclose(decompose(S, B, solver="nnls", upper=upper)[0], np.clip(proj, 0, hi), atol=1e-9)
+    np.testing.assert_allclose(decompose(S, B, solver="bounded", upper=upper)[0],
+                               np.clip(proj, 0, 1.0 if upper is None else upper), atol=1e-9)
+    np.testing.assert_allclose(decompose(S, B, solver="sequential", upper=upper)[0], np.clip(proj, 0, hi), atol=1e-9)
+    lam = DEFAULT_ALPHA["sparse"] * _spread(B)
+    want = np.clip((S @ B.T - lam / 2) / np.sum(B**2, axis=1), 0, hi)
+    np.testing.assert_allclose(decompose(S, B, solver="sparse", upper=upper)[0], want, atol=1e-9)
+
+
+def test_sequential_visits_keys_by_mean_offset_and_removes_their_contribution():
+    # Two overlapping keys: the larger is fitted first and explains the frame alone.
+    b1 = np.array([2.0, 2.0, 0.0])
+    b2 = np.array([1.0, 0.0, 0.0])
+    W, _ = decompose(np.array([[2.0, 2.0, 0.0]]), np.stack([b2, b1]), solver="sequential")
+    np.testing.assert_allclose(W, [[0.0, 1.0]], atol=1e-12)
+
+
+def test_ridge_is_the_closed_form_and_clipped_ridge_clips_it():
+    rng = np.random.default_rng(6)
+    B = rng.normal(size=(6, 25))
+    S = rng.normal(size=(8, 25))
+    lam = 0.3 * _spread(B)
+    want = np.linalg.solve(B @ B.T + lam * np.eye(6), B @ S.T).T  # Rackovic et al. eq. 6
+    np.testing.assert_allclose(decompose(S, B, solver="ridge", alpha=0.3)[0], want, atol=1e-10)
+    np.testing.assert_allclose(decompose(S, B, solver="ridge-clipped", alpha=0.3)[0], np.clip(want, 0, 1), atol=1e-10)
+    np.testing.assert_allclose(decompose(S, B, solver="ridge-clipped", alpha=0.3, upper=0.2)[0],
+                               np.clip(want, 0, 0.2), atol=1e-10)
+
+
+def test_temporal_causal_pulls_towards_the_previous_frame():
+    B = orthogonal_keys(K=1, D=5)
+    b2 = float(B[0] @ B[0])
+    S = np.array([1.0, 0.2, 0.2])[:, None] * B[0]
+    lam = 0.5 * _spread(B)
+    W, _ = decompose(S, B, solver="temporal-causal", alpha=0.5)
+    w1 = (0.2 * b2 + lam * 1.0) / (b2 + lam)  # Lewis & Anjyo eq. 2 with w0 = previous frame
+    w2 = (0.2 * b2 + lam * w1) / (b2 + lam)
+    np.testing.assert_allclose(W[:, 0], [1.0, w1, w2], atol=1e-10)
+    W0, _ = decompose(S, B, solver="temporal-causal", alpha=0.0)
+    np.testing.assert_allclose(W0, decompose(S, B)[0], atol=1e-10)
+
+
+def test_temporal_whole_take_keeps_exact_linear_motion_and_matches_lsq_linear():
+    rng = np.random.default_rng(7)
+    B = rng.normal(size=(3, 10))
+    t = np.linspace(0, 1, 20)[:, None]
+    W_true = 0.2 + t * np.array([0.5, 0.1, 0.0]) + (1 - t) * np.array([0.0, 0.3, 0.4])
+    W, res = decompose(W_true @ B, B, solver="temporal", alpha=5.0)  # zero residual and zero roughness
+    np.testing.assert_allclose(W, W_true, atol=1e-8)
+    # Noisy frames: the joint solve reaches the optimum of the sparse bound-constrained problem.
+    from scipy import sparse
+
+    S = W_true @ B + 0.3 * rng.normal(size=(20, 10))
+    lam = 2.0 * _spread(B)
+    W, _ = decompose(S, B, solver="temporal", alpha=2.0)
+    D2 = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(18, 20))
+    A = sparse.vstack([sparse.kron(sparse.identity(20), B.T), np.sqrt(lam) * sparse.kron(D2, sparse.identity(3))])
+    b = np.concatenate([S.ravel(), np.zeros(18 * 3)])
+    ref = lsq_linear(A.toarray(), b, bounds=(0, np.inf), method="bvls", tol=1e-14).x
+    f = lambda x: np.sum((A @ x - b) ** 2)
+    assert f(W.ravel()) <= f(ref) * (1 + 1e-8)
+    assert W.min() >= 0
+
+
+# --------------------------------------------------------------------------- batched NNLS is exact
+
+
+@pytest.mark.parametrize("case", ["random", "rank-deficient", "duplicated", "more-keys-than-coordinates", "fits"])
+def test_batched_nnls_matches_scipy_objective(case):
+    rng = np.random.default_rng(8)
+    B = rng.normal(size=(12, 30))
+    if case == "rank-deficient":
+        B[5] = B[1] + B[2]
+        B[7] = 0.5 * B[3]
+    elif case == "duplicated":
+        B[4] = B[9] = B[0]
+    elif case == "more-keys-than-coordinates":
+        B = rng.normal(size=(40, 20))
+    S = rng.normal(size=(400, B.shape[1]))
+    if case == "fits":  # frames that the keys reproduce exactly, including the keys themselves
+        S = np.vstack([B, rng.uniform(0, 1, size=(50, 12)) @ B])
+    W = nnls_batched(S, B)
+    assert W.min() >= 0
+    assert objective_gap(S, B, W).max() <= 1e-8
+
+
+def test_batched_nnls_on_near_collinear_face_like_keys():
+    """Whole-face keys are nearly collinear (one huge eigenvalue): the case of the benchmark."""
+    rng = np.random.default_rng(9)
+    mean = rng.uniform(50, 250, size=60)
+    B = mean + 3 * rng.normal(size=(15, 60))
+    S = rng.dirichlet(np.ones(15), size=300) @ B + 0.5 * rng.normal(size=(300, 60))
+    assert objective_gap(S, B, nnls_batched(S, B)).max() <= 1e-8
+
+
+def test_box_qp_matches_bvls_with_upper_bounds():
+    rng = np.random.default_rng(10)
+    B = rng.normal(size=(8, 20))
+    S = 2 * rng.normal(size=(60, 20))
+    X = box_qp(B @ B.T, S @ B.T, lower=0.0, upper=0.4)
+    for s, x in zip(S, X):
+        ref = lsq_linear(B.T, s, bounds=(0, 0.4), method="bvls", tol=1e-14).x
+        f = lambda w, s=s: np.sum((B.T @ w - s) ** 2)
+        assert f(x) <= f(ref) + 1e-8 * max(f(ref), 1e-10 * s @ s)
+    assert X.min() >= 0 and X.max() <= 0.4
+
+
+# --------------------------------------------------------------------------- constraints
+
+
+@pytest.mark.parametrize("solver", ["nnls", "bounded", "ls", "ridge", "sparse", "temporal-causal"])
+def test_convex_weights_sum_to_one(solver):
+    rng = np.random.default_rng(11)
+    B = rng.normal(size=(6, 16))
+    S = rng.normal(size=(40, 16))
+    W, _ = decompose(S, B, solver=solver, formulation="convex")
+    np.testing.assert_allclose(W.sum(1), 1.0, atol=1e-9)
+    if solver != "ls" and solver != "ridge":
+        assert W.min() >= 0
+
+
+def test_convex_recovers_convex_combinations():
+    rng = np.random.default_rng(12)
+    B = rng.normal(size=(5, 20))
+    W_true = rng.dirichlet(np.ones(5), size=10)
+    W, _ = decompose(W_true @ B, B, formulation="convex")
+    np.testing.assert_allclose(W, W_true, atol=1e-8)
+
+
+@pytest.mark.parametrize("solver", ["nnls", "bounded", "ridge-clipped", "temporal", "temporal-causal", "sparse",
+                                    "sequential"])
+def test_bounds_hold(solver):
+    rng = np.random.default_rng(13)
+    B = rng.normal(size=(6, 16))
+    S = 3 * rng.normal(size=(40, 16))
+    W, _ = decompose(S, B, solver=solver, upper=0.5)
+    assert W.min() >= 0 and W.max() <= 0.5
+    assert np.isclose(W.max(), 0.5)  # the bound is active somewhere, so it was enforced
+
+
+def test_delta_recovers_weights_relative_to_the_neutral():
+    rng = np.random.default_rng(14)
+    S0 = rng.normal(size=20)
+    keys = np.vstack([S0, S0 + rng.normal(size=(4, 20))])  # the neutral is key 0
+    W_true = rng.uniform(0, 0.8, size=(12, 4))
+    frames = S0 + W_true @ (keys[1:] - S0)
+    W, res = decompose(frames, keys, formulation="delta", neutral=S0, upper=1.0)
+    assert np.all(W[:, 0] == 0)  # a key equal to the neutral has no delta
+    np.testing.assert_allclose(W[:, 1:], W_true, atol=1e-8)
+    assert res.max() < 1e-8
+    with pytest.raises(ValueError, match="neutral"):
+        decompose(frames, keys, formulation="delta")
+
+
+def test_every_solver_runs_with_confidence_weights_and_ignores_zero_weight_rows():
+    rng = np.random.default_rng(15)
+    B = rng.normal(size=(4, 12))
+    W_true = rng.uniform(0, 1, size=(10, 4))
+    S = W_true @ B
+    S[:, :3] += 100.0  # corrupted coordinates ...
+    C = np.ones_like(S)
+    C[:, :3] = 0.0  # ... with zero confidence
+    W, _ = decompose(S, B, confidence=C)
+    np.testing.assert_allclose(W, W_true, atol=1e-8)
+    for solver in SOLVERS:
+        W, res = decompose(S, B, solver=solver, confidence=C)
+        assert W.shape == (10, 4) and np.all(np.isfinite(W))
+
+
+def test_unsupported_combinations_and_bad_options_are_errors():
+    S, B = np.zeros((3, 4)), np.eye(4)[:2]
+    with pytest.raises(ValueError, match="does not support formulation 'convex'"):
+        decompose(S, B, solver="sequential", formulation="convex")
+    with pytest.raises(ValueError, match="formulation"):
+        decompose(S, B, formulation="barycentric")
+    with pytest.raises(ValueError, match="alpha"):
+        decompose(S, B, solver="ridge", alpha=-1)
+    with pytest.raises(ValueError, match="confidence"):
+        decompose(S, B, confidence=np.ones((3, 5)))
+
+
+# --------------------------------------------------------------------------- temporal smoothing, Figs. 4-5
+
+
+def test_whole_take_temporal_lowers_jitter_at_a_small_residual_cost():
+    rng = np.random.default_rng(16)
+    T, K = 300, 6
+    B = rng.normal(size=(K, 40))
+    t = np.arange(T)[:, None]
+    W_true = 0.5 + 0.4 * np.sin(2 * np.pi * t / 120 + np.arange(K))
+    S = W_true @ B + 0.4 * rng.normal(size=(T, 40))
+    W_n, r_n = decompose(S, B, solver="nnls")
+    W_t, r_t = decompose(S, B, solver="temporal", alpha=0.1)
+    assert jitter(W_t) < 0.5 * jitter(W_n)
+    assert np.mean(r_t**2) < 1.05 * np.mean(r_n**2)
+    # ... and the smooth weights are closer to the truth.
+    assert np.abs(W_t - W_true).mean() < np.abs(W_n - W_true).mean()
+
+
+def test_nnls_beats_ls_in_the_target_domain_figs_4_5():
+    """Chuang & Bregler Figs. 4-5: near-collinear source keys, target keys that differ slightly."""
+    rng = np.random.default_rng(17)
+    K, D = 21, 40  # 21 lip keys as in the paper
+    base = rng.normal(size=D)
+    src = base + 0.02 * rng.normal(size=(K, D))  # near-collinear tracked key shapes
+    tgt = src + 0.02 * rng.normal(size=(K, D))  # traced target keys: close, not identical
+    W_true = rng.dirichlet(np.ones(K) * 0.3, size=50)
+    frames = W_true @ src + 0.01 * rng.normal(size=(50, D))  # tracking noise
+    W_ls, r_ls = decompose(frames, src, solver="ls")
+    W_nn, r_nn = decompose(frames, src, solver="nnls")
+    assert r_ls.mean() <= r_nn.mean()  # LS fits the source better (Fig. 4a) ...
+    err_ls = np.linalg.norm(W_ls @ tgt - W_true @ tgt, axis=1).mean()
+    err_nn = np.linalg.norm(W_nn @ tgt - W_true @ tgt, axis=1).mean()
+    assert err_nn < 0.75 * err_ls  # ... but distorts the target (Fig. 4b vs 5b)
+    assert W_ls.min() < 0 <= W_nn.min()  # cancelling positive and negative weights
+    assert np.abs(W_ls).sum(1).mean() > 1.5 * np.abs(W_nn).sum(1).mean()
+
+
+# --------------------------------------------------------------------------- diagnostics
+
+
+def test_cardinality_jitter_and_interpolation():
+    W = np.array([[0.0, 0.5], [0.005, 0.02], [1.0, 0.0], [0.0, 0.0]])
+    np.testing.assert_array_equal(cardinality(W), [1, 1, 1, 0])
+    assert jitter(np.outer(np.arange(5.0), [1, 2])) == 0.0  # linear motion has no jitter
+    assert jitter(np.array([[0.0], [1.0], [0.0]])) == pytest.approx(4.0)
+    lost = np.array([False, True, True, False])
+    np.testing.assert_allclose(interpolate_lost(np.array([[0.0], [9.0], [9.0], [3.0]]), lost)[:, 0], [0, 1, 2, 3])
+    np.testing.assert_allclose(interpolate_lost(np.array([[9.0], [2.0]]), [True, False])[:, 0], [2, 2])
+    with pytest.raises(ValueError, match="every frame is lost"):
+        interpolate_lost(np.zeros((2, 1)), [True, True])
