@@ -185,8 +185,9 @@ def test_report_is_self_contained_valid_html_with_one_figure_per_section(ran_tak
     assert result.exit_code == 0, result.output
     text = out.read_text(encoding="utf-8")
     c = check_html(text)
-    # every section with data; no E-vs-k curve or rig solve in this run, so those are omitted
-    assert c.sections == {"summary": 1, "tracking": 1, "keys": 1, "weights": 1, "residuals": 1}
+    # every section with data; no E-vs-k curve in this run, so it is omitted; decompose's
+    # per-frame cardinality (weights.npz <region>_cardinality) fills the cardinality section
+    assert c.sections == {"summary": 1, "tracking": 1, "keys": 1, "weights": 1, "residuals": 1, "rig": 1}
     assert "Worst frames" in text and "source frame" in text and "target frame" in text
     # deterministic: same run, same bytes
     out2 = tmp_path / "again.html"
@@ -223,7 +224,7 @@ def test_report_of_weights_alone_omits_what_is_missing(ran_take, tmp_path):
     text = out.read_text(encoding="utf-8")
     c = check_html(text)
     # no manifests (so no timings figure), no landmarks, no keys.json (keys come from weights.npz), no frames
-    assert c.sections == {"summary": 0, "keys": 1, "weights": 1, "residuals": 1}
+    assert c.sections == {"summary": 0, "keys": 1, "weights": 1, "residuals": 1, "rig": 1}
     assert "No stage manifests" in text
 
 
