@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import logging
 import os
 import re
@@ -16,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
 from .errors import InputError
 from .io.atomic import check_not_input, sha256_file, write_text
 
@@ -877,10 +875,8 @@ def run_auto_pose(*, keys, landmarks, rig, landmark_vertices, output, masks=None
     return written
 
 
-__all__ = ["run_track", "run_select", "run_decompose", "run_pose", "run_apply", "run_edit", "run_auto_pose", "__version__", "json"]
 
 
-__all__ = ["run_track", "run_select", "run_decompose", "run_pose", "run_apply", "__version__", "json"]
 
 
 # --------------------------------------------------------------------------- solve-rig (inverse rig)
@@ -926,4 +922,3 @@ def run_solve_rig(*, rig, meshes, output, solver, alpha, tol, max_iter, metrics=
     return written, summary
 
 
-__all__ = ["run_track", "run_import", "run_select", "run_decompose", "run_pose", "run_apply", "__version__", "json"]
