@@ -118,6 +118,9 @@ def main() -> None:
     print("\n| pins | edit (new pins) median / max | drag (same pins) median | naive full-D | L-BFGS-B | BVLS stacked |"
           " bounded solves (edits + drags) | max |w - peer| |")
     print("|---|---|---|---|---|---|---|---|")
+    # One untimed edit first: lazy imports and first-call set-up are not edit time.
+    v0 = rng.choice(N, 1, replace=False)
+    one_edit(rig, dense, v0, rig.evaluate(W[0])[v0], rig.evaluate(W[1])[v0], W[2], a, m_)
     for k in (1, 10, 50):
         t_edit, t_drag, t_naive, t_lbfgs, t_bvls, diff, nb = [], [], [], [], [], 0.0, 0
         for _ in range(args.edits):
