@@ -49,6 +49,39 @@ def _gray(frame: np.ndarray) -> np.ndarray:
     return frame
 
 
+def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict | None = None):
+    """Pyramidal LK from *src* to *dst* and back, with the forward–backward error.
+
+    Parameters
+    ----------
+    src, dst : ndarray, shape (H, W), uint8
+    points : ndarray, shape (L, 1, 2), float32
+        Positions in *src*.
+    lk : dict
+        ``cv2.calcOpticalFlowPyrLK`` keyword arguments.
+    guess : ndarray, shape (L, 1, 2), float32, optional
+        Initial positions in *dst*, used with *lk_init* (which must carry
+        ``flags=cv2.OPTFLOW_USE_INITIAL_FLOW``).
+
+    Returns
+    -------
+    moved : ndarray, shape (L, 1, 2), float32
+        Positions in *dst*.
+    error : ndarray, shape (L,)
+        Forward–backward distance in pixels; ``inf`` where either pass failed.
+    """
+    import cv2
+
+    if guess is None:
+        fwd, st1, _ = cv2.calcOpticalFlowPyrLK(src, dst, points, None, **lk)
+    else:
+        fwd, st1, _ = cv2.calcOpticalFlowPyrLK(src, dst, points, guess, **(lk_init or lk))
+    bwd, st2, _ = cv2.calcOpticalFlowPyrLK(dst, src, fwd, None, **lk)
+    fb = np.linalg.norm((bwd - points).reshape(-1, 2), axis=1)
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb)
+    return fwd, np.where(ok, fb, np.inf)
+
+
 def _contour_points(n_points: int) -> np.ndarray:
     """Default silhouette points: the jaw line of the 68-point layout."""
     return np.arange(17) if n_points == 68 else np.zeros(0, dtype=int)
@@ -255,11 +288,7 @@ def track_lk(
             continue
         # 1. frame-to-frame flow of the carriers, checked forward-backward
         c0 = c_prev.astype(np.float32).reshape(-1, 1, 2)
-        fwd, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, c0, None, **lk)
-        bwd, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, fwd, None, **lk)
-        fb = np.linalg.norm((bwd - c0).reshape(-1, 2), axis=1)
-        ok = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb)
-        err = np.where(ok, fb, np.inf)
+        fwd, err = flow_forward_backward(prev, cur, c0, lk)
         c_est = fwd.reshape(-1, 2).astype(np.float64)
         good = err < 3 * fb_threshold
         wts = good.astype(float) if good[rigid].sum() >= 2 else np.ones(L)
@@ -271,11 +300,7 @@ def track_lk(
             M = similarity(ref.points, est, wts)
             tmpl, c_tmpl = ref.template(M, (w, h))
             c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
-            afw, sa1, _ = cv2.calcOpticalFlowPyrLK(tmpl, cur, c_t, fwd.copy(), **lk_init)
-            abw, sa2, _ = cv2.calcOpticalFlowPyrLK(cur, tmpl, afw, None, **lk)
-            afb = np.linalg.norm((abw - c_t).reshape(-1, 2), axis=1)
-            aok = (sa1.ravel() == 1) & (sa2.ravel() == 1) & np.isfinite(afb)
-            aerr = np.where(aok, afb, np.inf)
+            afw, aerr = flow_forward_backward(tmpl, cur, c_t, lk, guess=fwd.copy(), lk_init=lk_init)
             use = aerr <= np.minimum(err, 3 * fb_threshold)
             c_est = np.where(use[:, None], afw.reshape(-1, 2), c_est)
             err = np.where(use, aerr, err)

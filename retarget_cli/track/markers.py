@@ -19,7 +19,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from ..errors import ShapeError
-from .lk import FaceLostError, _gray, check_inside, normalize_annotations
+from .lk import FaceLostError, _gray, check_inside, flow_forward_backward, normalize_annotations
 from .prior import ShapePrior
 
 log = logging.getLogger(__name__)
@@ -137,10 +137,8 @@ def track_markers(frames: Iterable[np.ndarray], annotations, *, radius: float = 
                 progress(t)
             continue
         p0 = P.astype(np.float32).reshape(-1, 1, 2)
-        fwd, st, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
-        bwd, st2, _ = cv2.calcOpticalFlowPyrLK(cur, prev, fwd, None, **lk)
-        fb = np.linalg.norm((bwd - p0).reshape(-1, 2), axis=1)
-        flow_ok = (st.ravel() == 1) & (st2.ravel() == 1) & (fb < 1.0)
+        fwd, fb = flow_forward_backward(prev, cur, p0, lk)
+        flow_ok = fb < 1.0
         pred = np.where(flow_ok[:, None], fwd.reshape(-1, 2), P)
         dots = detect_dots(cur, radius=radius, min_contrast=contrast)
         found = np.zeros(L, bool)
