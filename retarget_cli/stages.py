@@ -333,15 +333,31 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
     with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
         for name, (idx, rk) in specs.items():
             X = stab[:, idx].reshape(lm.n_frames, -1)
+            # Frames where a landmark of the region is lost (NaN) can be neither keys
+            # nor scored by eq. 5; decompose interpolates their weights later.
+            keep = np.flatnonzero(np.isfinite(X).all(1))
+            if keep.size == 0:
+                raise InputError(f"{landmarks}: region {name!r}: every frame has lost (NaN) landmarks")
+            if keep.size < lm.n_frames:
+                log.warning("%s: region %s: %d frames with lost landmarks are left out of key selection",
+                            landmarks, name, lm.n_frames - keep.size)
+            bad_inc = [f for f in include if f not in set(keep.tolist())]
+            if bad_inc:
+                raise InputError(f"{landmarks}: region {name!r}: neutral frame {bad_inc[0]} has lost (NaN) landmarks; "
+                                 "choose another neutral_frame")
+            local = {int(f): i for i, f in enumerate(keep)}
+            Xk = X[keep]
+            inc = tuple(local[int(f)] for f in include)
             try:
-                frames = select_keys(X, rk, method=method, include=include, seed=seed, components=kmeans_components)
+                frames = keep[select_keys(Xk, rk, method=method, include=inc, seed=seed, components=kmeans_components)]
                 bar.update(1)
                 if evaluate:
-                    curves[name] = evaluation_curve(X, max(evaluate_k, len(frames)), k=len(frames), include=include,
-                                                    seed=seed, progress=bar.update)
+                    rows = evaluation_curve(Xk, max(evaluate_k, len(frames)), k=len(frames), include=inc,
+                                            seed=seed, progress=bar.update)
+                    curves[name] = [{**r, "frames": [int(keep[f]) for f in r["frames"]]} for r in rows]
             except ValueError as exc:
                 raise InputError(f"{landmarks}: region {name!r}: {exc}") from exc
-            err = key_error(X, frames)
+            err = key_error(Xk, [local[int(f)] for f in frames])
             chosen_k[name] = len(frames)
             result[name] = {"points": idx, "method": method, "frames": [int(f) for f in frames], "error": round(err, 6)}
             tmpl[name] = {"keys": {int(f): f"target/{name}/key_{int(f):05d}.obj" for f in frames}}

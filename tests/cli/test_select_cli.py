@@ -46,3 +46,23 @@ def test_contact_sheet_needs_the_video_and_presets_need_68_points(small_take, tm
     assert r.exit_code == 1 and "needs the video" in r.stderr
     r = CliRunner().invoke(main, ["select", lm, "-o", str(tmp_path / "k.json"), "--region", "nose"])
     assert r.exit_code == 1 and "'nose' needs 'points'" in r.stderr
+
+
+def test_frames_with_lost_landmarks_are_left_out_of_selection(small_take, tmp_path):
+    import numpy as np
+
+    from retarget_cli.errors import InputError
+    from retarget_cli.io.atomic import load_npz, savez
+    from retarget_cli.io.stagefiles import read_keys
+    from retarget_cli.stages import run_select
+
+    points = load_npz(small_take / "truth_landmarks.npz")["points"].copy()
+    points[[7, 30], 50] = np.nan  # a mouth landmark lost in two frames
+    savez(tmp_path / "lost.npz", {"points": points})
+    run_select(landmarks=tmp_path / "lost.npz", output=tmp_path / "keys.json", method="greedy", k=6)
+    frames = read_keys(tmp_path / "keys.json").regions["face"]["frames"]
+    assert len(frames) == 6 and 7 not in frames and 30 not in frames and 0 in frames
+    points[0, 50] = np.nan
+    savez(tmp_path / "lost0.npz", {"points": points})
+    with pytest.raises(InputError, match="neutral frame 0 has lost"):
+        run_select(landmarks=tmp_path / "lost0.npz", output=tmp_path / "keys.json", k=6)
