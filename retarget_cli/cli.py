@@ -126,6 +126,7 @@ def _print_outputs(paths):
 @click.option("--overlay", type=click.Path(dir_okay=False), default=None,
               help="Also write an mp4 with the landmarks (green = confident, red = lost) and the head frame.")
 @setting("track", "method")
+@setting("track", "model", type=click.Path(dir_okay=False))
 @setting("track", "window")
 @setting("track", "levels")
 @setting("track", "fb_threshold")
@@ -152,6 +153,39 @@ def track(video, init, annotations, output, rigid_points, **settings):
             raise click.BadParameter("expected indices such as 27-31,36,39", param_hint="--rigid-points")
     _print_outputs(run_track(video=video, init=init, annotations=list(annotations), output=output,
                              rigid_points=rigid, progress=progress, **settings))
+
+
+@main.command("train-tracker")
+@click.argument("video", type=click.Path(dir_okay=False))
+@click.argument("annotations", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@output_option("facemark.yaml", "Model file (OpenCV Facemark LBF; gzip-compressed if the name ends in .gz).",
+               required=False)
+@click.option("--fps", type=click.FloatRange(min=0.01), default=None, help="Frame rate of an image sequence.")
+@click.option("--rigid-points", default=None, metavar="SPEC",
+              help="Landmarks aligning the annotated frames before morphing (default: eye corners and nose for "
+                   "68 points, else all).")
+@click.option("--stages", type=click.IntRange(1, 10), default=5, show_default=True, help="Cascade stages.")
+@click.option("--trees", type=click.IntRange(1, 20), default=4, show_default=True,
+              help="Trees per landmark and stage.")
+@click.option("--depth", type=click.IntRange(2, 8), default=4, show_default=True,
+              help="Tree depth (OpenCV tree_depth: depth - 1 splits per tree).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random choice.")
+def train_tracker(video, annotations, output, fps, rigid_points, stages, trees, depth, seed):
+    """Train a Facemark tracking model on annotated frames of VIDEO (a video or an image-sequence pattern).
+
+    ANNOTATIONS are .pts files named with their frame number (face_00120.pts) or frame,point,x,y CSV files,
+    as for `track`; 5 or more frames that span the actor's expressions. Use the model with
+    `retarget track VIDEO --init face_00000.pts --method facemark --model facemark.yaml`."""
+    from .stages import run_train_tracker
+
+    rigid = None
+    if rigid_points:
+        rigid = _parse_regions([f"r={rigid_points}"])["r"]
+        if rigid == "all":
+            raise click.BadParameter("expected indices such as 27-31,36,39", param_hint="--rigid-points")
+    _print_outputs(run_train_tracker(video=video, annotations=list(annotations), output=output, fps=fps,
+                                     rigid_points=rigid, stages=stages, trees=trees, depth=depth, seed=seed,
+                                     progress=progress))
 
 
 @main.command("import")

@@ -106,7 +106,11 @@ STAGES: dict[str, Stage] = {
                 Param("method", "setting", str, "lk",
                       "Tracker: lk (Lucas-Kanade, one or more annotated frames) or eigenpoints (the paper's "
                       "tracker, trained on the annotated frames; give 5 or more) or markers (painted dots on the "
-                      "landmarks).", choices=("lk", "eigenpoints", "markers")),
+                      "landmarks) or facemark (OpenCV Facemark LBF with --model, see train-tracker).",
+                      choices=("lk", "eigenpoints", "markers", "facemark")),
+                Param("model", "input", str, None,
+                      "Facemark LBF model file for method facemark (written by 'retarget train-tracker').",
+                      nullable=True),
                 Param("window", "setting", int, 21, "Lucas-Kanade window side in pixels (odd).", min=5, max=101),
                 Param("levels", "setting", int, 3, "Pyramid levels.", min=0, max=8),
                 Param("fb_threshold", "setting", float, 1.0, "Forward-backward error scale in pixels.",

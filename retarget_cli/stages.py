@@ -42,7 +42,7 @@ def _require(path, what: str) -> Path:
 
 def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_threshold=1.0, anchor=True,
               rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
-              fps=None, smooth_head=0, overlay=None, keep_partial=False, base_dir=None,
+              fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, base_dir=None,
               progress=_no_progress) -> list[Path]:
     """Track landmarks through *video* (a video file or an image-sequence pattern).
 
@@ -51,7 +51,8 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     Frame numbers are 0-based positions in the source; the first tracked
     frame (*start*) must be annotated. Writes the ``landmarks.npz`` contract
     to *output* (plus ``frames``, the source frame numbers) and, if asked, an
-    *overlay* video.
+    *overlay* video. *model* is the Facemark model file of method
+    ``facemark`` (see :func:`run_train_tracker`).
     """
     from .io.annotations import read_annotations
     from .io.frames import FrameSource, TruncatedInputError
@@ -64,9 +65,23 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     extra = [Path(base_dir or ".") / a for a in (annotations or [])]
     for a in extra:
         _require(a, "annotation file")
-    if method not in ("lk", "eigenpoints", "markers"):
-        raise ValueError(f"method: expected 'lk', 'eigenpoints' or 'markers', got {method!r}")
+    if method not in ("lk", "eigenpoints", "markers", "facemark"):
+        raise ValueError(f"method: expected 'lk', 'eigenpoints', 'markers' or 'facemark', got {method!r}")
     ann, src = read_annotations([init, *extra], frame=init_frame)
+    fitter = None
+    if method == "facemark":
+        from .io.facemark import load_facemark
+
+        if not model:
+            raise InputError("method facemark needs a model file (--model, or track.model); "
+                             "train one with 'retarget train-tracker'")
+        fitter = load_facemark(model)
+        n_ann = len(next(iter(ann.values())))
+        if fitter.n_points != n_ann:
+            raise InputError(f"{model}: the Facemark model was trained for {fitter.n_points} points but "
+                             f"{init} has {n_ann}")
+    elif model:
+        log.warning("model %s is used by method facemark only; ignored by %s", model, method)
     with FrameSource(video, start=start, end=end, step=step, fps=fps) as source:
         check_not_input(output, source.files() + [init, *extra])
         if overlay:
@@ -112,6 +127,13 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
                     from .track.markers import track_markers
 
                     points, conf = track_markers(frames(), index, progress=lambda t: bar.update(1))
+                elif method == "facemark":
+                    from .track.facemark import track_facemark
+
+                    if downscale != 1:
+                        log.warning("downscale applies to the lk tracker only; facemark fits at full resolution")
+                    points, conf = track_facemark(frames(), index, model=fitter, rigid_points=rigid_points,
+                                                  progress=lambda t: bar.update(1))
                 else:
                     points, conf = track_lk(frames(), index, window=window, levels=levels,
                                             fb_threshold=fb_threshold, anchor=anchor, rigid_points=rigid_points,
@@ -147,6 +169,8 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
         "annotation": [Path(p).name for p in [init, *extra]],
         "annotated_frames": [int(f) for f in ann],
     }
+    if fitter is not None:
+        meta["model"], meta["model_sha256"] = Path(model).name, sha256_file(model)
     save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
                                      frames=frame_numbers))
     written = [Path(output)]
@@ -165,6 +189,68 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
                           progress=lambda t: bar.update(1))
         written.append(Path(overlay))
     return written
+
+
+def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None, stages=5, trees=4, depth=4,
+                      seed=0, progress=_no_progress) -> list[Path]:
+    """Train a Facemark LBF model from annotated frames of *video*; write it to *output* atomically.
+
+    *annotations* are ``.pts`` files (frame number ending the name) or
+    ``frame,point,x,y`` CSV files, as ``track`` reads them. The model file is
+    an OpenCV ``FacemarkLBF`` model (``cv::FileStorage`` YAML, gzip-compressed
+    when *output* ends in ``.gz``) for ``track --method facemark --model``.
+    """
+    from .io.annotations import read_annotations
+    from .io.facemark import save_lbf_model
+    from .io.frames import FrameSource, TruncatedInputError
+    from .track.facemark import train_lbf
+    from .track.lk import check_inside
+
+    files = [_require(a, "annotation file") for a in (annotations or [])]
+    if not files:
+        raise InputError("train-tracker: give at least one annotation file (.pts or CSV)")
+    ann, src = read_annotations(files)
+    last = max(ann)
+    images = {}
+    with FrameSource(video, end=last + 1, fps=fps) as source:
+        check_not_input(output, source.files() + files)
+        W, H = source.frame_size
+        for f, P in ann.items():
+            if source.frame_count and f >= source.frame_count:
+                raise InputError(f"{src[f]}: frame {f} is past the last frame of {source.path} "
+                                 f"({source.frame_count - 1})")
+            try:
+                check_inside(P, (W, H), f"frame {f}")
+            except ValueError as exc:
+                raise InputError(f"{src[f]}: {exc}") from None
+        try:
+            for i, img in enumerate(source):
+                if i in ann:
+                    images[i] = img
+        except TruncatedInputError as exc:
+            missing = [f for f in ann if f not in images]
+            raise InputError(f"{exc}; annotated frame {missing[0]} ({src[missing[0]]}) could not be read") \
+                from None
+    missing = [f for f in ann if f not in images]
+    if missing:
+        raise InputError(f"{src[missing[0]]}: frame {missing[0]} is past the last frame of {video}")
+    keys = sorted(ann)
+    if len(keys) < 5:
+        log.warning("training from %d annotated frame(s); 5 or more that span the expressions work far better",
+                    len(keys))
+    with progress(stages, "train") as bar:
+        try:
+            model = train_lbf([images[f] for f in keys], np.stack([ann[f] for f in keys]), stages=stages,
+                              trees=trees, depth=depth, rigid_points=rigid_points, seed=seed,
+                              progress=lambda k: bar.update(1))
+        except ValueError as exc:
+            raise InputError(f"{files[0]}: {exc}") from exc
+    model.info["retarget_frames"] = [int(f) for f in keys]
+    model.info["retarget_source"] = Path(video).name
+    save_lbf_model(output, model)
+    log.info("trained a %d-point Facemark LBF model from %d annotated frames (%d samples); training error %.2f px",
+             model.n_points, len(keys), model.info["retarget_samples"], model.info["retarget_train_error_px"])
+    return [Path(output)]
 
 
 def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0) -> list[Path]:

@@ -105,7 +105,7 @@ def load_facemark(path: str | os.PathLike) -> FacemarkFitter:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         ok = fs.isOpened()
-    except cv2.error:
+    except (cv2.error, SystemError):  # OpenCV's parser raises on malformed documents
         ok = False
     if not ok:
         raise InputError(f"{path}: not a Facemark LBF model (not an OpenCV FileStorage YAML/XML document)")

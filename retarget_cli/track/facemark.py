@@ -497,8 +497,36 @@ def train_lbf(images, shapes, *, stages: int = 5, trees: int = 4, depth: int = 4
     return model
 
 
+class _Appearance:
+    """Normalised face patches of the annotated frames, to tell a face from whatever else a fit lands on."""
+
+    def __init__(self, shape, rigid, width: int = 48):
+        lo, hi = shape.min(0), shape.max(0)
+        k = width / max((hi - lo).max(), 1.0)
+        self.canon = (shape - (lo + hi) / 2) * k + width / 2
+        self.rigid, self.size, self.refs = rigid, (width, width), []
+
+    def patch(self, gray, P) -> np.ndarray:
+        import cv2
+
+        M = _sim_matrix(P[self.rigid], self.canon[self.rigid])
+        x = cv2.warpAffine(gray, M, self.size, flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REPLICATE).astype(
+            np.float64).ravel()
+        x -= x.mean()
+        return x / max(np.linalg.norm(x), 1e-9)
+
+    def add(self, gray, P) -> None:
+        self.refs.append(self.patch(gray, P))
+
+    def score(self, gray, P) -> float:
+        """Highest normalised cross-correlation with a reference patch (1 = same appearance)."""
+        x = self.patch(gray, P)
+        return float(max(x @ r for r in self.refs))
+
+
 def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: float = 0.5, tau: float = 0.02,
-                   lost_frames: int = 10, lost_spread: float = 0.1, progress=None):
+                   min_similarity: float = 0.5, lost_frames: int = 10, lost_spread: float = 0.1,
+                   rigid_points=None, progress=None):
     """Track landmarks with a Facemark model, following the face box from frame to frame.
 
     Each frame is fitted twice: first in the box of the previous frame's
@@ -506,12 +534,17 @@ def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: 
     *smooth* on the past), then in the box of the first fit's landmarks. The
     second fit is kept. A cascaded regressor that has found the face gives
     the same landmarks from both boxes; where it has not, the result follows
-    the box. So the confidence of point ``i`` is
-    ``exp(-d_i / (tau * s))``, with ``d_i`` the distance between the two fits
-    of that point and ``s`` the box size (mean of width and height): 1 for a
-    stable fit, ``exp(-1)`` at a disagreement of *tau* of the face size, 0
-    where OpenCV's fit failed. Annotated frames return their annotation with
-    confidence 1 and re-centre the box.
+    the box. The confidence of point ``i`` is ``exp(-d_i / (tau * s))``, with
+    ``d_i`` the distance between the two fits of that point and ``s`` the box
+    size (mean of width and height): 1 for a stable fit, ``exp(-1)`` at a
+    disagreement of *tau* of the face size. It is 0 for every point of a
+    frame where OpenCV's fit failed or where the fitted face does not look
+    like the annotated ones: the frame, aligned by the similarity of its
+    rigid points, must have a normalised cross-correlation of at least
+    *min_similarity* with one of the annotated frames aligned the same way (a
+    regressor always returns a face-like shape, even on a blank frame).
+    Annotated frames return their annotation with confidence 1, re-centre
+    the box and become appearance references.
 
     Parameters
     ----------
@@ -525,11 +558,16 @@ def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: 
         Weight of the previous box in the box used for the next frame (0-1).
     tau : float
         Disagreement (fraction of the face size) at which confidence is ``exp(-1)``.
+    min_similarity : float
+        Normalised cross-correlation below which a frame's face is not found.
     lost_frames : int
         Raise :class:`~retarget_cli.track.lk.FaceLostError` after this many
-        frames in a row where the fit failed or the median disagreement
-        exceeds *lost_spread* of the face size.
+        frames in a row where the face was not found or the median
+        disagreement exceeds *lost_spread* of the face size.
     lost_spread : float
+    rigid_points : sequence of int, optional
+        Points aligning the appearance check; default
+        :func:`~retarget_cli.track.head.default_rigid_points`.
     progress : callable, optional
         Called with the frame index after each frame.
 
@@ -546,6 +584,8 @@ def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: 
         raise ShapeError(f"annotations have {L} points but the Facemark model was trained for {model.n_points}")
     if not 0 <= smooth < 1:
         raise ShapeError(f"smooth: expected a value in [0, 1), got {smooth}")
+    rigid = default_rigid_points(L) if rigid_points is None else np.asarray(rigid_points, int)
+    look = _Appearance(ann[0], rigid)
     margin = model.box_margin
     pts, conf = [], []
     box = None
@@ -557,27 +597,27 @@ def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: 
             check_inside(ann[t], (w, h), f"annotations: frame {t}")
             P, c = ann[t], np.ones(L)
             box = face_box(P, margin=margin).astype(np.float64)
+            look.add(g, P)
             bad = 0
         else:
-            if t == 0 or box is None:
-                raise ShapeError("annotations: the first frame must be annotated")
             first = model.fit(g, np.round(box).astype(np.int64))
             second = None if first is None else model.fit(g, face_box(first, margin=margin))
             size = box[2:].mean()
-            if second is None:
-                P, c = pts[-1], np.zeros(L)
-                spread = np.inf
+            found = second is not None and second.min() > -0.5 * size and second[:, 0].max() < w + 0.5 * size \
+                and second[:, 1].max() < h + 0.5 * size and look.score(g, second) >= min_similarity
+            if not found:
+                P, c, spread = (pts[-1] if second is None else second), np.zeros(L), np.inf
             else:
                 d = np.linalg.norm(second - first, axis=1)
                 P, c = second, np.exp(-d / (tau * size))
                 spread = float(np.median(d)) / size
-            bad = bad + 1 if spread > lost_spread or not (P.min() > -0.5 * size and P[:, 0].max() < w + 0.5 * size
-                                                               and P[:, 1].max() < h + 0.5 * size) else 0
+            bad = bad + 1 if spread > lost_spread else 0
             if bad >= lost_frames:
                 f0 = t - bad + 1
                 raise FaceLostError(
-                    f"the face was lost from frame {f0}: the Facemark fit failed or did not settle "
-                    f"(median disagreement above {lost_spread:g} of the face size) for {bad} frames in a row",
+                    f"the face was lost from frame {f0}: for {bad} frames in a row the Facemark fit failed, did not "
+                    f"settle (median disagreement above {lost_spread:g} of the face size) or did not look like the "
+                    f"annotated face (similarity below {min_similarity:g})",
                     f0, np.stack(pts[:f0]), np.stack(conf[:f0]))
             if not bad:
                 box = smooth * box + (1 - smooth) * face_box(P, margin=margin)
