@@ -59,6 +59,29 @@ def methods():
     except ImportError:
         return out
     out["eigenpoints (5 annotated frames)"] = lambda fr, tr: track_eigenpoints(fr, _annotated(tr, 5))
+    out["facemark (5 annotated frames)"] = _facemark
+    return out
+
+
+def _facemark(fr, tr):
+    """train-tracker on 5 annotated frames (model written and loaded as the CLI does), then track.
+
+    Training is inside the timed call, as eigenpoints' is; its share is logged.
+    """
+    from retarget_cli.io.facemark import load_facemark, save_lbf_model
+    from retarget_cli.track.facemark import track_facemark, train_lbf
+
+    frames = list(fr)
+    ann = _annotated(tr, 5)
+    t0 = time.perf_counter()
+    model = train_lbf([frames[f] for f in ann], np.stack(list(ann.values())))
+    with tempfile.TemporaryDirectory() as tmp:
+        save_lbf_model(Path(tmp) / "model.yaml", model)
+        fitter = load_facemark(Path(tmp) / "model.yaml")
+    t1 = time.perf_counter()
+    out = track_facemark(frames, ann, model=fitter)
+    print(f"  facemark: training {t1 - t0:.1f} s, tracking {len(frames) / (time.perf_counter() - t1):.0f} frames/s",
+          flush=True)
     return out
 
 
