@@ -169,8 +169,11 @@ def track(video, init, annotations, output, rigid_points, **settings):
               help="Trees per landmark and stage.")
 @click.option("--depth", type=click.IntRange(2, 8), default=4, show_default=True,
               help="Tree depth (OpenCV tree_depth: depth - 1 splits per tree).")
+@click.option("--face-size", type=click.IntRange(32, 4096), default=200, show_default=True,
+              help="Frames are scaled down so the first annotated face box is this many pixels on its longer "
+                   "side (for training and tracking alike); larger is slower.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random choice.")
-def train_tracker(video, annotations, output, fps, rigid_points, stages, trees, depth, seed):
+def train_tracker(video, annotations, output, fps, rigid_points, stages, trees, depth, face_size, seed):
     """Train a Facemark tracking model on annotated frames of VIDEO (a video or an image-sequence pattern).
 
     ANNOTATIONS are .pts files named with their frame number (face_00120.pts) or frame,point,x,y CSV files,
@@ -184,7 +187,8 @@ def train_tracker(video, annotations, output, fps, rigid_points, stages, trees, 
         if rigid == "all":
             raise click.BadParameter("expected indices such as 27-31,36,39", param_hint="--rigid-points")
     _print_outputs(run_train_tracker(video=video, annotations=list(annotations), output=output, fps=fps,
-                                     rigid_points=rigid, stages=stages, trees=trees, depth=depth, seed=seed,
+                                     rigid_points=rigid, stages=stages, trees=trees, depth=depth,
+                                     face_size=face_size, seed=seed,
                                      progress=progress))
 
 

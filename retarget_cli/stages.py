@@ -192,7 +192,7 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
 
 
 def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None, stages=5, trees=4, depth=4,
-                      seed=0, progress=_no_progress) -> list[Path]:
+                      face_size=200, seed=0, progress=_no_progress) -> list[Path]:
     """Train a Facemark LBF model from annotated frames of *video*; write it to *output* atomically.
 
     *annotations* are ``.pts`` files (frame number ending the name) or
@@ -241,7 +241,7 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
     with progress(stages, "train") as bar:
         try:
             model = train_lbf([images[f] for f in keys], np.stack([ann[f] for f in keys]), stages=stages,
-                              trees=trees, depth=depth, rigid_points=rigid_points, seed=seed,
+                              trees=trees, depth=depth, rigid_points=rigid_points, face_size=face_size, seed=seed,
                               progress=lambda k: bar.update(1))
         except ValueError as exc:
             raise InputError(f"{files[0]}: {exc}") from exc

@@ -70,13 +70,17 @@ class FacemarkFitter:
     n_points : int
     box_margin : float
         Margin of the face box around the landmarks the model was trained with.
+    face_size : int or None
+        Working face size of the model (see :func:`~retarget_cli.track.facemark.train_lbf`);
+        None (other LBF models): frames are fitted at full resolution.
     info : dict
         The ``retarget_info`` of our models (empty for other LBF models).
     """
 
-    def __init__(self, path, facemark, n_points: int, box_margin: float, info: dict):
+    def __init__(self, path, facemark, n_points: int, box_margin: float, info: dict, face_size=None):
         self.path, self._fm, self.n_points, self.box_margin, self.info = Path(path), facemark, n_points, \
             box_margin, info
+        self.face_size = face_size
 
     def fit(self, gray, box) -> np.ndarray | None:
         """Landmarks (L, 2) fitted in face box ``(x, y, w, h)``, or None if OpenCV's fit failed."""
@@ -131,4 +135,5 @@ def load_facemark(path: str | os.PathLike) -> FacemarkFitter:
     except cv2.error as exc:
         raise InputError(f"{path}: OpenCV could not load the Facemark LBF model: "
                          f"{str(exc).strip().splitlines()[-1]}") from None
-    return FacemarkFitter(path, fm, n_points, float(info.get("retarget_box_margin", 0.1)), info)
+    return FacemarkFitter(path, fm, n_points, float(info.get("retarget_box_margin", 0.1)), info,
+                          info.get("retarget_face_size"))

@@ -47,6 +47,35 @@ log = logging.getLogger(__name__)
 
 #: Margin added on each side of the landmarks' bounding box, as a fraction of its size.
 BOX_MARGIN = 0.1
+#: Default working face size: frames whose first annotated face box is larger (longer side, pixels)
+#: are scaled down so it is this size, for training and tracking alike.
+FACE_SIZE = 200
+
+
+def working_scale(shape, face_size) -> float:
+    """Factor (<= 1) scaling frames so the face box of *shape* (L, 2) has *face_size* pixels on its longer side."""
+    if not face_size:
+        return 1.0
+    return min(1.0, float(face_size) / float(face_box(shape)[2:].max()))
+
+
+def _scaled(gray, k: float):
+    """*gray* resized by *k* (area averaging); identity for k = 1."""
+    import cv2
+
+    if k == 1.0:
+        return gray
+    return cv2.resize(gray, (max(1, round(gray.shape[1] * k)), max(1, round(gray.shape[0] * k))),
+                      interpolation=cv2.INTER_AREA)
+
+
+def _to_scaled(P, k: float):
+    """Pixel-centre coordinates in a frame resized by *k* (``(x + 0.5) k - 0.5``)."""
+    return (np.asarray(P, np.float64) + 0.5) * k - 0.5 if k != 1.0 else np.asarray(P, np.float64)
+
+
+def _from_scaled(P, k: float):
+    return (np.asarray(P, np.float64) + 0.5) / k - 0.5 if k != 1.0 else np.asarray(P, np.float64)
 
 
 def face_box(points, *, margin: float = BOX_MARGIN) -> np.ndarray:
@@ -395,8 +424,8 @@ def _grow_tree(dens, Y, depth, rng):
 
 def train_lbf(images, shapes, *, stages: int = 5, trees: int = 4, depth: int = 4, candidates: int = 200,
               radii=(0.3, 0.2, 0.15, 0.12, 0.10, 0.10, 0.08, 0.06, 0.06, 0.05), ridge: float = 1.0,
-              bagging: float = 0.7, rigid_points=None, morphs: int = 3, copies: int = 12, seed: int = 0,
-              progress=None) -> LbfModel:
+              bagging: float = 0.7, rigid_points=None, morphs: int = 3, copies: int = 12,
+              face_size: int | None = FACE_SIZE, seed: int = 0, progress=None) -> LbfModel:
     """Train an LBF cascade (Ren et al. 2014, OpenCV layout) from a few annotated frames of one actor.
 
     Parameters
@@ -421,6 +450,11 @@ def train_lbf(images, shapes, *, stages: int = 5, trees: int = 4, depth: int = 4
     bagging : float
         Fraction of the samples each tree is grown on.
     rigid_points, morphs, copies : see :func:`augment`.
+    face_size : int or None
+        Frames are scaled down (never up) so the first annotated face box
+        has this many pixels on its longer side; the tracker scales its
+        frames the same way (None: full resolution). Bounds training time
+        and memory on high-resolution video.
     seed : int
     progress : callable, optional
         Called with the stage number after each stage.
@@ -441,6 +475,9 @@ def train_lbf(images, shapes, *, stages: int = 5, trees: int = 4, depth: int = 4
     grays = [_gray(np.asarray(im)) for im in images]
     for k, (g, P) in enumerate(zip(grays, S)):
         check_inside(P, (g.shape[1], g.shape[0]), f"annotated frame {k}")
+    scale0 = working_scale(S[0], face_size)
+    grays = [_scaled(g, scale0) for g in grays]
+    S = _to_scaled(S, scale0)
     rng = np.random.default_rng(seed)
     crops, boxes, truth = augment(grays, S, rigid_points=rigid_points, morphs=morphs, copies=copies,
                                   seed=int(rng.integers(2**31)))
@@ -492,7 +529,8 @@ def train_lbf(images, shapes, *, stages: int = 5, trees: int = 4, depth: int = 4
         log.info("facemark training: stage %d of %d, mean training error %.2f px", k + 1, stages, err)
         if progress is not None:
             progress(k)
-    model.info = {"retarget_box_margin": BOX_MARGIN, "retarget_train_error_px": float(err),
+    model.info = {"retarget_box_margin": BOX_MARGIN, "retarget_face_size": face_size,
+                  "retarget_train_error_px": float(err / scale0),
                   "retarget_samples": int(N), "retarget_annotated_frames": int(len(S))}
     return model
 
@@ -552,8 +590,10 @@ def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: 
     annotations : ndarray (L, 2) or dict of int to ndarray (L, 2)
         Annotated frames by index in *frames*; frame 0 must be among them.
     model : object
-        ``model.fit(gray, box) -> (L, 2) or None``, ``model.n_points`` and
-        ``model.box_margin`` (e.g. :class:`~retarget_cli.io.facemark.FacemarkFitter`).
+        ``model.fit(gray, box) -> (L, 2) or None``, ``model.n_points``,
+        ``model.box_margin`` and ``model.face_size`` (frames are scaled as in
+        training, see :func:`train_lbf`; e.g.
+        :class:`~retarget_cli.io.facemark.FacemarkFitter`).
     smooth : float
         Weight of the previous box in the box used for the next frame (0-1).
     tau : float
@@ -585,17 +625,20 @@ def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: 
     if not 0 <= smooth < 1:
         raise ShapeError(f"smooth: expected a value in [0, 1), got {smooth}")
     rigid = default_rigid_points(L) if rigid_points is None else np.asarray(rigid_points, int)
-    look = _Appearance(ann[0], rigid)
+    k = working_scale(ann[0], model.face_size)
+    look = _Appearance(_to_scaled(ann[0], k), rigid)
     margin = model.box_margin
     pts, conf = [], []
     box = None
     bad = 0
     for t, frame in enumerate(frames):
         g = _gray(frame)
+        if t in ann:
+            check_inside(ann[t], (g.shape[1], g.shape[0]), f"annotations: frame {t}")
+        g = _scaled(g, k)
         h, w = g.shape
         if t in ann:
-            check_inside(ann[t], (w, h), f"annotations: frame {t}")
-            P, c = ann[t], np.ones(L)
+            P, c = _to_scaled(ann[t], k), np.ones(L)
             box = face_box(P, margin=margin).astype(np.float64)
             look.add(g, P)
             bad = 0
@@ -618,7 +661,7 @@ def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: 
                     f"the face was lost from frame {f0}: for {bad} frames in a row the Facemark fit failed, did not "
                     f"settle (median disagreement above {lost_spread:g} of the face size) or did not look like the "
                     f"annotated face (similarity below {min_similarity:g})",
-                    f0, np.stack(pts[:f0]), np.stack(conf[:f0]))
+                    f0, _from_scaled(np.stack(pts[:f0]), k), np.stack(conf[:f0]))
             if not bad:
                 box = smooth * box + (1 - smooth) * face_box(P, margin=margin)
         pts.append(np.asarray(P, np.float64))
@@ -627,4 +670,8 @@ def track_facemark(frames: Iterable[np.ndarray], annotations, *, model, smooth: 
             progress(t)
     if not pts:
         raise ShapeError("frames: the sequence is empty")
-    return np.stack(pts), np.clip(np.stack(conf), 0, 1)
+    out = _from_scaled(np.stack(pts), k)
+    for t in ann:  # annotated frames exactly as given
+        if t < len(out):
+            out[t] = ann[t]
+    return out, np.clip(np.stack(conf), 0, 1)
