@@ -146,14 +146,14 @@ class _Crops:
         self.w = np.array([c.shape[1] for c in crops], np.int64)
         self.h = np.array([c.shape[0] for c in crops], np.int64)
         self.offset = np.concatenate([[0], np.cumsum(self.w * self.h)[:-1]]).astype(np.int64)
-        self.buf = np.concatenate([c.ravel() for c in crops]).astype(np.int32)
+        self.buf = np.concatenate([c.ravel() for c in crops])  # uint8: memory
 
     def lookup(self, rows, x, y):
         """Pixel values at float (x, y) for samples *rows*, as OpenCV reads them (clamp, truncate)."""
         w, h = self.w[rows], self.h[rows]
         xi = np.clip(x, 0.0, (w - 1).astype(np.float64)).astype(np.int64)
         yi = np.clip(y, 0.0, (h - 1).astype(np.float64)).astype(np.int64)
-        return self.buf[self.offset[rows] + yi * w + xi]
+        return self.buf[self.offset[rows] + yi * w + xi].astype(np.int32)
 
 
 @dataclass
