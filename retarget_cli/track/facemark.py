@@ -199,8 +199,8 @@ class LbfModel:
         for _ in range(1, self.depth):
             f = F[li, ti, idx]  # (n, L, T, 4)
             p = _place(f, scale, R, bx, cur)
-            d = crops.lookup(rows[:, None, None], p[..., 0], p[..., 1]) - crops.lookup(rows[:, None, None], p[..., 2],
-                                                                                      p[..., 3])
+            r = rows[:, None, None]
+            d = crops.lookup(r, p[..., 0], p[..., 1]) - crops.lookup(r, p[..., 2], p[..., 3])
             right = d >= TH[li, ti, idx]
             code = code * 2 + right
             idx = 2 * idx + right
@@ -220,8 +220,11 @@ class LbfModel:
         proj = _project(bx, cur)
         scale, R = _similarity(proj, self.mean_shape[None])
         codes = self._codes(k, crops, rows, cur, bx, scale, R)
-        W = self.weights[k].astype(np.float64)
-        delta = W[:, codes].sum(-1).T.reshape(len(rows), -1, 2)  # (N, L, 2), mean-shape frame
+        Wt = self.weights[k].T.astype(np.float64)  # (F, 2L)
+        delta = np.zeros((len(rows), Wt.shape[1]))
+        for j in range(codes.shape[1]):  # one active leaf per tree: sum their weight rows
+            delta += Wt[codes[:, j]]
+        delta = delta.reshape(len(rows), -1, 2)  # (N, L, 2), mean-shape frame
         upd = scale[:, None, None] * np.einsum("nij,nlj->nli", R, delta)
         return _reproject(bx, proj + upd)
 
