@@ -464,7 +464,6 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
     nu = np.zeros(n)
     pending = np.arange(n)
     bound_val = np.where(np.isfinite(hi), hi, 0.0)
-    Hflat = np.ascontiguousarray(H).ravel()
     zero_lo = not np.any(lo)
     for _ in range(max_iter):
         st = status[pending]
@@ -475,30 +474,8 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
         else:
             xB = np.where(st == -1, lo, np.where(st == 1, bound_val, 0.0))
             R = Q[pending] - xB @ H  # right-hand side for every coordinate
-        Xp = xB.copy()
-        nup = np.zeros(len(pending))
-        # Bucket the frames by the size of their free set; each bucket is one stacked solve.
         m = free.sum(1)
-        perm = np.argsort(m, kind="stable")
-        cols = np.nonzero(free[perm])[1]
-        sizes, counts = np.unique(m[perm], return_counts=True)
-        r0 = o0 = 0
-        for size, count in zip(sizes.tolist(), counts.tolist()):
-            rows = perm[r0:r0 + count]
-            F = cols[o0:o0 + count * size].reshape(count, size)
-            r0, o0 = r0 + count, o0 + count * size
-            if size == 0:
-                continue
-            A = Hflat[(F * K)[:, :, None] + F[:, None, :]]
-            b = R[rows[:, None], F]
-            if eq is not None:
-                A = np.concatenate([np.concatenate([A, np.ones((count, size, 1))], 2),
-                                    np.concatenate([np.ones((count, 1, size)), np.zeros((count, 1, 1))], 2)], 1)
-                b = np.concatenate([b, (eq - xB[rows].sum(1))[:, None]], 1)
-            sol = np.linalg.solve(A, b[..., None])[..., 0]
-            Xp[rows[:, None], F] = sol[:, :size]
-            if eq is not None:
-                nup[rows] = sol[:, size]
+        Xp, nup = _solve_free(H, R, free, m, xB, eq)
         X[pending] = Xp
         nu[pending] = nup
         G = Xp @ H - Q[pending] + nup[:, None]
@@ -527,6 +504,183 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
         if pending.size == 0:
             break
     return X, pending
+
+
+#: Buckets with at least this many frames are solved by the vectorised Cholesky
+#: of :func:`_cholesky_solve_stacked`; smaller ones by LAPACK one matrix at a time.
+_VECTOR_MIN = 48
+
+
+def _solve_free(H, R, free, m, xB, eq):
+    """Solve every frame's reduced system on its free set.
+
+    For each row ``t``: ``H_FF x_F = r_F`` (with ``1ᵀx = eq`` through a
+    multiplier ``ν``: ``H_FF x_F + ν1 = r_F``) where ``F`` is the free set
+    ``free[t]``; bound variables keep their value from *xB*.
+
+    Frames are bucketed by the size of their free set. Sizes with few frames
+    are merged into the next larger bucket and padded with identity rows, so
+    that each bucket is one vectorised solve (:func:`_cholesky_solve_stacked`).
+
+    Parameters
+    ----------
+    H : ndarray, shape (K, K)
+    R : ndarray, shape (n, K)
+        Right-hand sides (already corrected for the bound variables).
+    free : ndarray of bool, shape (n, K)
+    m : ndarray of int, shape (n,)
+        ``free.sum(1)``.
+    xB : ndarray, shape (n, K)
+        Values of the bound variables (0 at free ones).
+    eq : float or None
+
+    Returns
+    -------
+    X : ndarray, shape (n, K)
+    nu : ndarray, shape (n,)
+    """
+    n, K = R.shape
+    nu = np.zeros(n)
+    counts = np.bincount(m, minlength=K + 1)
+    perm = np.argsort(m, kind="stable")
+    top = int(m.max(initial=0))
+    groups, start, acc = [], 0, 0
+    for size in range(top + 1):
+        acc += int(counts[size])
+        if acc and (acc >= _VECTOR_MIN or size == top):
+            groups.append((start, start + acc, size))
+            start, acc = start + acc, 0
+    W = K + top  # variables plus the dummy identity variables that pad a bucket
+    Hp = np.zeros((W, W))
+    Hp[:K, :K] = H
+    Hp[K:, K:] = np.eye(top)
+    Hflat = Hp.ravel()
+    Rp = np.zeros((n, W))
+    Rp[:, :K] = R
+    Rflat = Rp.ravel()
+    Xp = np.zeros((n, W))
+    Xp[:, :K] = xB
+    Xflat = Xp.ravel()
+    # free variables of the frames in bucket order, and each one's position in its reduced system
+    mp = m[perm]
+    ri_all, ci_all = np.nonzero(free[perm])
+    first = np.cumsum(mp) - mp
+    pos_all = (np.arange(len(ci_all)) - np.repeat(first, mp)).astype(np.intp)
+    ci_all = ci_all.astype(np.int32)
+    for r0, r1, size in groups:
+        if size == 0:
+            continue
+        rows = perm[r0:r1]
+        count = r1 - r0
+        mr = mp[r0:r1]
+        seg = slice(first[r0], first[r1 - 1] + mr[-1])
+        ri, pos = ri_all[seg] - r0, pos_all[seg]
+        # Ft[a, t]: the variable at position a of frame t's system; positions
+        # a >= m_t hold the dummies K + a - m_t
+        Ft = (K + np.arange(size, dtype=np.int32)[:, None] - mr[None, :].astype(np.int32))
+        Ft[pos, ri] = ci_all[seg]
+        flat_rows = (rows * W)[None, :]
+        ok = np.zeros(count, dtype=bool)
+        e = None if eq is None else eq - xB[rows].sum(1)
+        if count >= _VECTOR_MIN:
+            tri_i, tri_j = _tril(size)
+            A = np.empty((size + (1 if eq is None else 2), size, count))
+            # lower triangles only (all the factorisation reads); mode="clip" avoids
+            # numpy's slow bounds-checked path, the indices are valid by construction
+            idx = Ft[tri_i]
+            idx *= W
+            idx += Ft[tri_j]
+            A[tri_i, tri_j] = np.take(Hflat, idx, mode="clip")
+            A[size] = np.take(Rflat, flat_rows + Ft, mode="clip")
+            if eq is not None:
+                A[size + 1] = np.arange(size)[:, None] < mr[None, :]  # dummies do not count towards the sum
+            x, v, ok = _cholesky_solve_stacked(A, e)
+            np.put(Xflat, flat_rows + Ft, x, mode="clip")  # dummies land in the padding columns
+            if eq is not None:
+                nu[rows] = v
+        if not ok.all():
+            # small buckets, or systems the Cholesky found numerically singular: LAPACK's LU
+            sub = np.flatnonzero(~ok)
+            Fs = Ft[:, sub].T
+            A = np.take(Hflat, Fs[:, :, None] * W + Fs[:, None, :], mode="clip")
+            bs = np.take(Rflat, flat_rows[:, sub].T + Fs, mode="clip")
+            if eq is not None:
+                ones = (np.arange(size)[None, :] < mr[sub, None]).astype(float)
+                A = np.concatenate([np.concatenate([A, ones[:, :, None]], 2),
+                                    np.concatenate([ones[:, None, :], np.zeros((len(sub), 1, 1))], 2)], 1)
+                bs = np.concatenate([bs, e[sub, None]], 1)
+            out = np.linalg.solve(A, bs[..., None])[..., 0]
+            np.put(Xflat, flat_rows[:, sub].T + Fs, out[:, :size], mode="clip")
+            if eq is not None:
+                nu[rows[sub]] = out[:, size]
+    return Xp[:, :K], nu
+
+
+_TRIL = {}
+
+
+def _tril(size: int):
+    """Cached ``numpy.tril_indices(size)``."""
+    if size not in _TRIL:
+        _TRIL[size] = np.tril_indices(size)
+    return _TRIL[size]
+
+
+def _cholesky_solve_stacked(A, eq=None):
+    """Solve many small symmetric positive-definite systems, vectorised over the stack.
+
+    The stack is the last axis so that every step of the Cholesky
+    factorisation ``H = LLᵀ`` and of the triangular solves is one numpy
+    operation over all systems; for the small systems of the active-set
+    iteration this is several times faster than one LAPACK call per matrix.
+    The right-hand side is an extra row of *A*, so the factorisation also
+    performs the forward substitution ``y_b = L⁻¹b``. With *eq*, a second
+    extra row ``e`` adds the constraint ``eᵀx = eq`` through a multiplier
+    ``ν``: ``x = H⁻¹(b − νe)`` with ``ν = (eᵀH⁻¹b − eq) / eᵀH⁻¹e
+    = (y_e·y_b − eq) / (y_e·y_e)``, so one back substitution suffices.
+
+    Parameters
+    ----------
+    A : ndarray, shape (m + 1, m, n), or (m + 2, m, n) with *eq*
+        Rows ``:m`` hold the matrices ``H`` (only the lower triangles are
+        read), row ``m`` the right-hand sides ``b`` and row ``m + 1`` the
+        constraint vectors ``e``. Overwritten.
+    eq : ndarray, shape (n,), optional
+
+    Returns
+    -------
+    x : ndarray, shape (m, n)
+    nu : ndarray, shape (n,), or None without *eq*
+    ok : ndarray of bool, shape (n,)
+        False where a pivot was not positive (a numerically singular
+        system); ``x`` is meaningless there.
+    """
+    m, n = A.shape[1], A.shape[2]
+    diag = np.empty((m, n))
+    ok = np.ones(n, dtype=bool)
+    for j in range(m):
+        if j:
+            A[j:, j] -= np.einsum("ikn,kn->in", A[j:, :j], A[j, :j])
+        d2 = A[j, j]
+        bad = ~(d2 > 0)
+        if bad.any():
+            ok &= ~bad
+            d2 = np.where(bad, 1.0, d2)
+        diag[j] = np.sqrt(d2)
+        A[j + 1:, j] /= diag[j]
+
+    def back(y):
+        x = np.empty((m, n))
+        for i in range(m - 1, -1, -1):
+            x[i] = (y[i] - np.einsum("kn,kn->n", A[i + 1:m, i], x[i + 1:])) / diag[i]
+        return x
+
+    if eq is None:
+        return back(A[m]), None, ok
+    # with y_b = L⁻¹b and y_e = L⁻¹e: eᵀH⁻¹b = y_e·y_b and eᵀH⁻¹e = y_e·y_e
+    yb, ye = A[m], A[m + 1]
+    nu = (np.einsum("kn,kn->n", ye, yb) - eq) / np.einsum("kn,kn->n", ye, ye)
+    return back(yb - nu * ye), nu, ok
 
 
 def _active_set_one(H, q, lo, hi, eq=None, x0=None, max_iter=None) -> np.ndarray:
