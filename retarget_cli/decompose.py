@@ -34,6 +34,7 @@ call at a time.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 
 import numpy as np
@@ -430,11 +431,15 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     hscale = max(float(np.abs(np.diag(H)).max()), 1e-300)
     Hd = H + 1e-14 * hscale * np.eye(K)
     X0 = _equality_ls(Hd, Q, sum_to)
+    Hinv = None
+    if sum_to is None and np.linalg.cond(Hd) < _SCHUR_MAX_COND:
+        Hinv = np.linalg.inv(Hd)
+        Hinv = (Hinv + Hinv.T) / 2
     finish = []
     with _one_blas_thread(T):
         for c0 in range(0, T, chunk):
             sl = slice(c0, min(c0 + chunk, T))
-            X[sl], left = _pdas(Hd, Q[sl], lo, hi, sum_to, X0[sl], max_iter, hscale)
+            X[sl], left = _pdas(Hd, Q[sl], lo, hi, sum_to, X0[sl], max_iter, hscale, Hinv)
             finish += list(left + c0)
     if finish:
         log.debug("box_qp: %d of %d frames finished by the per-frame active-set method", len(finish), T)
@@ -445,17 +450,43 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
 
 def _one_blas_thread(n_rows: int):
     """Limit BLAS to one thread for large batches: the many small products run faster unthreaded."""
-    import contextlib
-
-    if n_rows < 512:
-        return contextlib.nullcontext()
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(1, user_api="blas")
+    return contextlib.nullcontext() if n_rows < 512 else small_blas()
 
 
-def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
-    """Primal–dual active-set iterations for the frames *Q* (n, K); returns (X, unsettled rows)."""
+_CONTROLLER = None
+
+
+@contextlib.contextmanager
+def small_blas():
+    """Run BLAS single-threaded: for many small products and solves threads only add overhead.
+
+    Measured (``bench/edit.py``, 2 busy cores): bounded solves on a
+    100-slider rig took 2-3x longer with OpenBLAS's default threads. The
+    controller is created once: inspecting the loaded libraries costs about
+    half a millisecond.
+    """
+    global _CONTROLLER
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:  # pragma: no cover - threadpoolctl ships with scikit-learn
+        yield
+        return
+    if _CONTROLLER is None:
+        _CONTROLLER = ThreadpoolController()
+    with _CONTROLLER.limit(limits=1, user_api="blas"):
+        yield
+
+
+def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
+    """Primal–dual active-set iterations for the frames *Q* (n, K); returns (X, unsettled rows).
+
+    With *Hinv* (``H⁻¹``, given when *H* is well conditioned and there is no
+    equality), a frame whose bound set ``Z`` is smaller than its free set is
+    solved from the unconstrained solution *X0* through the Schur complement
+    of ``Z``: ``x = x0 + H⁻¹_{:,Z} (H⁻¹_{ZZ})⁻¹ (x_B − x0)_Z``, a system of
+    size ``|Z|`` rather than ``|F|`` (the same point: the minimiser with
+    ``x_Z = x_B``), during the first ``_SCHUR_ITERATIONS`` iterations.
+    """
     n, K = Q.shape
     X = np.empty((n, K))
     status = np.zeros((n, K), dtype=np.int8)  # -1 at lower bound, +1 at upper, 0 free
@@ -465,17 +496,30 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
     pending = np.arange(n)
     bound_val = np.where(np.isfinite(hi), hi, 0.0)
     zero_lo = not np.any(lo)
-    for _ in range(max_iter):
+    best = np.full(n, K + 2)  # fewest infeasible variables seen, per frame
+    tries = np.full(n, 3)  # full exchanges left without improvement
+    for it in range(max_iter):
         st = status[pending]
         free = st == 0
-        if zero_lo and not np.any(st == 1):
-            xB = np.zeros(st.shape)
-            R = Q[pending]
-        else:
-            xB = np.where(st == -1, lo, np.where(st == 1, bound_val, 0.0))
-            R = Q[pending] - xB @ H  # right-hand side for every coordinate
+        xB = np.where(st == -1, lo, np.where(st == 1, bound_val, 0.0))
         m = free.sum(1)
-        Xp, nup = _solve_free(H, R, free, m, xB, eq)
+        Xp = np.empty((len(pending), K))
+        nup = np.zeros(len(pending))
+        # each frame takes the smaller system: its bound set through H⁻¹, or its free set
+        small_z = (K - m < m) if Hinv is not None and it < _SCHUR_ITERATIONS else np.zeros(len(pending), dtype=bool)
+        if small_z.any():
+            i = np.flatnonzero(small_z)
+            bound, x0 = ~free[i], X0[pending[i]]
+            Y, _ = _solve_free(Hinv, np.where(bound, xB[i] - x0, 0.0), bound, K - m[i], np.zeros((len(i), K)), None)
+            Xz = x0 + Y @ Hinv
+            Xz[bound] = xB[i][bound]
+            Xp[i] = Xz
+        if not small_z.all():
+            i = np.flatnonzero(~small_z) if small_z.any() else slice(None)
+            R = Q[pending[i]]
+            if not (zero_lo and not np.any(st[i] == 1)):
+                R = R - xB[i] @ H  # right-hand side for every coordinate
+            Xp[i], nup[i] = _solve_free(H, R, free[i], m[i], xB[i], eq)
         X[pending] = Xp
         nu[pending] = nup
         G = Xp @ H - Q[pending] + nup[:, None]
@@ -498,13 +542,36 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
                 bad[nofree[off]] = True
                 j = np.argmin(np.where(st[nofree] == -1, G[nofree], -G[nofree]), axis=1)
                 new[nofree[off], j[off]] = 0
-        ok = ~bad.any(1)
+        # Safeguard against cycling (the backup rule of Júdice & Pires 1994, as in
+        # Kim & Park's block principal pivoting): when a frame's number of
+        # infeasible variables has not improved for 3 iterations, exchange
+        # only its last infeasible variable until it improves.
+        ninf = bad.sum(1)
+        improved = ninf < best[pending]
+        best[pending[improved]] = ninf[improved]
+        tries[pending[improved]] = 3
+        spend = ~improved & (tries[pending] > 0)
+        tries[pending[spend]] -= 1
+        backup = np.flatnonzero(~improved & ~spend & (ninf > 0))
+        if backup.size:
+            j = K - 1 - np.argmax(bad[backup, ::-1], axis=1)
+            keep = new[backup, j]
+            new[backup] = st[backup]
+            new[backup, j] = keep
+        ok = ninf == 0
         status[pending] = new
         pending = pending[~ok]
         if pending.size == 0:
             break
     return X, pending
 
+
+#: :func:`_pdas` starts from the Schur complement of the bound set when the
+#: Hessian's condition number is below this (the inverse is then accurate).
+_SCHUR_MAX_COND = 1e9
+#: ... during its first iterations only: the Schur form's gradient is less
+#: accurate, so frames with nearly degenerate multipliers are settled by direct solves.
+_SCHUR_ITERATIONS = 2
 
 #: Buckets with at least this many frames are solved by the vectorised Cholesky
 #: of :func:`_cholesky_solve_stacked`; smaller ones by LAPACK one matrix at a time.
