@@ -496,12 +496,17 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
     pending = np.arange(n)
     bound_val = np.where(np.isfinite(hi), hi, 0.0)
     zero_lo = not np.any(lo)
+    upper = bool(np.isfinite(hi).any())
+    qscale = np.abs(Q).max(1, keepdims=True)
     best = np.full(n, K + 2)  # fewest infeasible variables seen, per frame
     tries = np.full(n, 3)  # full exchanges left without improvement
     for it in range(max_iter):
         st = status[pending]
         free = st == 0
-        xB = np.where(st == -1, lo, np.where(st == 1, bound_val, 0.0))
+        if upper:
+            xB = np.where(st == -1, lo, np.where(st == 1, bound_val, 0.0))
+        else:
+            xB = np.zeros(st.shape) if zero_lo else np.where(st == -1, lo, 0.0)
         m = free.sum(1)
         Xp = np.empty((len(pending), K))
         nup = np.zeros(len(pending))
@@ -517,7 +522,7 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
         if not small_z.all():
             i = np.flatnonzero(~small_z) if small_z.any() else slice(None)
             R = Q[pending[i]]
-            if not (zero_lo and not np.any(st[i] == 1)):
+            if upper or not zero_lo:
                 R = R - xB[i] @ H  # right-hand side for every coordinate
             Xp[i], nup[i] = _solve_free(H, R, free[i], m[i], xB[i], eq)
         X[pending] = Xp
@@ -525,14 +530,18 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
         G = Xp @ H - Q[pending] + nup[:, None]
         xs = 1.0 + np.abs(Xp).max(1, keepdims=True)
         tolx = 1e-10 * xs
-        tolg = 1e-11 * (np.abs(Q[pending]).max(1, keepdims=True) + hscale * xs)
+        tolg = 1e-11 * (qscale[pending] + hscale * xs)
         below = free & (Xp < lo - tolx)
-        above = free & (Xp > hi + tolx)
-        wrong = ((st == -1) & (G < -tolg)) | ((st == 1) & (G > tolg))
-        bad = below | above | wrong
+        wrong = (st == -1) & (G < -tolg)
         new = st.copy()
         new[below] = -1
-        new[above] = 1
+        if upper:
+            above = free & (Xp > hi + tolx)
+            wrong |= (st == 1) & (G > tolg)
+            new[above] = 1
+            bad = below | above | wrong
+        else:
+            bad = below | wrong
         new[wrong] = 0
         if eq is not None:
             nofree = np.flatnonzero(m == 0)
