@@ -226,7 +226,8 @@ def nnls_batched(frames, keys, *, upper: float | None = None) -> np.ndarray:
     B = check_array(keys, "keys", ndim=2)
     if B.shape[1] != S.shape[1]:
         raise ShapeError(f"keys: expected shape (K, {S.shape[1]}) to match frames, got {B.shape}")
-    return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=np.inf if upper is None else upper)
+    with _one_blas_thread(len(S)):
+        return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=np.inf if upper is None else upper)
 
 
 def cardinality(weights, threshold: float = CARDINALITY_THRESHOLD) -> np.ndarray:
@@ -382,15 +383,19 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     ``q_t = B S_t`` give the NNLS of Chuang & Bregler's eq. 4).
 
     Method: a primal–dual active-set iteration (Hintermüller, Ito & Kunisch
-    2002) run on all frames at once. Each iteration solves every frame's
-    reduced system ``H_FF x_F = q_F − H_FB x_B`` on its current free set F;
-    frames are bucketed by the size of F so that each bucket is one batched
-    LAPACK solve (``numpy.linalg.solve`` on a stack). A frame is finished when
-    its KKT conditions hold (free variables within their bounds, multipliers
-    of the bound ones correctly signed), so the solution on its free set is
-    the exact optimum. Frames still unsettled after *max_iter* iterations (the
-    iteration can cycle on rare frames) are finished one by one by an exact
-    primal active-set method (Nocedal & Wright 2006, Algorithm 16.3).
+    2002) started from each frame's unconstrained minimiser. Each iteration
+    solves the frame's reduced system ``H_FF x_F = q_F − H_FB x_B`` on its
+    current free set F; a frame is finished when its KKT conditions hold
+    (free variables within their bounds, multipliers of the bound ones
+    correctly signed), so the solution on its free set is the exact optimum.
+    Active sets differ from frame to frame, so without an equality the
+    iteration runs per frame in compiled code (:mod:`retarget_cli._qp_kernel`,
+    Cholesky factorisations, an anti-cycling backup rule). With ``sum_to``,
+    and for the rare frames the kernel leaves, it runs in numpy on all frames
+    at once, the reduced systems bucketed by size into vectorised Cholesky
+    solves. Frames still unsettled after *max_iter* iterations are finished
+    one by one by an exact primal active-set method (Nocedal & Wright 2006,
+    Algorithm 16.3).
 
     A singular *H* (duplicated or dependent keys) is handled by adding
     ``1e-14·max(diag H)`` to the reduced diagonals, which changes the
@@ -428,6 +433,19 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     X = np.empty((T, K))
     if T == 0 or K == 0:
         return X
+    with _one_blas_thread(T):
+        X, finish = _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk)
+    if finish:
+        log.debug("box_qp: %d of %d frames finished by the per-frame active-set method", len(finish), T)
+    for t in finish:
+        X[t] = _active_set_one(H, Q[t], lo, hi, sum_to)
+    return np.clip(X, lo, hi)
+
+
+def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk):
+    """The iterations of :func:`box_qp`; returns (X, frames left for the per-frame method)."""
+    T, K = Q.shape
+    X = np.empty((T, K))
     hscale = max(float(np.abs(np.diag(H)).max()), 1e-300)
     Hd = H + 1e-14 * hscale * np.eye(K)
     X0 = _equality_ls(Hd, Q, sum_to)
@@ -435,17 +453,21 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     if sum_to is None and np.linalg.cond(Hd) < _SCHUR_MAX_COND:
         Hinv = np.linalg.inv(Hd)
         Hinv = (Hinv + Hinv.T) / 2
+    rows = np.arange(T)
+    if sum_to is None and _USE_KERNEL:
+        from ._qp_kernel import pdas_frames
+
+        done = np.empty(T, dtype=bool)
+        pdas_frames(Hd, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv)
+        rows = np.flatnonzero(~done)  # not settled, or a singular reduced system
+        if rows.size:
+            log.debug("box_qp: %d of %d frames left by the compiled kernel", rows.size, T)
     finish = []
-    with _one_blas_thread(T):
-        for c0 in range(0, T, chunk):
-            sl = slice(c0, min(c0 + chunk, T))
-            X[sl], left = _pdas(Hd, Q[sl], lo, hi, sum_to, X0[sl], max_iter, hscale, Hinv)
-            finish += list(left + c0)
-    if finish:
-        log.debug("box_qp: %d of %d frames finished by the per-frame active-set method", len(finish), T)
-    for t in finish:
-        X[t] = _active_set_one(H, Q[t], lo, hi, sum_to)
-    return np.clip(X, lo, hi)
+    for c0 in range(0, rows.size, chunk):
+        sl = rows[c0:c0 + chunk]
+        X[sl], left = _pdas(Hd, Q[sl], lo, hi, sum_to, X0[sl], max_iter, hscale, Hinv)
+        finish += list(sl[left])
+    return X, finish
 
 
 def _one_blas_thread(n_rows: int):
@@ -485,7 +507,9 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
     solved from the unconstrained solution *X0* through the Schur complement
     of ``Z``: ``x = x0 + H⁻¹_{:,Z} (H⁻¹_{ZZ})⁻¹ (x_B − x0)_Z``, a system of
     size ``|Z|`` rather than ``|F|`` (the same point: the minimiser with
-    ``x_Z = x_B``), during the first ``_SCHUR_ITERATIONS`` iterations.
+    ``x_Z = x_B``), during the first ``_SCHUR_ITERATIONS`` iterations. Those
+    points only propose active sets; they are less accurate, so a frame is
+    certified only from a direct solve.
     """
     n, K = Q.shape
     X = np.empty((n, K))
@@ -531,12 +555,16 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
         xs = 1.0 + np.abs(Xp).max(1, keepdims=True)
         tolx = 1e-10 * xs
         tolg = 1e-11 * (qscale[pending] + hscale * xs)
-        below = free & (Xp < lo - tolx)
+        # a Schur point is accurate to about cond(H)·eps only: there, values
+        # within 1e-8 of a bound are taken to be at it (a wrong guess is undone
+        # by the multiplier check of the next, direct, iteration)
+        tolf = np.where(small_z[:, None], -1e-8 * xs, tolx) if small_z.any() else tolx
+        below = free & (Xp < lo - tolf)
         wrong = (st == -1) & (G < -tolg)
         new = st.copy()
         new[below] = -1
         if upper:
-            above = free & (Xp > hi + tolx)
+            above = free & (Xp > hi + tolf)
             wrong |= (st == 1) & (G > tolg)
             new[above] = 1
             bad = below | above | wrong
@@ -556,6 +584,8 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
         # infeasible variables has not improved for 3 iterations, exchange
         # only its last infeasible variable until it improves.
         ninf = bad.sum(1)
+        if small_z.any():  # a Schur point is less accurate: it never certifies a frame
+            ninf = np.where(small_z, np.maximum(ninf, 1), ninf)
         improved = ninf < best[pending]
         best[pending[improved]] = ninf[improved]
         tries[pending[improved]] = 3
@@ -574,6 +604,11 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
             break
     return X, pending
 
+
+#: Box-constrained problems without an equality go through the compiled
+#: per-frame kernel (:mod:`retarget_cli._qp_kernel`); the numpy iteration
+#: below handles the rest (and the frames the kernel leaves).
+_USE_KERNEL = True
 
 #: :func:`_pdas` starts from the Schur complement of the bound set when the
 #: Hessian's condition number is below this (the inverse is then accurate).
