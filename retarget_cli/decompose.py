@@ -205,7 +205,7 @@ def reconstruction_error(frames, keys) -> float:
     return float(np.sum(res**2))
 
 
-def nnls_batched(frames, keys, *, upper: float | None = None) -> np.ndarray:
+def nnls_batched(frames, keys, *, upper: float | None = None, compiled: bool | None = None) -> np.ndarray:
     """Exact non-negative least squares for every frame at once (eq. 4).
 
     Solves ``min ‖S_t − Σ w_i S_i‖², w ≥ 0`` (and ``w ≤ upper``) for all
@@ -217,6 +217,9 @@ def nnls_batched(frames, keys, *, upper: float | None = None) -> np.ndarray:
     frames : ndarray, shape (T, D)
     keys : ndarray, shape (K, D)
     upper : float, optional
+    compiled : bool, optional
+        Force (True) or avoid (False) the compiled kernel; by default
+        :func:`box_qp` decides from the problem size.
 
     Returns
     -------
@@ -227,7 +230,7 @@ def nnls_batched(frames, keys, *, upper: float | None = None) -> np.ndarray:
     if B.shape[1] != S.shape[1]:
         raise ShapeError(f"keys: expected shape (K, {S.shape[1]}) to match frames, got {B.shape}")
     with _one_blas_thread(len(S)):
-        return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=np.inf if upper is None else upper)
+        return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=np.inf if upper is None else upper, compiled=compiled)
 
 
 def cardinality(weights, threshold: float = CARDINALITY_THRESHOLD) -> np.ndarray:
@@ -371,7 +374,8 @@ def _equality_ls(H, Q, eq):
     return (R @ _pinv_sym(M))[:, :K]
 
 
-def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, chunk: int = 8192) -> np.ndarray:
+def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, chunk: int = 8192,
+           compiled: bool | None = None) -> np.ndarray:
     """Exact minimiser of a box-constrained QP for many right-hand sides at once.
 
     .. math::
@@ -414,6 +418,13 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
         Batched iterations before the per-frame finish.
     chunk : int
         Frames solved together (bounds the memory of the stacked systems).
+    compiled : bool, optional
+        Use the compiled kernel (True) or the numpy iteration (False). By
+        default the kernel runs when ``T·K ≥ 2·10⁶`` (about 90,000 frames at
+        K = 22): below that the numpy iteration finishes before numba would
+        have loaded (about a second per process). Both give the exact optimum;
+        their results differ by round-off only, and the choice depends on
+        the problem's size alone, so outputs stay reproducible.
 
     Returns
     -------
@@ -434,7 +445,8 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     if T == 0 or K == 0:
         return X
     with _one_blas_thread(T):
-        X, finish = _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk)
+        use = (T * K >= _KERNEL_MIN_WORK) if compiled is None else bool(compiled)
+        X, finish = _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk, use and sum_to is None)
     if finish:
         log.debug("box_qp: %d of %d frames finished by the per-frame active-set method", len(finish), T)
     for t in finish:
@@ -442,7 +454,7 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     return np.clip(X, lo, hi)
 
 
-def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk):
+def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk, compiled):
     """The iterations of :func:`box_qp`; returns (X, frames left for the per-frame method)."""
     T, K = Q.shape
     X = np.empty((T, K))
@@ -454,7 +466,7 @@ def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk):
         Hinv = np.linalg.inv(Hd)
         Hinv = (Hinv + Hinv.T) / 2
     rows = np.arange(T)
-    if sum_to is None and _USE_KERNEL:
+    if compiled:
         from ._qp_kernel import pdas_frames
 
         done = np.empty(T, dtype=bool)
@@ -605,10 +617,12 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
     return X, pending
 
 
-#: Box-constrained problems without an equality go through the compiled
-#: per-frame kernel (:mod:`retarget_cli._qp_kernel`); the numpy iteration
-#: below handles the rest (and the frames the kernel leaves).
-_USE_KERNEL = True
+#: Without ``compiled``, :func:`box_qp` uses the compiled per-frame kernel
+#: (:mod:`retarget_cli._qp_kernel`) from this ``T·K`` on (measured: numba's
+#: import and cache load take about a second, the numpy iteration about 10 µs
+#: per frame at K = 22); the numpy iteration handles the rest, equalities and
+#: any frame the kernel leaves.
+_KERNEL_MIN_WORK = 2_000_000
 
 #: :func:`_pdas` starts from the Schur complement of the bound set when the
 #: Hessian's condition number is below this (the inverse is then accurate).
