@@ -34,6 +34,7 @@ call at a time.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 
 import numpy as np
@@ -204,7 +205,7 @@ def reconstruction_error(frames, keys) -> float:
     return float(np.sum(res**2))
 
 
-def nnls_batched(frames, keys, *, upper: float | None = None) -> np.ndarray:
+def nnls_batched(frames, keys, *, upper: float | None = None, compiled: bool | None = None) -> np.ndarray:
     """Exact non-negative least squares for every frame at once (eq. 4).
 
     Solves ``min ‖S_t − Σ w_i S_i‖², w ≥ 0`` (and ``w ≤ upper``) for all
@@ -216,6 +217,9 @@ def nnls_batched(frames, keys, *, upper: float | None = None) -> np.ndarray:
     frames : ndarray, shape (T, D)
     keys : ndarray, shape (K, D)
     upper : float, optional
+    compiled : bool, optional
+        Force (True) or avoid (False) the compiled kernel; by default
+        :func:`box_qp` decides from the problem size.
 
     Returns
     -------
@@ -225,7 +229,8 @@ def nnls_batched(frames, keys, *, upper: float | None = None) -> np.ndarray:
     B = check_array(keys, "keys", ndim=2)
     if B.shape[1] != S.shape[1]:
         raise ShapeError(f"keys: expected shape (K, {S.shape[1]}) to match frames, got {B.shape}")
-    return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=np.inf if upper is None else upper)
+    with _one_blas_thread(len(S)):
+        return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=np.inf if upper is None else upper, compiled=compiled)
 
 
 def cardinality(weights, threshold: float = CARDINALITY_THRESHOLD) -> np.ndarray:
@@ -369,7 +374,8 @@ def _equality_ls(H, Q, eq):
     return (R @ _pinv_sym(M))[:, :K]
 
 
-def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, chunk: int = 8192) -> np.ndarray:
+def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, chunk: int = 8192,
+           compiled: bool | None = None) -> np.ndarray:
     """Exact minimiser of a box-constrained QP for many right-hand sides at once.
 
     .. math::
@@ -381,15 +387,19 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     ``q_t = B S_t`` give the NNLS of Chuang & Bregler's eq. 4).
 
     Method: a primal–dual active-set iteration (Hintermüller, Ito & Kunisch
-    2002) run on all frames at once. Each iteration solves every frame's
-    reduced system ``H_FF x_F = q_F − H_FB x_B`` on its current free set F;
-    frames are bucketed by the size of F so that each bucket is one batched
-    LAPACK solve (``numpy.linalg.solve`` on a stack). A frame is finished when
-    its KKT conditions hold (free variables within their bounds, multipliers
-    of the bound ones correctly signed), so the solution on its free set is
-    the exact optimum. Frames still unsettled after *max_iter* iterations (the
-    iteration can cycle on rare frames) are finished one by one by an exact
-    primal active-set method (Nocedal & Wright 2006, Algorithm 16.3).
+    2002) started from each frame's unconstrained minimiser. Each iteration
+    solves the frame's reduced system ``H_FF x_F = q_F − H_FB x_B`` on its
+    current free set F; a frame is finished when its KKT conditions hold
+    (free variables within their bounds, multipliers of the bound ones
+    correctly signed), so the solution on its free set is the exact optimum.
+    Active sets differ from frame to frame, so without an equality the
+    iteration runs per frame in compiled code (:mod:`retarget_cli._qp_kernel`,
+    Cholesky factorisations, an anti-cycling backup rule). With ``sum_to``,
+    and for the rare frames the kernel leaves, it runs in numpy on all frames
+    at once, the reduced systems bucketed by size into vectorised Cholesky
+    solves. Frames still unsettled after *max_iter* iterations are finished
+    one by one by an exact primal active-set method (Nocedal & Wright 2006,
+    Algorithm 16.3).
 
     A singular *H* (duplicated or dependent keys) is handled by adding
     ``1e-14·max(diag H)`` to the reduced diagonals, which changes the
@@ -408,6 +418,13 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
         Batched iterations before the per-frame finish.
     chunk : int
         Frames solved together (bounds the memory of the stacked systems).
+    compiled : bool, optional
+        Use the compiled kernel (True) or the numpy iteration (False). By
+        default the kernel runs when ``T·K ≥ 2·10⁶`` (about 90,000 frames at
+        K = 22): below that the numpy iteration finishes before numba would
+        have loaded (about a second per process). Both give the exact optimum;
+        their results differ by round-off only, and the choice depends on
+        the problem's size alone, so outputs stay reproducible.
 
     Returns
     -------
@@ -427,15 +444,9 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     X = np.empty((T, K))
     if T == 0 or K == 0:
         return X
-    hscale = max(float(np.abs(np.diag(H)).max()), 1e-300)
-    Hd = H + 1e-14 * hscale * np.eye(K)
-    X0 = _equality_ls(Hd, Q, sum_to)
-    finish = []
     with _one_blas_thread(T):
-        for c0 in range(0, T, chunk):
-            sl = slice(c0, min(c0 + chunk, T))
-            X[sl], left = _pdas(Hd, Q[sl], lo, hi, sum_to, X0[sl], max_iter, hscale)
-            finish += list(left + c0)
+        use = (T * K >= _KERNEL_MIN_WORK) if compiled is None else bool(compiled)
+        X, finish = _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk, use and sum_to is None)
     if finish:
         log.debug("box_qp: %d of %d frames finished by the per-frame active-set method", len(finish), T)
     for t in finish:
@@ -443,19 +454,75 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     return np.clip(X, lo, hi)
 
 
+def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk, compiled):
+    """The iterations of :func:`box_qp`; returns (X, frames left for the per-frame method)."""
+    T, K = Q.shape
+    X = np.empty((T, K))
+    hscale = max(float(np.abs(np.diag(H)).max()), 1e-300)
+    Hd = H + 1e-14 * hscale * np.eye(K)
+    X0 = _equality_ls(Hd, Q, sum_to)
+    Hinv = None
+    if sum_to is None and np.linalg.cond(Hd) < _SCHUR_MAX_COND:
+        Hinv = np.linalg.inv(Hd)
+        Hinv = (Hinv + Hinv.T) / 2
+    rows = np.arange(T)
+    if compiled:
+        from ._qp_kernel import pdas_frames
+
+        done = np.empty(T, dtype=bool)
+        pdas_frames(Hd, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv)
+        rows = np.flatnonzero(~done)  # not settled, or a singular reduced system
+        if rows.size:
+            log.debug("box_qp: %d of %d frames left by the compiled kernel", rows.size, T)
+    finish = []
+    for c0 in range(0, rows.size, chunk):
+        sl = rows[c0:c0 + chunk]
+        X[sl], left = _pdas(Hd, Q[sl], lo, hi, sum_to, X0[sl], max_iter, hscale, Hinv)
+        finish += list(sl[left])
+    return X, finish
+
+
 def _one_blas_thread(n_rows: int):
     """Limit BLAS to one thread for large batches: the many small products run faster unthreaded."""
-    import contextlib
-
-    if n_rows < 512:
-        return contextlib.nullcontext()
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(1, user_api="blas")
+    return contextlib.nullcontext() if n_rows < 512 else small_blas()
 
 
-def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
-    """Primal–dual active-set iterations for the frames *Q* (n, K); returns (X, unsettled rows)."""
+_CONTROLLER = None
+
+
+@contextlib.contextmanager
+def small_blas():
+    """Run BLAS single-threaded: for many small products and solves threads only add overhead.
+
+    Measured (``bench/edit.py``, 2 busy cores): bounded solves on a
+    100-slider rig took 2-3x longer with OpenBLAS's default threads. The
+    controller is created once: inspecting the loaded libraries costs about
+    half a millisecond.
+    """
+    global _CONTROLLER
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:  # pragma: no cover - threadpoolctl ships with scikit-learn
+        yield
+        return
+    if _CONTROLLER is None:
+        _CONTROLLER = ThreadpoolController()
+    with _CONTROLLER.limit(limits=1, user_api="blas"):
+        yield
+
+
+def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
+    """Primal–dual active-set iterations for the frames *Q* (n, K); returns (X, unsettled rows).
+
+    With *Hinv* (``H⁻¹``, given when *H* is well conditioned and there is no
+    equality), a frame whose bound set ``Z`` is smaller than its free set is
+    solved from the unconstrained solution *X0* through the Schur complement
+    of ``Z``: ``x = x0 + H⁻¹_{:,Z} (H⁻¹_{ZZ})⁻¹ (x_B − x0)_Z``, a system of
+    size ``|Z|`` rather than ``|F|`` (the same point: the minimiser with
+    ``x_Z = x_B``), during the first ``_SCHUR_ITERATIONS`` iterations. Those
+    points only propose active sets; they are less accurate, so a frame is
+    certified only from a direct solve.
+    """
     n, K = Q.shape
     X = np.empty((n, K))
     status = np.zeros((n, K), dtype=np.int8)  # -1 at lower bound, +1 at upper, 0 free
@@ -464,54 +531,57 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
     nu = np.zeros(n)
     pending = np.arange(n)
     bound_val = np.where(np.isfinite(hi), hi, 0.0)
-    Hflat = np.ascontiguousarray(H).ravel()
     zero_lo = not np.any(lo)
-    for _ in range(max_iter):
+    upper = bool(np.isfinite(hi).any())
+    qscale = np.abs(Q).max(1, keepdims=True)
+    best = np.full(n, K + 2)  # fewest infeasible variables seen, per frame
+    tries = np.full(n, 3)  # full exchanges left without improvement
+    for it in range(max_iter):
         st = status[pending]
         free = st == 0
-        if zero_lo and not np.any(st == 1):
-            xB = np.zeros(st.shape)
-            R = Q[pending]
-        else:
+        if upper:
             xB = np.where(st == -1, lo, np.where(st == 1, bound_val, 0.0))
-            R = Q[pending] - xB @ H  # right-hand side for every coordinate
-        Xp = xB.copy()
-        nup = np.zeros(len(pending))
-        # Bucket the frames by the size of their free set; each bucket is one stacked solve.
+        else:
+            xB = np.zeros(st.shape) if zero_lo else np.where(st == -1, lo, 0.0)
         m = free.sum(1)
-        perm = np.argsort(m, kind="stable")
-        cols = np.nonzero(free[perm])[1]
-        sizes, counts = np.unique(m[perm], return_counts=True)
-        r0 = o0 = 0
-        for size, count in zip(sizes.tolist(), counts.tolist()):
-            rows = perm[r0:r0 + count]
-            F = cols[o0:o0 + count * size].reshape(count, size)
-            r0, o0 = r0 + count, o0 + count * size
-            if size == 0:
-                continue
-            A = Hflat[(F * K)[:, :, None] + F[:, None, :]]
-            b = R[rows[:, None], F]
-            if eq is not None:
-                A = np.concatenate([np.concatenate([A, np.ones((count, size, 1))], 2),
-                                    np.concatenate([np.ones((count, 1, size)), np.zeros((count, 1, 1))], 2)], 1)
-                b = np.concatenate([b, (eq - xB[rows].sum(1))[:, None]], 1)
-            sol = np.linalg.solve(A, b[..., None])[..., 0]
-            Xp[rows[:, None], F] = sol[:, :size]
-            if eq is not None:
-                nup[rows] = sol[:, size]
+        Xp = np.empty((len(pending), K))
+        nup = np.zeros(len(pending))
+        # each frame takes the smaller system: its bound set through H⁻¹, or its free set
+        small_z = (K - m < m) if Hinv is not None and it < _SCHUR_ITERATIONS else np.zeros(len(pending), dtype=bool)
+        if small_z.any():
+            i = np.flatnonzero(small_z)
+            bound, x0 = ~free[i], X0[pending[i]]
+            Y, _ = _solve_free(Hinv, np.where(bound, xB[i] - x0, 0.0), bound, K - m[i], np.zeros((len(i), K)), None)
+            Xz = x0 + Y @ Hinv
+            Xz[bound] = xB[i][bound]
+            Xp[i] = Xz
+        if not small_z.all():
+            i = np.flatnonzero(~small_z) if small_z.any() else slice(None)
+            R = Q[pending[i]]
+            if upper or not zero_lo:
+                R = R - xB[i] @ H  # right-hand side for every coordinate
+            Xp[i], nup[i] = _solve_free(H, R, free[i], m[i], xB[i], eq)
         X[pending] = Xp
         nu[pending] = nup
         G = Xp @ H - Q[pending] + nup[:, None]
         xs = 1.0 + np.abs(Xp).max(1, keepdims=True)
         tolx = 1e-10 * xs
-        tolg = 1e-11 * (np.abs(Q[pending]).max(1, keepdims=True) + hscale * xs)
-        below = free & (Xp < lo - tolx)
-        above = free & (Xp > hi + tolx)
-        wrong = ((st == -1) & (G < -tolg)) | ((st == 1) & (G > tolg))
-        bad = below | above | wrong
+        tolg = 1e-11 * (qscale[pending] + hscale * xs)
+        # a Schur point is accurate to about cond(H)·eps only: there, values
+        # within 1e-8 of a bound are taken to be at it (a wrong guess is undone
+        # by the multiplier check of the next, direct, iteration)
+        tolf = np.where(small_z[:, None], -1e-8 * xs, tolx) if small_z.any() else tolx
+        below = free & (Xp < lo - tolf)
+        wrong = (st == -1) & (G < -tolg)
         new = st.copy()
         new[below] = -1
-        new[above] = 1
+        if upper:
+            above = free & (Xp > hi + tolf)
+            wrong |= (st == 1) & (G > tolg)
+            new[above] = 1
+            bad = below | above | wrong
+        else:
+            bad = below | wrong
         new[wrong] = 0
         if eq is not None:
             nofree = np.flatnonzero(m == 0)
@@ -521,12 +591,221 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale):
                 bad[nofree[off]] = True
                 j = np.argmin(np.where(st[nofree] == -1, G[nofree], -G[nofree]), axis=1)
                 new[nofree[off], j[off]] = 0
-        ok = ~bad.any(1)
+        # Safeguard against cycling (the backup rule of Júdice & Pires 1994, as in
+        # Kim & Park's block principal pivoting): when a frame's number of
+        # infeasible variables has not improved for 3 iterations, exchange
+        # only its last infeasible variable until it improves.
+        ninf = bad.sum(1)
+        if small_z.any():  # a Schur point is less accurate: it never certifies a frame
+            ninf = np.where(small_z, np.maximum(ninf, 1), ninf)
+        improved = ninf < best[pending]
+        best[pending[improved]] = ninf[improved]
+        tries[pending[improved]] = 3
+        spend = ~improved & (tries[pending] > 0)
+        tries[pending[spend]] -= 1
+        backup = np.flatnonzero(~improved & ~spend & (ninf > 0))
+        if backup.size:
+            j = K - 1 - np.argmax(bad[backup, ::-1], axis=1)
+            keep = new[backup, j]
+            new[backup] = st[backup]
+            new[backup, j] = keep
+        ok = ninf == 0
         status[pending] = new
         pending = pending[~ok]
         if pending.size == 0:
             break
     return X, pending
+
+
+#: Without ``compiled``, :func:`box_qp` uses the compiled per-frame kernel
+#: (:mod:`retarget_cli._qp_kernel`) from this ``T·K`` on (measured: numba's
+#: import and cache load take about a second, the numpy iteration about 10 µs
+#: per frame at K = 22); the numpy iteration handles the rest, equalities and
+#: any frame the kernel leaves.
+_KERNEL_MIN_WORK = 2_000_000
+
+#: :func:`_pdas` starts from the Schur complement of the bound set when the
+#: Hessian's condition number is below this (the inverse is then accurate).
+_SCHUR_MAX_COND = 1e9
+#: ... during its first iterations only: the Schur form's gradient is less
+#: accurate, so frames with nearly degenerate multipliers are settled by direct solves.
+_SCHUR_ITERATIONS = 2
+
+#: Buckets with at least this many frames are solved by the vectorised Cholesky
+#: of :func:`_cholesky_solve_stacked`; smaller ones by LAPACK one matrix at a time.
+_VECTOR_MIN = 48
+
+
+def _solve_free(H, R, free, m, xB, eq):
+    """Solve every frame's reduced system on its free set.
+
+    For each row ``t``: ``H_FF x_F = r_F`` (with ``1ᵀx = eq`` through a
+    multiplier ``ν``: ``H_FF x_F + ν1 = r_F``) where ``F`` is the free set
+    ``free[t]``; bound variables keep their value from *xB*.
+
+    Frames are bucketed by the size of their free set. Sizes with few frames
+    are merged into the next larger bucket and padded with identity rows, so
+    that each bucket is one vectorised solve (:func:`_cholesky_solve_stacked`).
+
+    Parameters
+    ----------
+    H : ndarray, shape (K, K)
+    R : ndarray, shape (n, K)
+        Right-hand sides (already corrected for the bound variables).
+    free : ndarray of bool, shape (n, K)
+    m : ndarray of int, shape (n,)
+        ``free.sum(1)``.
+    xB : ndarray, shape (n, K)
+        Values of the bound variables (0 at free ones).
+    eq : float or None
+
+    Returns
+    -------
+    X : ndarray, shape (n, K)
+    nu : ndarray, shape (n,)
+    """
+    n, K = R.shape
+    nu = np.zeros(n)
+    counts = np.bincount(m, minlength=K + 1)
+    perm = np.argsort(m, kind="stable")
+    top = int(m.max(initial=0))
+    groups, start, acc = [], 0, 0
+    for size in range(top + 1):
+        acc += int(counts[size])
+        if acc and (acc >= _VECTOR_MIN or size == top):
+            groups.append((start, start + acc, size))
+            start, acc = start + acc, 0
+    W = K + top  # variables plus the dummy identity variables that pad a bucket
+    Hp = np.zeros((W, W))
+    Hp[:K, :K] = H
+    Hp[K:, K:] = np.eye(top)
+    Hflat = Hp.ravel()
+    Rp = np.zeros((n, W))
+    Rp[:, :K] = R
+    Rflat = Rp.ravel()
+    Xp = np.zeros((n, W))
+    Xp[:, :K] = xB
+    Xflat = Xp.ravel()
+    # free variables of the frames in bucket order, and each one's position in its reduced system
+    mp = m[perm]
+    ri_all, ci_all = np.nonzero(free[perm])
+    first = np.cumsum(mp) - mp
+    pos_all = (np.arange(len(ci_all)) - np.repeat(first, mp)).astype(np.intp)
+    ci_all = ci_all.astype(np.int32)
+    for r0, r1, size in groups:
+        if size == 0:
+            continue
+        rows = perm[r0:r1]
+        count = r1 - r0
+        mr = mp[r0:r1]
+        seg = slice(first[r0], first[r1 - 1] + mr[-1])
+        ri, pos = ri_all[seg] - r0, pos_all[seg]
+        # Ft[a, t]: the variable at position a of frame t's system; positions
+        # a >= m_t hold the dummies K + a - m_t
+        Ft = (K + np.arange(size, dtype=np.int32)[:, None] - mr[None, :].astype(np.int32))
+        Ft[pos, ri] = ci_all[seg]
+        flat_rows = (rows * W)[None, :]
+        ok = np.zeros(count, dtype=bool)
+        e = None if eq is None else eq - xB[rows].sum(1)
+        if count >= _VECTOR_MIN:
+            tri_i, tri_j = _tril(size)
+            A = np.empty((size + (1 if eq is None else 2), size, count))
+            # lower triangles only (all the factorisation reads); mode="clip" avoids
+            # numpy's slow bounds-checked path, the indices are valid by construction
+            idx = Ft[tri_i]
+            idx *= W
+            idx += Ft[tri_j]
+            A[tri_i, tri_j] = np.take(Hflat, idx, mode="clip")
+            A[size] = np.take(Rflat, flat_rows + Ft, mode="clip")
+            if eq is not None:
+                A[size + 1] = np.arange(size)[:, None] < mr[None, :]  # dummies do not count towards the sum
+            x, v, ok = _cholesky_solve_stacked(A, e)
+            np.put(Xflat, flat_rows + Ft, x, mode="clip")  # dummies land in the padding columns
+            if eq is not None:
+                nu[rows] = v
+        if not ok.all():
+            # small buckets, or systems the Cholesky found numerically singular: LAPACK's LU
+            sub = np.flatnonzero(~ok)
+            Fs = Ft[:, sub].T
+            A = np.take(Hflat, Fs[:, :, None] * W + Fs[:, None, :], mode="clip")
+            bs = np.take(Rflat, flat_rows[:, sub].T + Fs, mode="clip")
+            if eq is not None:
+                ones = (np.arange(size)[None, :] < mr[sub, None]).astype(float)
+                A = np.concatenate([np.concatenate([A, ones[:, :, None]], 2),
+                                    np.concatenate([ones[:, None, :], np.zeros((len(sub), 1, 1))], 2)], 1)
+                bs = np.concatenate([bs, e[sub, None]], 1)
+            out = np.linalg.solve(A, bs[..., None])[..., 0]
+            np.put(Xflat, flat_rows[:, sub].T + Fs, out[:, :size], mode="clip")
+            if eq is not None:
+                nu[rows[sub]] = out[:, size]
+    return Xp[:, :K], nu
+
+
+_TRIL = {}
+
+
+def _tril(size: int):
+    """Cached ``numpy.tril_indices(size)``."""
+    if size not in _TRIL:
+        _TRIL[size] = np.tril_indices(size)
+    return _TRIL[size]
+
+
+def _cholesky_solve_stacked(A, eq=None):
+    """Solve many small symmetric positive-definite systems, vectorised over the stack.
+
+    The stack is the last axis so that every step of the Cholesky
+    factorisation ``H = LLᵀ`` and of the triangular solves is one numpy
+    operation over all systems; for the small systems of the active-set
+    iteration this is several times faster than one LAPACK call per matrix.
+    The right-hand side is an extra row of *A*, so the factorisation also
+    performs the forward substitution ``y_b = L⁻¹b``. With *eq*, a second
+    extra row ``e`` adds the constraint ``eᵀx = eq`` through a multiplier
+    ``ν``: ``x = H⁻¹(b − νe)`` with ``ν = (eᵀH⁻¹b − eq) / eᵀH⁻¹e
+    = (y_e·y_b − eq) / (y_e·y_e)``, so one back substitution suffices.
+
+    Parameters
+    ----------
+    A : ndarray, shape (m + 1, m, n), or (m + 2, m, n) with *eq*
+        Rows ``:m`` hold the matrices ``H`` (only the lower triangles are
+        read), row ``m`` the right-hand sides ``b`` and row ``m + 1`` the
+        constraint vectors ``e``. Overwritten.
+    eq : ndarray, shape (n,), optional
+
+    Returns
+    -------
+    x : ndarray, shape (m, n)
+    nu : ndarray, shape (n,), or None without *eq*
+    ok : ndarray of bool, shape (n,)
+        False where a pivot was not positive (a numerically singular
+        system); ``x`` is meaningless there.
+    """
+    m, n = A.shape[1], A.shape[2]
+    diag = np.empty((m, n))
+    ok = np.ones(n, dtype=bool)
+    for j in range(m):
+        if j:
+            A[j:, j] -= np.einsum("ikn,kn->in", A[j:, :j], A[j, :j])
+        d2 = A[j, j]
+        bad = ~(d2 > 0)
+        if bad.any():
+            ok &= ~bad
+            d2 = np.where(bad, 1.0, d2)
+        diag[j] = np.sqrt(d2)
+        A[j + 1:, j] /= diag[j]
+
+    def back(y):
+        x = np.empty((m, n))
+        for i in range(m - 1, -1, -1):
+            x[i] = (y[i] - np.einsum("kn,kn->n", A[i + 1:m, i], x[i + 1:])) / diag[i]
+        return x
+
+    if eq is None:
+        return back(A[m]), None, ok
+    # with y_b = L⁻¹b and y_e = L⁻¹e: eᵀH⁻¹b = y_e·y_b and eᵀH⁻¹e = y_e·y_e
+    yb, ye = A[m], A[m + 1]
+    nu = (np.einsum("kn,kn->n", ye, yb) - eq) / np.einsum("kn,kn->n", ye, ye)
+    return back(yb - nu * ye), nu, ok
 
 
 def _active_set_one(H, q, lo, hi, eq=None, x0=None, max_iter=None) -> np.ndarray:

@@ -37,13 +37,13 @@ landmark as a pin, projected through that camera.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ._validate import check_array
+from .decompose import small_blas
 from .errors import ShapeError
 from .rig import BlendshapeRig, parse_axes
 
@@ -58,28 +58,6 @@ log = logging.getLogger(__name__)
 DEFAULT_ALPHA = 0.01
 #: Lewis & Anjyo (2010): "a mild weight decay regularization term μ‖w‖², with μ = 0.001".
 DEFAULT_MU = 0.001
-
-_CONTROLLER = None
-
-
-@contextlib.contextmanager
-def small_blas():
-    """Run BLAS single-threaded: the QPs here are ~100 x 100, where threads only add overhead.
-
-    Measured (``bench/edit.py``'s machine, 2 busy cores): bounded solves on a
-    100-slider rig took 2-3x longer with OpenBLAS's default threads.
-    """
-    global _CONTROLLER
-    try:
-        from threadpoolctl import ThreadpoolController
-    except ImportError:  # pragma: no cover - threadpoolctl ships with scikit-learn
-        yield
-        return
-    if _CONTROLLER is None:
-        _CONTROLLER = ThreadpoolController()
-    with _CONTROLLER.limit(limits=1, user_api="blas"):
-        yield
-
 
 class BoxQP:
     """``min_w wᵀHw − 2qᵀw`` subject to ``lower <= w <= upper``, for one fixed ``H``.

@@ -168,8 +168,9 @@ def test_temporal_whole_take_keeps_exact_linear_motion_and_matches_lsq_linear():
 # --------------------------------------------------------------------------- batched NNLS is exact
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("case", ["random", "rank-deficient", "duplicated", "more-keys-than-coordinates", "fits"])
-def test_batched_nnls_matches_scipy_objective(case):
+def test_batched_nnls_matches_scipy_objective(case, compiled):
     rng = np.random.default_rng(8)
     B = rng.normal(size=(12, 30))
     if case == "rank-deficient":
@@ -182,7 +183,7 @@ def test_batched_nnls_matches_scipy_objective(case):
     S = rng.normal(size=(400, B.shape[1]))
     if case == "fits":  # frames that the keys reproduce exactly, including the keys themselves
         S = np.vstack([B, rng.uniform(0, 1, size=(50, 12)) @ B])
-    W = nnls_batched(S, B)
+    W = nnls_batched(S, B, compiled=compiled)
     assert W.min() >= 0
     assert objective_gap(S, B, W).max() <= 1e-8
 
@@ -193,7 +194,8 @@ def test_batched_nnls_on_near_collinear_face_like_keys():
     mean = rng.uniform(50, 250, size=60)
     B = mean + 3 * rng.normal(size=(15, 60))
     S = rng.dirichlet(np.ones(15), size=300) @ B + 0.5 * rng.normal(size=(300, 60))
-    assert objective_gap(S, B, nnls_batched(S, B)).max() <= 1e-8
+    for compiled in (True, False):
+        assert objective_gap(S, B, nnls_batched(S, B, compiled=compiled)).max() <= 1e-8
 
 
 def test_box_qp_matches_bvls_with_upper_bounds():
@@ -332,3 +334,48 @@ def test_cardinality_jitter_and_interpolation():
     np.testing.assert_allclose(interpolate_lost(np.array([[9.0], [2.0]]), [True, False])[:, 0], [2, 2])
     with pytest.raises(ValueError, match="every frame is lost"):
         interpolate_lost(np.zeros((2, 1)), [True, True])
+
+
+# --------------------------------------------------------------------------- box_qp internals
+
+
+def test_stacked_cholesky_solves_match_lapack():
+    from retarget_cli.decompose import _cholesky_solve_stacked
+
+    rng = np.random.default_rng(21)
+    m, n = 7, 200
+    G = rng.normal(size=(n, m, m + 3))
+    H = G @ G.transpose(0, 2, 1)
+    H[5] = 0.0  # a singular system is flagged, not silently solved
+    b = rng.normal(size=(n, m))
+    e = (rng.uniform(size=(n, m)) < 0.8).astype(float)
+    s = rng.normal(size=n)
+    A = np.concatenate([H, b[:, None, :], e[:, None, :]], axis=1).transpose(1, 2, 0).copy()
+    x, nu, ok = _cholesky_solve_stacked(A[: m + 1].copy())
+    assert nu is None and not ok[5] and ok.sum() == n - 1
+    np.testing.assert_allclose(x.T[ok], np.linalg.solve(H[ok], b[ok][..., None])[..., 0], rtol=1e-9, atol=1e-9)
+    x, nu, ok = _cholesky_solve_stacked(A, s)
+    for t in np.flatnonzero(ok)[:20]:  # KKT system of min ½xᵀHx − bᵀx s.t. eᵀx = s
+        K = np.block([[H[t], e[t][:, None]], [e[t][None, :], np.zeros((1, 1))]])
+        ref = np.linalg.solve(K, np.concatenate([b[t], [s[t]]]))
+        np.testing.assert_allclose(np.concatenate([x[:, t], [nu[t]]]), ref, rtol=1e-8, atol=1e-8)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("bounds", [dict(), dict(upper=0.3), dict(sum_to=1.0), dict(upper=0.6, sum_to=1.0)])
+def test_box_qp_fast_paths_agree_with_lapack_path(bounds, compiled, monkeypatch):
+    """The compiled kernel, the vectorised Cholesky and the Schur-complement start agree with plain LAPACK solves."""
+    from retarget_cli import decompose as dec
+
+    rng = np.random.default_rng(22)
+    mean = rng.uniform(50, 250, size=40)
+    B = mean + 3 * rng.normal(size=(14, 40))
+    S = rng.dirichlet(np.ones(14), size=900) @ B + 0.5 * rng.normal(size=(900, 40))
+    H, Q = B @ B.T, S @ B.T
+    fast = box_qp(H, Q, **bounds, compiled=compiled)
+    monkeypatch.setattr(dec, "_VECTOR_MIN", 10**9)
+    monkeypatch.setattr(dec, "_SCHUR_MAX_COND", 0.0)
+    slow = box_qp(H, Q, **bounds, compiled=False)
+    f = lambda W: 0.5 * np.einsum("tk,kl,tl->t", W, H, W) - np.einsum("tk,tk->t", Q, W)  # noqa: E731
+    assert np.all(f(fast) <= f(slow) + 1e-9 * np.abs(f(slow)))
+    np.testing.assert_allclose(fast, slow, atol=1e-6)

@@ -1,0 +1,242 @@
+"""Compiled per-frame kernel of :func:`retarget_cli.decompose.box_qp` (numba).
+
+The batched primal–dual active-set iteration (Hintermüller, Ito & Kunisch
+2002) needs a different reduced system for nearly every frame, since active
+sets differ from frame to frame. Run as numpy over all frames, it spends its
+time gathering those systems and in per-call overhead. Compiled, each frame
+runs the whole iteration in registers and cache instead: a Cholesky
+factorisation of ``H_FF`` per iteration, and the KKT check on the full
+gradient.
+
+The module is imported on first use only: importing numba takes a few tenths
+of a second, and the first call loads, or on a new machine compiles, the
+kernel (``cache=True`` keeps the compiled code next to this file, or in
+numba's user cache directory when that is read-only).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # pragma: no cover - compiled
+    """Primal–dual active-set solve of ``min ½xᵀHx − q_tᵀx, lo ≤ x ≤ hi`` for every row of *Q*.
+
+    Parameters
+    ----------
+    H : ndarray, shape (K, K)
+        Symmetric positive definite (regularised by the caller).
+    Q : ndarray, shape (T, K)
+    lo, hi : ndarray, shape (K,)
+        Bounds (``hi`` may be ``inf``).
+    X0 : ndarray, shape (T, K)
+        Unconstrained minimisers, which give the initial active sets.
+    hscale : float
+        ``max(diag H)``, the scale of the KKT tolerances.
+    max_iter : int
+    X : ndarray, shape (T, K)
+        Output: the solution of every frame marked done.
+    done : ndarray of bool, shape (T,)
+        Output: False where the iteration did not settle within *max_iter*
+        or a reduced system was numerically singular; the caller finishes
+        those frames by other means.
+    Hinv : ndarray, shape (K, K), optional
+        ``H⁻¹``, given when *H* is well conditioned. The first iteration's
+        free sets (the positive part of *X0*) are the largest; where the bound
+        set ``Z`` is the smaller one, that iteration's point is computed as
+        ``x = x0 + H⁻¹_{:,Z} (H⁻¹_{ZZ})⁻¹ (x_B − x0)_Z`` (the minimiser with
+        ``x_Z = x_B``, through the Schur complement), a system of size ``|Z|``.
+        That point only proposes the next active set: it is less accurate
+        (its error grows with the condition number of *H*), so no frame is
+        certified from it; a frame that is already optimal takes one direct
+        solve on the same free set.
+
+    Notes
+    -----
+    A frame is done when its KKT conditions hold with the tolerances of
+    :func:`retarget_cli.decompose._pdas` (free variables within their
+    bounds to ``1e-10·(1 + max|x|)``, multipliers of the bound ones of the
+    right sign to ``1e-11·(max|q| + max(diag H)·(1 + max|x|))``). Cycling is
+    prevented by the backup rule of Júdice & Pires (1994): after three
+    iterations without fewer infeasible variables, only the last infeasible
+    one is exchanged until the count improves.
+    """
+    T, K = Q.shape
+    status = np.empty(K, np.int8)  # -1 at lower bound, +1 at upper, 0 free
+    F = np.empty(K, np.int64)  # free variables, ascending
+    prevF = np.empty(K, np.int64)  # the free set whose factor L holds
+    N = np.empty(K, np.int64)  # bound variables with a nonzero value
+    L = np.empty((K, K))
+    b = np.empty(K)
+    x = np.empty(K)
+    bad = np.empty(K, np.bool_)
+    Z = np.empty(K, np.int64)
+    for t in range(T):
+        done[t] = False
+        qs = 0.0
+        for i in range(K):
+            qs = max(qs, abs(Q[t, i]))
+            if X0[t, i] < lo[i]:
+                status[i] = -1
+            elif X0[t, i] > hi[i]:
+                status[i] = 1
+            else:
+                status[i] = 0
+        best = K + 2
+        tries = 3
+        pm = 0  # rows of L valid for prevF[:pm]
+        for it in range(max_iter):
+            m = 0
+            nn = 0
+            for i in range(K):
+                if status[i] == 0:
+                    F[m] = i
+                    m += 1
+                    x[i] = 0.0
+                else:
+                    x[i] = lo[i] if status[i] == -1 else hi[i]
+                    if x[i] != 0.0:
+                        N[nn] = i
+                        nn += 1
+            schur = False
+            if it == 0 and Hinv is not None and K - m < m:
+                schur = _schur_point(Hinv, X0[t], status, x, Z, L, b)
+                pm = 0
+            if not schur:
+                # reduced system H_FF x_F = q_F − H_FB x_B, by Cholesky; the rows of
+                # the factor for a prefix of F unchanged since the last iteration are kept
+                for a in range(m):
+                    s = Q[t, F[a]]
+                    for c in range(nn):
+                        s -= H[F[a], N[c]] * x[N[c]]
+                    b[a] = s
+                r = 0
+                while r < min(m, pm) and F[r] == prevF[r]:
+                    r += 1
+                singular = False
+                for a in range(r, m):
+                    for c in range(a + 1):
+                        s = H[F[a], F[c]]
+                        for k in range(c):
+                            s -= L[a, k] * L[c, k]
+                        if a == c:
+                            if not s > 0.0:
+                                singular = True
+                                break
+                            L[a, a] = math.sqrt(s)
+                        else:
+                            L[a, c] = s / L[c, c]
+                    if singular:
+                        break
+                if singular:
+                    break
+                for a in range(m):
+                    prevF[a] = F[a]
+                pm = m
+                for a in range(m):
+                    s = b[a]
+                    for k in range(a):
+                        s -= L[a, k] * b[k]
+                    b[a] = s / L[a, a]
+                for a in range(m - 1, -1, -1):
+                    s = b[a]
+                    for k in range(a + 1, m):
+                        s -= L[k, a] * b[k]
+                    b[a] = s / L[a, a]
+                for a in range(m):
+                    x[F[a]] = b[a]
+            xm = 0.0
+            for i in range(K):
+                xm = max(xm, abs(x[i]))
+            tolx = 1e-10 * (1.0 + xm)
+            tolg = 1e-11 * (qs + hscale * (1.0 + xm))
+            # KKT check: count the infeasible variables, remember the last one
+            ninf = 0
+            last = -1
+            # a Schur point is accurate to about cond(H)·eps only: there, values
+            # within 1e-8 of a bound are taken to be at it (a wrong guess is
+            # undone by the multiplier check of the next, direct, iteration)
+            tolf = -1e-8 * (1.0 + xm) if schur else tolx
+            for i in range(K):
+                if status[i] == 0:
+                    bad[i] = x[i] < lo[i] - tolf or x[i] > hi[i] + tolf
+                else:
+                    g = -Q[t, i]
+                    for a in range(m):
+                        g += H[i, F[a]] * x[F[a]]
+                    for c in range(nn):
+                        g += H[i, N[c]] * x[N[c]]
+                    bad[i] = (status[i] == -1 and g < -tolg) or (status[i] == 1 and g > tolg)
+                if bad[i]:
+                    ninf += 1
+                    last = i
+            if ninf == 0 and not schur:
+                for i in range(K):
+                    X[t, i] = x[i]
+                done[t] = True
+                break
+            full = True
+            if ninf < best:
+                best = ninf
+                tries = 3
+            elif tries > 0:
+                tries -= 1
+            else:
+                full = False
+            for i in range(K):
+                if not bad[i] or not (full or i == last):
+                    continue
+                if status[i] != 0:
+                    status[i] = 0
+                elif x[i] < lo[i] - tolf:
+                    status[i] = -1
+                else:
+                    status[i] = 1
+
+
+@njit(cache=True, nogil=True)
+def _schur_point(Hinv, x0, status, x, Z, L, b):  # pragma: no cover - compiled
+    """Minimiser with the bound variables at their values *x* (in place), from *x0* through ``H⁻¹``.
+
+    Returns False (and leaves the free entries of *x* undefined) when
+    ``H⁻¹_{ZZ}`` is numerically singular.
+    """
+    K = len(x0)
+    z = 0
+    for i in range(K):
+        if status[i] != 0:
+            Z[z] = i
+            b[z] = x[i] - x0[i]
+            z += 1
+    for a in range(z):
+        for c in range(a + 1):
+            s = Hinv[Z[a], Z[c]]
+            for k in range(c):
+                s -= L[a, k] * L[c, k]
+            if a == c:
+                if not s > 0.0:
+                    return False
+                L[a, a] = math.sqrt(s)
+            else:
+                L[a, c] = s / L[c, c]
+    for a in range(z):
+        s = b[a]
+        for k in range(a):
+            s -= L[a, k] * b[k]
+        b[a] = s / L[a, a]
+    for a in range(z - 1, -1, -1):
+        s = b[a]
+        for k in range(a + 1, z):
+            s -= L[k, a] * b[k]
+        b[a] = s / L[a, a]
+    for i in range(K):
+        if status[i] == 0:
+            s = x0[i]
+            for c in range(z):
+                s += Hinv[i, Z[c]] * b[c]
+            x[i] = s
+    return True
