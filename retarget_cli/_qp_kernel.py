@@ -117,36 +117,12 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
                 r = 0
                 while r < min(m, pm) and F[r] == prevF[r]:
                     r += 1
-                singular = False
-                for a in range(r, m):
-                    for c in range(a + 1):
-                        s = H[F[a], F[c]]
-                        for k in range(c):
-                            s -= L[a, k] * L[c, k]
-                        if a == c:
-                            if not s > 0.0:
-                                singular = True
-                                break
-                            L[a, a] = math.sqrt(s)
-                        else:
-                            L[a, c] = s / L[c, c]
-                    if singular:
-                        break
-                if singular:
-                    break
+                if not _factor(H, F, r, m, L):
+                    break  # numerically singular: the caller finishes this frame
                 for a in range(m):
                     prevF[a] = F[a]
                 pm = m
-                for a in range(m):
-                    s = b[a]
-                    for k in range(a):
-                        s -= L[a, k] * b[k]
-                    b[a] = s / L[a, a]
-                for a in range(m - 1, -1, -1):
-                    s = b[a]
-                    for k in range(a + 1, m):
-                        s -= L[k, a] * b[k]
-                    b[a] = s / L[a, a]
+                _solve(L, m, b)
                 for a in range(m):
                     x[F[a]] = b[a]
             xm = 0.0
@@ -212,9 +188,27 @@ def _schur_point(Hinv, x0, status, x, Z, L, b):  # pragma: no cover - compiled
             Z[z] = i
             b[z] = x[i] - x0[i]
             z += 1
-    for a in range(z):
+    if not _factor(Hinv, Z, 0, z, L):
+        return False
+    _solve(L, z, b)
+    for i in range(K):
+        if status[i] == 0:
+            s = x0[i]
+            for c in range(z):
+                s += Hinv[i, Z[c]] * b[c]
+            x[i] = s
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _factor(H, idx, start, m, L):  # pragma: no cover - compiled
+    """Rows ``start..m-1`` of the Cholesky factor *L* of ``H[idx[:m]][:, idx[:m]]`` (rows above kept).
+
+    Returns False if the matrix is not numerically positive definite.
+    """
+    for a in range(start, m):
         for c in range(a + 1):
-            s = Hinv[Z[a], Z[c]]
+            s = H[idx[a], idx[c]]
             for k in range(c):
                 s -= L[a, k] * L[c, k]
             if a == c:
@@ -223,20 +217,19 @@ def _schur_point(Hinv, x0, status, x, Z, L, b):  # pragma: no cover - compiled
                 L[a, a] = math.sqrt(s)
             else:
                 L[a, c] = s / L[c, c]
-    for a in range(z):
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _solve(L, m, b):  # pragma: no cover - compiled
+    """``b[:m] ← (LLᵀ)⁻¹ b[:m]`` by forward and back substitution."""
+    for a in range(m):
         s = b[a]
         for k in range(a):
             s -= L[a, k] * b[k]
         b[a] = s / L[a, a]
-    for a in range(z - 1, -1, -1):
+    for a in range(m - 1, -1, -1):
         s = b[a]
-        for k in range(a + 1, z):
+        for k in range(a + 1, m):
             s -= L[k, a] * b[k]
         b[a] = s / L[a, a]
-    for i in range(K):
-        if status[i] == 0:
-            s = x0[i]
-            for c in range(z):
-                s += Hinv[i, Z[c]] * b[c]
-            x[i] = s
-    return True

@@ -51,6 +51,50 @@ def _apply(M, P) -> np.ndarray:
     return P @ M[:, :2].T + M[:, 2]
 
 
+def morph_pairs(images, points, size, morphs: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Morphs between every pair of aligned annotated frames (training-set enlargement).
+
+    Covell & Bregler enlarge the eigen-points training set by morphing
+    between annotated frames (Chuang & Bregler 2002, §3): for each pair and
+    each of *morphs* blend factors ``a`` strictly between 0 and 1, both images
+    are warped piecewise-affinely (Delaunay triangles of the landmarks plus
+    the image's corners and edge midpoints) onto the blended landmarks and
+    cross-dissolved.
+
+    Parameters
+    ----------
+    images : sequence of ndarray, each shape (H, W), float32
+        Frames already aligned with one another (same *size*).
+    points : sequence of ndarray, each shape (L, 2)
+        Their landmarks.
+    size : tuple of int
+        ``(W, H)``.
+    morphs : int
+        Blends per pair.
+
+    Returns
+    -------
+    list of (ndarray (H, W), ndarray (L, 2))
+    """
+    from scipy.spatial import Delaunay
+
+    W, H = size
+    L = len(points[0])
+    corners = np.array([[0, 0], [W - 1, 0], [0, H - 1], [W - 1, H - 1], [W / 2, 0], [W / 2, H - 1],
+                        [0, H / 2], [W - 1, H / 2]], float)
+    out = []
+    for i in range(len(images)):
+        for j in range(i + 1, len(images)):
+            vi, vj = np.concatenate([points[i], corners]), np.concatenate([points[j], corners])
+            for a in np.linspace(0, 1, morphs + 2)[1:-1]:
+                v = (1 - a) * vi + a * vj
+                tri = Delaunay(v).simplices
+                wi = _piecewise_warp(images[i], vi, v, tri, size)
+                wj = _piecewise_warp(images[j], vj, v, tri, size)
+                out.append(((1 - a) * wi + a * wj, v[:L]))
+    return out
+
+
 def _piecewise_warp(image, src_pts, dst_pts, tri, size) -> np.ndarray:
     """Warp *image* so that mesh vertices *src_pts* land on *dst_pts* (same triangles *tri*)."""
     import cv2
@@ -101,7 +145,6 @@ class EigenPoints:
     def __init__(self, images, shapes, *, rigid_points=None, width: int = 64, morphs: int = 3,
                  jitter: float = 3.0, variance: float = 0.98, seed: int = 0):
         import cv2
-        from scipy.spatial import Delaunay
 
         S = np.asarray(shapes, dtype=np.float64)
         if S.ndim != 3 or S.shape[2] != 2 or len(S) != len(images):
@@ -126,19 +169,10 @@ class EigenPoints:
             pre_pts.append(_apply(M, P))
         # 2. enlarge by morphing between pairs of pre-warped frames
         W, H = self.size
-        corners = np.array([[0, 0], [W - 1, 0], [0, H - 1], [W - 1, H - 1], [W / 2, 0], [W / 2, H - 1],
-                            [0, H / 2], [W - 1, H / 2]], float)
         samples_img, samples_pts = list(pre_img), list(pre_pts)
-        for i in range(N):
-            for j in range(i + 1, N):
-                vi, vj = np.concatenate([pre_pts[i], corners]), np.concatenate([pre_pts[j], corners])
-                for a in np.linspace(0, 1, morphs + 2)[1:-1]:
-                    v = (1 - a) * vi + a * vj
-                    tri = Delaunay(v).simplices
-                    wi = _piecewise_warp(pre_img[i], vi, v, tri, self.size)
-                    wj = _piecewise_warp(pre_img[j], vj, v, tri, self.size)
-                    samples_img.append((1 - a) * wi + a * wj)
-                    samples_pts.append(v[:L])
+        for img, P in morph_pairs(pre_img, pre_pts, self.size, morphs):
+            samples_img.append(img)
+            samples_pts.append(P)
         # ... and by small known misalignments (so the landmarks read off reveal them)
         rng = np.random.default_rng(seed)
         X_img, X_pts = [], []

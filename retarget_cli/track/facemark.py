@@ -314,9 +314,8 @@ def augment(images, shapes, *, rigid_points=None, morphs: int = 3, copies: int =
         Each sample's landmarks inside its crop.
     """
     import cv2
-    from scipy.spatial import Delaunay
 
-    from .eigenpoints import _piecewise_warp
+    from .eigenpoints import morph_pairs
 
     S = np.asarray(shapes, np.float64)
     K, L, _ = S.shape
@@ -335,18 +334,7 @@ def augment(images, shapes, *, rigid_points=None, morphs: int = 3, copies: int =
                         .astype(np.float32))
         base_pts.append(P @ M[:, :2].T + M[:, 2])
     W = H = side
-    corners = np.array([[0, 0], [W - 1, 0], [0, H - 1], [W - 1, H - 1], [W / 2, 0], [W / 2, H - 1],
-                        [0, H / 2], [W - 1, H / 2]], float)
-    samples = list(zip(base_img, base_pts))
-    for i in range(K):
-        for j in range(i + 1, K):
-            vi, vj = np.concatenate([base_pts[i], corners]), np.concatenate([base_pts[j], corners])
-            for a in np.linspace(0, 1, morphs + 2)[1:-1]:
-                v = (1 - a) * vi + a * vj
-                tri = Delaunay(v).simplices
-                wi = _piecewise_warp(base_img[i], vi, v, tri, size)
-                wj = _piecewise_warp(base_img[j], vj, v, tri, size)
-                samples.append(((1 - a) * wi + a * wj, v[:L]))
+    samples = list(zip(base_img, base_pts)) + morph_pairs(base_img, base_pts, size, morphs)
     crops, boxes, truth = [], [], []
     c = np.array([W / 2, H / 2])
     for img, P in samples:
