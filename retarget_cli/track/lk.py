@@ -15,6 +15,7 @@ annotated frame it is given re-anchors the track and becomes a reference.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterable
 
 import numpy as np
@@ -103,17 +104,19 @@ class _Box:
         margin = (window // 2 + 8) * step
         need = (window + 2) * step  # smallest crop keeping every pyramid level
         P = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        P = P[np.isfinite(P).all(1)]
+        if not np.isfinite(P).all():
+            P = P[np.isfinite(P).all(1)]
         if len(P) == 0:
             self.x0, self.y0, self.x1, self.y1 = 0, 0, w, h
             return
-        lo, hi = P.min(0) - margin, P.max(0) + margin + 1
-        (self.x0, self.x1), (self.y0, self.y1) = (self._span(lo[i], hi[i], n, need, step) for i, n in ((0, w), (1, h)))
+        (x_lo, y_lo), (x_hi, y_hi) = P.min(0).tolist(), P.max(0).tolist()
+        self.x0, self.x1 = self._span(x_lo - margin, x_hi + margin + 1, w, need, step)
+        self.y0, self.y1 = self._span(y_lo - margin, y_hi + margin + 1, h, need, step)
 
     @staticmethod
     def _span(lo, hi, n, need, step):
-        a = int(np.clip(np.floor(lo), 0, n - 1)) // step * step
-        b = int(np.clip(np.ceil(hi), a + 1, n))
+        a = min(max(math.floor(lo), 0), n - 1) // step * step
+        b = min(max(math.ceil(hi), a + 1), n)
         if b - a < need:
             b = min(n, a + need)
             a = max(0, b - need) // step * step
@@ -317,8 +320,16 @@ def track_lk(
             g = cv2.resize(g, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
         return g
 
+    last_fit: list = [None, None]
+
     def similarity(src, dst, wts):
-        return fit_similarity(src[rigid], dst[None, rigid], wts[None, rigid])[0]
+        # the head fit of the anchor pass often repeats the previous one
+        # exactly (same rigid points and weights): reuse it
+        args = (src[rigid], dst[rigid], wts[rigid])
+        key = b"".join(np.ascontiguousarray(a).tobytes() for a in args)
+        if key != last_fit[0]:
+            last_fit[:] = key, fit_similarity(args[0], args[1][None], args[2][None])[0]
+        return last_fit[1].copy()
 
     it = iter(frames)
     try:
