@@ -200,16 +200,17 @@ class FrameSource:
                 self.frames.append(i)
                 yield img
             return
-        cap = self._video._cap
+        decoded = self._video.decoded()  # decoded ahead in a background thread
         i = -1
         while end is None or i + 1 < end:
-            ok, frame = cap.read()
-            if not ok:
+            frame = next(decoded, None)
+            if frame is None:
                 break
             i += 1
             if self._wanted(i):
                 self.frames.append(i)
                 yield frame
+        decoded.close()
         if i < 0:
             raise TruncatedInputError(f"{self.path}: no frame could be decoded (empty or corrupt video)", -1)
         announced = self.frame_count if end is None else min(self.frame_count, end)

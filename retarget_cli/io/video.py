@@ -5,7 +5,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import queue
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,6 +19,85 @@ log = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v")
 
+#: Frames decoded ahead by :class:`VideoReader` (the bound of its queue).
+PREFETCH = 4
+
+
+class _Failed:
+    """An exception raised by the decoding thread, to re-raise in the consumer."""
+
+    def __init__(self, exc: BaseException):
+        self.exc = exc
+
+
+def decode_frames(cap, prefetch: int = PREFETCH) -> Iterator[np.ndarray]:
+    """Frames of ``cap.read()`` until it fails, decoded ahead in a background thread.
+
+    OpenCV releases the GIL while it decodes, so decoding the next frames
+    overlaps whatever the consumer does with the current one. The thread
+    stops at the first failed read (exactly where a sequential loop stops),
+    when the consumer closes the generator, or on an exception, which is
+    re-raised in the consumer after the frames decoded before it.
+
+    Parameters
+    ----------
+    cap : cv2.VideoCapture or any object with ``read() -> (ok, frame)``
+        Must not be read by anyone else until the generator is closed.
+    prefetch : int
+        Bound of the queue of decoded frames; 0 reads sequentially in the
+        caller's thread.
+
+    Yields
+    ------
+    ndarray
+        Each frame, in order.
+    """
+    if prefetch <= 0:
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                return
+            yield frame
+    q: queue.Queue = queue.Queue(maxsize=prefetch)
+    stop = threading.Event()
+    end = object()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def run() -> None:
+        item = end
+        try:
+            while not stop.is_set():
+                ok, frame = cap.read()
+                if not ok:
+                    break
+                if not put(frame):
+                    return
+        except BaseException as exc:  # handed to the consumer
+            item = _Failed(exc)
+        put(item)
+
+    thread = threading.Thread(target=run, name="retarget-decode", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = q.get()
+            if item is end:
+                return
+            if isinstance(item, _Failed):
+                raise item.exc
+            yield item
+    finally:
+        stop.set()
+        thread.join()
+
 
 class VideoReader:
     """Frames of a video file, read sequentially.
@@ -25,6 +106,10 @@ class VideoReader:
     ----------
     path : path-like
         mp4, mov, avi, mkv or m4v file readable by OpenCV.
+    prefetch : int
+        Frames decoded ahead in a background thread while the caller works
+        on the current one (see :func:`decode_frames`); 0 decodes in the
+        caller's thread.
 
     Attributes
     ----------
@@ -35,10 +120,12 @@ class VideoReader:
         The container's frame count (may be an estimate; 0 if unknown).
     """
 
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike, *, prefetch: int = PREFETCH):
         import cv2
 
         self.path = Path(path)
+        self.prefetch = int(prefetch)
+        self._decoding = None
         if not self.path.is_file():
             raise InputError(f"{self.path}: video file not found")
         if self.path.suffix.lower() not in VIDEO_SUFFIXES:
@@ -64,12 +151,10 @@ class VideoReader:
             If the video yields no frame at all.
         """
         n = 0
-        while True:
-            ok, frame = self._cap.read()
-            if not ok:
-                break
-            n += 1
-            yield frame
+        with contextlib.closing(self.decoded()) as frames:
+            for frame in frames:
+                n += 1
+                yield frame
         self.frames_read = n
         if n == 0:
             raise InputError(f"{self.path}: no frame could be decoded (empty or corrupt video)")
@@ -77,7 +162,16 @@ class VideoReader:
             log.warning("%s: container announces %d frames but only %d decoded; the file may be truncated",
                         self.path, self.frame_count, n)
 
+    def decoded(self) -> Iterator[np.ndarray]:
+        """The raw decoded frames (:func:`decode_frames` on this reader), without the end-of-video checks."""
+        if self._decoding is not None:
+            self._decoding.close()  # one reader of the capture at a time
+        self._decoding = decode_frames(self._cap, self.prefetch)
+        return self._decoding
+
     def close(self) -> None:
+        if self._decoding is not None:
+            self._decoding.close()  # stop the decoding thread before releasing the capture
         self._cap.release()
 
     def __enter__(self):

@@ -65,13 +65,20 @@ def fit_similarity(src, dst, weights=None, *, iterations: int = 3) -> np.ndarray
     if dst.ndim != 3 or dst.shape[2] != 2:
         raise ShapeError(f"dst: expected shape (T, L, 2), got {dst.shape}")
     T, L, _ = dst.shape
-    src = np.broadcast_to(np.asarray(src, dtype=np.float64), (T, L, 2))
+    src = np.asarray(src, dtype=np.float64)
+    if src.shape not in ((L, 2), (T, L, 2)):  # (L, 2) broadcasts over the frames
+        src = np.broadcast_to(src, (T, L, 2))
     w0 = np.ones((T, L)) if weights is None else np.asarray(weights, dtype=np.float64).copy()
     if w0.shape != (T, L):
         raise ShapeError(f"weights: expected shape {(T, L)}, got {w0.shape}")
-    w0 = np.where(np.isfinite(dst).all(-1), np.clip(w0, 0, None), 0.0)
+    finite = np.isfinite(dst).all(-1)
+    w0 = np.where(finite, np.clip(w0, 0, None), 0.0)
     zs = src[..., 0] + 1j * src[..., 1]
-    zd = np.nan_to_num(dst[..., 0]) + 1j * np.nan_to_num(dst[..., 1])
+    if not finite.all():
+        dst = np.nan_to_num(dst)
+    zd = dst[..., 0] + 1j * dst[..., 1]
+    # A frame with a zero weight has a NaN median residual below, hence scale 1 (as np.median gives NaN).
+    unweighted = (w0 <= 0).any(1, keepdims=True)
     w = w0
     for it in range(iterations + 1):
         wsum = w.sum(1, keepdims=True)
@@ -86,8 +93,8 @@ def fit_similarity(src, dst, weights=None, *, iterations: int = 3) -> np.ndarray
         if it == iterations:
             break
         r = np.abs(zd - (a[:, None] * zs + b[:, None]))
-        scale = 1.4826 * np.median(np.where(w0 > 0, r, np.nan), axis=1, keepdims=True)
-        scale = np.nan_to_num(np.maximum(scale, 1e-3), nan=1.0)
+        scale = 1.4826 * np.median(r, axis=1, keepdims=True)
+        scale = np.where(unweighted | np.isnan(scale), 1.0, np.maximum(scale, 1e-3))
         k = 1.345 * scale
         w = w0 * np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
     out = np.empty((T, 2, 3))

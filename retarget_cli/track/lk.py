@@ -15,6 +15,7 @@ annotated frame it is given re-anchors the track and becomes a reference.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterable
 
 import numpy as np
@@ -82,6 +83,60 @@ def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict 
     return fwd, np.where(ok, fb, np.inf)
 
 
+class _Box:
+    """The region of interest of the LK calls: ``[x0, x1) x [y0, y1)`` of the tracking image.
+
+    Pyramidal LK at level ``k`` reads a ``window``-wide patch of the level-``k``
+    image, i.e. ``window / 2 * 2**k`` pixels of the base image around each
+    point, and builds (and differentiates) the pyramids of both whole images
+    it is given. Cropping both images to the points' bounding box plus
+    ``(window // 2 + 8) * 2**levels`` pixels keeps every patch (and the
+    pyramid's filter support) inside the crop, so the flow is the same as on
+    the full frame while the cost no longer grows with the video resolution.
+    The corner is aligned to ``2**levels`` so every pyramid level samples the
+    same pixels as the full frame's pyramid, and the crop keeps as many
+    pyramid levels as the full frame (OpenCV drops levels narrower than the window).
+    """
+
+    def __init__(self, points, size, window: int, levels: int):
+        w, h = size
+        step = 2**levels
+        margin = (window // 2 + 8) * step
+        need = (window + 2) * step  # smallest crop keeping every pyramid level
+        P = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if not np.isfinite(P).all():
+            P = P[np.isfinite(P).all(1)]
+        if len(P) == 0:
+            self.x0, self.y0, self.x1, self.y1 = 0, 0, w, h
+            return
+        (x_lo, y_lo), (x_hi, y_hi) = P.min(0).tolist(), P.max(0).tolist()
+        self.x0, self.x1 = self._span(x_lo - margin, x_hi + margin + 1, w, need, step)
+        self.y0, self.y1 = self._span(y_lo - margin, y_hi + margin + 1, h, need, step)
+
+    @staticmethod
+    def _span(lo, hi, n, need, step):
+        a = min(max(math.floor(lo), 0), n - 1) // step * step
+        b = min(max(math.ceil(hi), a + 1), n)
+        if b - a < need:
+            b = min(n, a + need)
+            a = max(0, b - need) // step * step
+        return a, b
+
+    @property
+    def offset(self) -> np.ndarray:
+        return np.array([self.x0, self.y0], dtype=np.float64)
+
+    def crop(self, image: np.ndarray) -> np.ndarray:
+        return image[self.y0:self.y1, self.x0:self.x1]
+
+    def flow(self, src, dst, points, lk: dict, guess=None, lk_init: dict | None = None):
+        """:func:`flow_forward_backward` between crops *src* and *dst* of this box, points in full-image pixels."""
+        o = self.offset
+        local = lambda p: None if p is None else (p.reshape(-1, 2) - o).astype(np.float32).reshape(-1, 1, 2)  # noqa: E731
+        moved, err = flow_forward_backward(src, dst, local(points), lk, guess=local(guess), lk_init=lk_init)
+        return (moved.reshape(-1, 2) + o).astype(np.float32).reshape(-1, 1, 2), err
+
+
 def _contour_points(n_points: int) -> np.ndarray:
     """Default silhouette points: the jaw line of the 68-point layout."""
     return np.arange(17) if n_points == 68 else np.zeros(0, dtype=int)
@@ -134,11 +189,21 @@ class _Reference:
         self.points = points
         self.carriers = points + offsets
 
-    def template(self, M, size):
-        """Reference image warped by the similarity *M* (2, 3) and its carriers' positions in it."""
+    def template(self, M, size, box: _Box | None = None):
+        """Reference image warped by the similarity *M* (2, 3) and its carriers' positions in it.
+
+        With *box*, only that crop of the warped image is rendered (the
+        positions stay in full-image pixels).
+        """
         import cv2
 
-        img = cv2.warpAffine(self.image, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if box is not None:
+            M_box = M.copy()
+            M_box[:, 2] -= box.offset
+            img = cv2.warpAffine(self.image, M_box, (box.x1 - box.x0, box.y1 - box.y0), flags=cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REPLICATE)
+        else:
+            img = cv2.warpAffine(self.image, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return img, self.carriers @ M[:, :2].T + M[:, 2]
 
 
@@ -157,6 +222,7 @@ def track_lk(
     downscale: float = 1.0,
     rigid_tolerance: float = 3.0,
     lost_frames: int = 10,
+    roi: bool = True,
     progress=None,
 ):
     """Track landmarks through a sequence of frames.
@@ -200,6 +266,10 @@ def track_lk(
     lost_frames : int
         Raise :class:`FaceLostError` when fewer than a quarter of the points
         (or fewer than 2 rigid points) are reliable for this many frames in a row.
+    roi : bool
+        Run each LK call on a crop around the landmarks (see :class:`_Box`)
+        instead of the whole frame: same flow up to float32 rounding, at a
+        cost that does not grow with the video resolution.
     progress : callable, optional
         Called with the number of frames processed after each frame.
 
@@ -250,8 +320,16 @@ def track_lk(
             g = cv2.resize(g, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
         return g
 
+    last_fit: list = [None, None]
+
     def similarity(src, dst, wts):
-        return fit_similarity(src[rigid], dst[None, rigid], wts[None, rigid])[0]
+        # the head fit of the anchor pass often repeats the previous one
+        # exactly (same rigid points and weights): reuse it
+        args = (src[rigid], dst[rigid], wts[rigid])
+        key = b"".join(np.ascontiguousarray(a).tobytes() for a in args)
+        if key != last_fit[0]:
+            last_fit[:] = key, fit_similarity(args[0], args[1][None], args[2][None])[0]
+        return last_fit[1].copy()
 
     it = iter(frames)
     try:
@@ -288,7 +366,8 @@ def track_lk(
             continue
         # 1. frame-to-frame flow of the carriers, checked forward-backward
         c0 = c_prev.astype(np.float32).reshape(-1, 1, 2)
-        fwd, err = flow_forward_backward(prev, cur, c0, lk)
+        box = _Box(c0 if roi else [], (w, h), window, levels)
+        fwd, err = box.flow(box.crop(prev), box.crop(cur), c0, lk)
         c_est = fwd.reshape(-1, 2).astype(np.float64)
         good = err < 3 * fb_threshold
         wts = good.astype(float) if good[rigid].sum() >= 2 else np.ones(L)
@@ -298,9 +377,11 @@ def track_lk(
         if anchor:
             ref = refs[0] if len(refs) == 1 else min(refs, key=lambda r: _shape_distance(r.points, est, wts))
             M = similarity(ref.points, est, wts)
-            tmpl, c_tmpl = ref.template(M, (w, h))
+            c_tmpl = ref.carriers @ M[:, :2].T + M[:, 2]
+            box = _Box(np.concatenate([c_tmpl, fwd.reshape(-1, 2)]) if roi else [], (w, h), window, levels)
+            tmpl, c_tmpl = ref.template(M, (w, h), box)
             c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
-            afw, aerr = flow_forward_backward(tmpl, cur, c_t, lk, guess=fwd.copy(), lk_init=lk_init)
+            afw, aerr = box.flow(tmpl, box.crop(cur), c_t, lk, guess=fwd, lk_init=lk_init)
             use = aerr <= np.minimum(err, 3 * fb_threshold)
             c_est = np.where(use[:, None], afw.reshape(-1, 2), c_est)
             err = np.where(use, aerr, err)

@@ -61,3 +61,51 @@ def test_estimate_head_rejects_bad_shapes():
         estimate_head(np.zeros((4, 68)))
     with pytest.raises(ValueError, match="rigid_points"):
         estimate_head(np.zeros((4, 10, 2)), rigid_points=[3, 12])
+
+
+def _fit_similarity_reference(src, dst, weights, iterations):
+    """The straightforward IRLS (the implementation before it was streamlined), for comparison."""
+    dst = np.asarray(dst, dtype=np.float64)
+    T, L, _ = dst.shape
+    src = np.broadcast_to(np.asarray(src, dtype=np.float64), (T, L, 2))
+    w0 = np.ones((T, L)) if weights is None else np.asarray(weights, dtype=np.float64).copy()
+    w0 = np.where(np.isfinite(dst).all(-1), np.clip(w0, 0, None), 0.0)
+    zs = src[..., 0] + 1j * src[..., 1]
+    zd = np.nan_to_num(dst[..., 0]) + 1j * np.nan_to_num(dst[..., 1])
+    w = w0
+    for it in range(iterations + 1):
+        wsum = w.sum(1, keepdims=True)
+        wsum = np.where(wsum > 0, wsum, 1.0)
+        ms = (w * zs).sum(1, keepdims=True) / wsum
+        md = (w * zd).sum(1, keepdims=True) / wsum
+        cs, cd = zs - ms, zd - md
+        den = (w * np.abs(cs) ** 2).sum(1)
+        a = (w * np.conj(cs) * cd).sum(1) / np.where(den > 0, den, 1.0)
+        a = np.where(den > 0, a, 1.0)
+        b = md[:, 0] - a * ms[:, 0]
+        if it == iterations:
+            break
+        r = np.abs(zd - (a[:, None] * zs + b[:, None]))
+        scale = 1.4826 * np.median(np.where(w0 > 0, r, np.nan), axis=1, keepdims=True)
+        scale = np.nan_to_num(np.maximum(scale, 1e-3), nan=1.0)
+        k = 1.345 * scale
+        w = w0 * np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
+    return np.stack([np.stack([a.real, -a.imag, b.real], 1), np.stack([a.imag, a.real, b.imag], 1)], 1)
+
+
+def test_fit_similarity_matches_reference_irls_bitwise():
+    rng = np.random.default_rng(3)
+    for trial in range(300):
+        T, L = int(rng.integers(1, 4)), int(rng.integers(2, 15))
+        src = rng.normal(size=(L, 2) if trial % 2 else (T, L, 2)) * 100
+        dst = rng.normal(size=(T, L, 2)) * 100
+        w = rng.random((T, L))
+        w[rng.random((T, L)) < 0.2] = 0  # zero weights (robust scale falls back to 1 px)
+        if trial % 5 == 0:
+            dst[0, 0, 1] = np.nan
+        if trial % 7 == 0:
+            dst[-1, -1, 0] = np.inf
+        for it in (0, 1, 3):
+            for weights in (w, None):
+                np.testing.assert_array_equal(fit_similarity(src, dst, weights, iterations=it),
+                                              _fit_similarity_reference(src, dst, weights, it))

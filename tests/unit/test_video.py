@@ -1,0 +1,117 @@
+"""VideoReader decodes ahead in a thread without changing what it yields or reports."""
+
+import logging
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from retarget_cli.errors import InputError
+from retarget_cli.io.frames import FrameSource, TruncatedInputError
+from retarget_cli.io.video import VideoReader, decode_frames
+
+
+def _plain(path):
+    """Sequential OpenCV reading, the reference."""
+    cap = cv2.VideoCapture(str(path))
+    out = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        out.append(f)
+    cap.release()
+    return out
+
+
+def _decode_threads():
+    return [t for t in threading.enumerate() if t.name == "retarget-decode"]
+
+
+@pytest.fixture
+def truncated(small_take, tmp_path):
+    """An MJPG avi cut in half: the container announces more frames than decode."""
+    frames = _plain(small_take / "face.mp4")
+    avi = tmp_path / "full.avi"
+    w = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 30, (192, 192))
+    for f in frames:
+        w.write(f)
+    w.release()
+    data = avi.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) // 2])
+    return cut
+
+
+@pytest.mark.parametrize("prefetch", [0, 1, 4])
+def test_prefetching_reader_yields_identical_frames(small_take, prefetch):
+    ref = _plain(small_take / "face.mp4")
+    with VideoReader(small_take / "face.mp4", prefetch=prefetch) as r:
+        got = list(r)
+        assert r.frames_read == len(ref) == 60
+    assert len(got) == len(ref)
+    for a, b in zip(got, ref):
+        np.testing.assert_array_equal(a, b)
+    assert len({id(f) for f in got}) == len(got)  # each frame its own array
+    assert not _decode_threads()
+
+
+@pytest.mark.parametrize("prefetch", [0, 4])
+def test_truncated_video_still_reported(truncated, caplog, prefetch):
+    ref = _plain(truncated)
+    with caplog.at_level(logging.WARNING, logger="retarget_cli.io.video"):
+        with VideoReader(truncated, prefetch=prefetch) as r:
+            n = sum(1 for _ in r)
+            assert r.frames_read == n == len(ref)
+            assert 0 < n < r.frame_count == 60
+    assert f"container announces 60 frames but only {n} decoded" in caplog.text
+    assert "cut.avi" in caplog.text
+    # the frame source used by `retarget track` names the last frame read
+    with FrameSource(truncated) as src:
+        with pytest.raises(TruncatedInputError, match=rf"decoding stopped after frame {n - 1} ") as exc:
+            for _ in src:
+                pass
+        assert exc.value.last_frame == n - 1 and src.frames == list(range(n))
+
+
+def test_empty_decode_is_an_error(tmp_path):
+    bad = tmp_path / "x.mp4"
+    bad.write_bytes(b"\x00" * 2048)
+    with pytest.raises(InputError, match="x.mp4"):
+        with VideoReader(bad) as r:
+            list(r)
+
+
+def test_stopping_early_stops_the_decoding_thread(small_take):
+    r = VideoReader(small_take / "face.mp4")
+    it = iter(r)
+    first = [next(it) for _ in range(3)]
+    assert _decode_threads()  # decoding ahead
+    r.close()
+    assert not _decode_threads()
+    np.testing.assert_array_equal(first[2], _plain(small_take / "face.mp4")[2])
+    # a frame source stopped at --end reads exactly the frames before it
+    with FrameSource(small_take / "face.mp4", end=10, step=3) as src:
+        got = list(src)
+    assert src.frames == [0, 3, 6, 9] and len(got) == 4
+    assert not _decode_threads()
+
+
+def test_decoding_errors_reach_the_consumer_in_order():
+    class Cap:
+        def __init__(self):
+            self.n = 0
+
+        def read(self):
+            self.n += 1
+            if self.n == 4:
+                raise RuntimeError("decoder crashed")
+            return True, np.full((2, 2), self.n, np.uint8)
+
+    got = []
+    with pytest.raises(RuntimeError, match="decoder crashed"):
+        for f in decode_frames(Cap(), prefetch=2):
+            got.append(int(f[0, 0]))
+    assert got == [1, 2, 3]
+    assert not _decode_threads()
