@@ -24,6 +24,18 @@ from .head import default_rigid_points, fit_similarity
 from .prior import ShapePrior
 
 log = logging.getLogger(__name__)
+DEBUG = None
+ANCHOR_T = 0
+LOCAL = 0  # neighbours for local similarity (0 = global)
+ALEV = 1
+FUSE_LAM = 0.0
+FUSE_SIG = 0.3
+FUSE_EPS = 0.01
+AWIN = 0
+JAWOLD = 1
+MSTEP = 8
+GATE = 0.0
+BLEND = 1.0
 
 class FaceLostError(InputError):
     """The face was lost: too few landmarks tracked for several frames.
@@ -140,6 +152,102 @@ class _Reference:
 
         img = cv2.warpAffine(self.image, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return img, self.carriers @ M[:, :2].T + M[:, 2]
+
+    def mls(self, c_est, est, wts, size, margin, eps2, step):
+        """Reference warped onto the current estimate by a moving-least-squares similarity."""
+        import cv2
+
+        w, h = size
+        lo = np.floor(np.maximum(c_est.min(0) - margin, 0)).astype(int)
+        hi = np.ceil(np.minimum(c_est.max(0) + margin, (w - 1, h - 1))).astype(int)
+        gx = np.arange(lo[0], hi[0] + step, step, dtype=np.float64)
+        gy = np.arange(lo[1], hi[1] + step, step, dtype=np.float64)
+        X, Y = np.meshgrid(gx, gy)
+        p = est[:, 0] + 1j * est[:, 1]
+        q = self.points[:, 0] + 1j * self.points[:, 1]
+        f, _ = _mls(p, q, (X + 1j * Y).ravel(), eps2, wts)
+        f = f.reshape(X.shape)
+        ow, oh = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
+        # bilinear upsampling of the coarse map: grid node k sits at pixel lo + k*step
+        xs = (np.arange(ow)) / step
+        ys = (np.arange(oh)) / step
+        XX, YY = np.meshgrid(xs, ys)
+        mx = cv2.remap(f.real.astype(np.float32), XX.astype(np.float32), YY.astype(np.float32), cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE)
+        my = cv2.remap(f.imag.astype(np.float32), XX.astype(np.float32), YY.astype(np.float32), cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE)
+        img = np.zeros((h, w), np.uint8)
+        img[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = cv2.remap(self.image, mx, my, cv2.INTER_LINEAR,
+                                                           borderMode=cv2.BORDER_REPLICATE)
+        # where each reference carrier lies in the template: one Newton step from the estimate
+        cz = c_est[:, 0] + 1j * c_est[:, 1]
+        # value of the *sampled* map at the carriers (bilinear on the coarse grid)
+        fx = cv2.remap(f.real.astype(np.float32), ((c_est[:, 0] - lo[0]) / step).astype(np.float32)[None],
+                       ((c_est[:, 1] - lo[1]) / step).astype(np.float32)[None], cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE)[0]
+        fy = cv2.remap(f.imag.astype(np.float32), ((c_est[:, 0] - lo[0]) / step).astype(np.float32)[None],
+                       ((c_est[:, 1] - lo[1]) / step).astype(np.float32)[None], cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE)[0]
+        _, a = _mls(p, q, cz, eps2, wts)
+        r = fx + 1j * fy
+        cr = self.carriers[:, 0] + 1j * self.carriers[:, 1]
+        tz = cz + (cr - r) / a
+        return img, np.stack([tz.real, tz.imag], 1)
+
+
+def _structure(image, points, window):
+    """Normalised LK structure tensors (L, 2, 2) of *image* at *points*."""
+    import cv2
+
+    g = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
+    ix = cv2.Scharr(g, cv2.CV_32F, 1, 0) / 32
+    iy = cv2.Scharr(g, cv2.CV_32F, 0, 1) / 32
+    k = (window, window)
+    sxx = cv2.boxFilter(ix * ix, -1, k)
+    sxy = cv2.boxFilter(ix * iy, -1, k)
+    syy = cv2.boxFilter(iy * iy, -1, k)
+    h, w = image.shape[:2]
+    xi = np.clip(np.round(points[:, 0]).astype(int), 0, w - 1)
+    yi = np.clip(np.round(points[:, 1]).astype(int), 0, h - 1)
+    G = np.stack([np.stack([sxx[yi, xi], sxy[yi, xi]], -1), np.stack([sxy[yi, xi], syy[yi, xi]], -1)], -2).astype(float)
+    tr = np.trace(G, axis1=1, axis2=2)
+    return G / max(np.median(tr), 1e-9)
+
+
+def _fuse(est, ref, M, lam, sig, eps, window):
+    """Aperture-aware regularisation: displacements from the head-moved reference shape are smoothed
+    across neighbours only along directions the image does not constrain."""
+    L = len(est)
+    if getattr(ref, "_G", None) is None:
+        ref._G = _structure(ref.image, ref.points, window)
+        d = np.linalg.norm(ref.points[:, None] - ref.points[None], axis=2)
+        rms = np.sqrt(((ref.points - ref.points.mean(0)) ** 2).sum(1).mean())
+        W = np.exp(-0.5 * (d / (sig * rms)) ** 2)
+        np.fill_diagonal(W, 0)
+        ref._Lap = np.diag(W.sum(1)) - W
+    R = M[:, :2] / np.sqrt(abs(np.linalg.det(M[:, :2])))
+    G = np.einsum("ij,ljk,mk->lim", R, ref._G, R)
+    base = ref.points @ M[:, :2].T + M[:, 2]
+    dm = est - base
+    A = np.zeros((2 * L, 2 * L))
+    Gd = G + eps * np.eye(2)
+    for i in range(L):
+        A[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Gd[i]
+    A += lam * np.kron(ref._Lap, np.eye(2))
+    b = np.einsum("lij,lj->li", Gd, dm).ravel()
+    return base + np.linalg.solve(A, b).reshape(L, 2)
+
+
+def _mls(p, q, v, eps2, wts):
+    """Moving-least-squares similarity deformation (Schaefer et al. 2006) mapping control points
+    *p* to *q* (complex (L,)), evaluated at *v* (complex (G,)); returns f(v) and the local factor a."""
+    wv = wts[None, :] / (np.abs(p[None, :] - v[:, None]) ** 2 + eps2)
+    ws = wv.sum(1, keepdims=True)
+    ps = (wv * p).sum(1, keepdims=True) / ws
+    qs = (wv * q).sum(1, keepdims=True) / ws
+    ph, qh = p[None, :] - ps, q[None, :] - qs
+    a = (wv * np.conj(ph) * qh).sum(1) / np.maximum((wv * np.abs(ph) ** 2).sum(1), 1e-12)
+    return a * (v - ps[:, 0]) + qs[:, 0], a
 
 
 def track_lk(
@@ -297,16 +405,34 @@ def track_lk(
         # 2. drift correction against the reference closest in shape
         if anchor:
             ref = refs[0] if len(refs) == 1 else min(refs, key=lambda r: _shape_distance(r.points, est, wts))
-            M = similarity(ref.points, est, wts)
-            tmpl, c_tmpl = ref.template(M, (w, h))
-            c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
-            afw, aerr = flow_forward_backward(tmpl, cur, c_t, lk, guess=fwd.copy(), lk_init=lk_init)
-            use = aerr <= np.minimum(err, 3 * fb_threshold)
-            c_est = np.where(use[:, None], afw.reshape(-1, 2), c_est)
+            if LOCAL:
+                mos, c_t = ref.mls(c_est, est, np.maximum(wts, 0.05), (w, h), window * 2**ALEV // 2 + 8, LOCAL, MSTEP)
+                lka = dict(lk, maxLevel=ALEV)
+                afw, aerr = flow_forward_backward(mos, cur, c_t.astype(np.float32).reshape(-1, 1, 2), lka,
+                                                  guess=fwd.copy(), lk_init=dict(lka, flags=cv2.OPTFLOW_USE_INITIAL_FLOW))
+            else:
+                M = similarity(ref.points, est, wts)
+                tmpl, c_tmpl = ref.template(M, (w, h))
+                c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
+                lka = dict(lk, winSize=(AWIN, AWIN)) if AWIN else lk
+                afw, aerr = flow_forward_backward(tmpl, cur, c_t, lka, guess=fwd.copy(), lk_init=dict(lka, flags=cv2.OPTFLOW_USE_INITIAL_FLOW))
+            ferr = err.copy()
+            if GATE:
+                aerr = np.where(np.linalg.norm(afw.reshape(-1, 2) - c_est, axis=1) > GATE, np.inf, aerr)
+            use = aerr <= (ANCHOR_T * fb_threshold if ANCHOR_T else np.minimum(err, 3 * fb_threshold))
+            if ANCHOR_T and JAWOLD:
+                use[contour] = (aerr <= np.minimum(err, 3 * fb_threshold))[contour]
+            c_est = np.where(use[:, None], c_est + BLEND * (afw.reshape(-1, 2) - c_est), c_est)
             err = np.where(use, aerr, err)
             est = c_est - off
+            if DEBUG is not None:
+                DEBUG.append(dict(t=t, use=use.copy(), aerr=aerr.copy(), afw=afw.reshape(-1, 2).copy(), flow=fwd.reshape(-1, 2).astype(float), off=off.copy(), ferr=ferr))
         if contour.size and profile is not None:
             est[contour] = profile.refine(cur, est[contour], off[contour])
+        if FUSE_LAM:
+            Mh = similarity(P0, est, wts)
+            est = _fuse(est, refs[0], Mh, FUSE_LAM, FUSE_SIG, FUSE_EPS, window)
+            c_est = est + off
         # 3. rigid points that left the head's similarity are unreliable, then
         # unreliable points are recovered from the shape prior
         good = err < 3 * fb_threshold
@@ -333,6 +459,8 @@ def track_lk(
                     f"tracked for {lost_run} frames", f0, np.stack(pts[:f0]), np.stack(conf[:f0]))
         else:
             lost_run = 0
+        if DEBUG is not None:
+            DEBUG[-1].update(good=good.copy())
         pts.append(scale_back(est))
         conf.append(c)
         prev, c_prev = cur, c_est
