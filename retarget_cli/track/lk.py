@@ -28,6 +28,10 @@ DEBUG = None
 ANCHOR_T = 0
 LOCAL = 0  # neighbours for local similarity (0 = global)
 ALEV = 1
+NORMAL_W = 0.0
+HUBER = 0.0
+LIPOFF = -1
+LIPOLD = 1
 FUSE_LAM = 0.0
 FUSE_SIG = 0.3
 FUSE_EPS = 0.01
@@ -214,28 +218,37 @@ def _structure(image, points, window):
     return G / max(np.median(tr), 1e-9)
 
 
-def _fuse(est, ref, M, lam, sig, eps, window):
+def _fuse(est, ref, M, lam, sig, eps, window, extra):
     """Aperture-aware regularisation: displacements from the head-moved reference shape are smoothed
     across neighbours only along directions the image does not constrain."""
     L = len(est)
     if getattr(ref, "_G", None) is None:
-        ref._G = _structure(ref.image, ref.points, window)
+        ref._G = _structure(ref.image, ref.carriers, window)
         d = np.linalg.norm(ref.points[:, None] - ref.points[None], axis=2)
         rms = np.sqrt(((ref.points - ref.points.mean(0)) ** 2).sum(1).mean())
         W = np.exp(-0.5 * (d / (sig * rms)) ** 2)
         np.fill_diagonal(W, 0)
-        ref._Lap = np.diag(W.sum(1)) - W
+        ref._W = W
     R = M[:, :2] / np.sqrt(abs(np.linalg.det(M[:, :2])))
-    G = np.einsum("ij,ljk,mk->lim", R, ref._G, R)
+    G = np.einsum("ij,ljk,mk->lim", R, ref._G, R) + extra
     base = ref.points @ M[:, :2].T + M[:, 2]
     dm = est - base
-    A = np.zeros((2 * L, 2 * L))
     Gd = G + eps * np.eye(2)
+    D = np.zeros((2 * L, 2 * L))
     for i in range(L):
-        A[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Gd[i]
-    A += lam * np.kron(ref._Lap, np.eye(2))
+        D[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Gd[i]
     b = np.einsum("lij,lj->li", Gd, dm).ravel()
-    return base + np.linalg.solve(A, b).reshape(L, 2)
+    W = ref._W
+    d = dm
+    for _ in range(3 if HUBER else 1):
+        if HUBER:
+            r = np.linalg.norm(d[:, None] - d[None], axis=2)
+            Wr = W * np.where(r <= HUBER, 1.0, HUBER / np.maximum(r, 1e-12))
+        else:
+            Wr = W
+        Lap = np.diag(Wr.sum(1)) - Wr
+        d = np.linalg.solve(D + lam * np.kron(Lap, np.eye(2)), b).reshape(L, 2)
+    return base + d
 
 
 def _mls(p, q, v, eps2, wts):
@@ -351,6 +364,15 @@ def track_lk(
         inward = P0.mean(0) - P0[contour]
         inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-9)
         offset0[contour] = inward * (window // 2 + 2)
+    lips = np.array([61, 62, 63, 65, 66, 67]) if (L == 68 and LIPOFF >= 0) else np.zeros(0, dtype=int)
+    if lips.size:
+        axis = P0[64] - P0[60]
+        up = np.array([axis[1], -axis[0]]) / np.linalg.norm(axis)  # perpendicular, pointing up in the image
+        if up[1] > 0:
+            up = -up
+        offset0[[61, 62, 63]] = up * (LIPOFF or (window // 2 + 2))
+        offset0[[65, 66, 67]] = -up * (LIPOFF or (window // 2 + 2))
+    boundary = np.concatenate([contour, lips]).astype(int)
 
     def prep(frame):
         g = _gray(frame)
@@ -373,7 +395,7 @@ def track_lk(
     refs = [_Reference(first, P0, offset0)]
     # Silhouette points are then refined along their normal by matching the
     # annotated frame's intensity profile across the edge (ASM-style).
-    profile = _Profiles(first, P0[contour], offset0[contour]) if contour.size and contour_refine else None
+    profile = _Profiles(first, P0[boundary], offset0[boundary]) if boundary.size and contour_refine else None
     pts, conf = [scale_back(P0)], [np.ones(L)]
     Q0 = P0 + offset0
     prev, c_prev = first, Q0.copy()
@@ -422,16 +444,22 @@ def track_lk(
             use = aerr <= (ANCHOR_T * fb_threshold if ANCHOR_T else np.minimum(err, 3 * fb_threshold))
             if ANCHOR_T and JAWOLD:
                 use[contour] = (aerr <= np.minimum(err, 3 * fb_threshold))[contour]
+                if LIPOLD:
+                    use[lips] = (aerr <= np.minimum(err, 3 * fb_threshold))[lips]
             c_est = np.where(use[:, None], c_est + BLEND * (afw.reshape(-1, 2) - c_est), c_est)
             err = np.where(use, aerr, err)
             est = c_est - off
             if DEBUG is not None:
                 DEBUG.append(dict(t=t, use=use.copy(), aerr=aerr.copy(), afw=afw.reshape(-1, 2).copy(), flow=fwd.reshape(-1, 2).astype(float), off=off.copy(), ferr=ferr))
-        if contour.size and profile is not None:
-            est[contour] = profile.refine(cur, est[contour], off[contour])
+        if boundary.size and profile is not None:
+            est[boundary] = profile.refine(cur, est[boundary], off[boundary])
         if FUSE_LAM:
             Mh = similarity(P0, est, wts)
-            est = _fuse(est, refs[0], Mh, FUSE_LAM, FUSE_SIG, FUSE_EPS, window)
+            extra = np.zeros((L, 2, 2))
+            if NORMAL_W and profile is not None:
+                nn = off[boundary] / np.maximum(np.linalg.norm(off[boundary], axis=1, keepdims=True), 1e-9)
+                extra[boundary] = NORMAL_W * profile.last_ok[:, None, None] * np.einsum("li,lj->lij", nn, nn)
+            est = _fuse(est, refs[0], Mh, FUSE_LAM, FUSE_SIG, FUSE_EPS, window, extra)
             c_est = est + off
         # 3. rigid points that left the head's similarity are unreliable, then
         # unreliable points are recovered from the shape prior
@@ -517,6 +545,7 @@ class _Profiles:
         frac = np.where((k > 0) & (k < len(self.shifts) - 1) & (den < 0), 0.5 * (a - c) / np.where(den < 0, den, -1), 0)
         shift = self.shifts[k] + frac * self.step
         ok = best > self.min_ncc
+        self.last_ok = ok
         return np.where(ok[:, None], points + shift[:, None] * n, points)
 
 
