@@ -28,6 +28,9 @@ DEBUG = None
 ANCHOR_T = 0
 LOCAL = 0  # neighbours for local similarity (0 = global)
 ALEV = 1
+RIGID_W = 0.0
+FBW = 0
+GSCALE = 1.0
 NORMAL_W = 0.0
 HUBER = 0.0
 LIPOFF = -1
@@ -218,7 +221,7 @@ def _structure(image, points, window):
     return G / max(np.median(tr), 1e-9)
 
 
-def _fuse(est, ref, M, lam, sig, eps, window, extra):
+def _fuse(est, ref, M, lam, sig, eps, window, extra, dw, rw):
     """Aperture-aware regularisation: displacements from the head-moved reference shape are smoothed
     across neighbours only along directions the image does not constrain."""
     L = len(est)
@@ -230,13 +233,13 @@ def _fuse(est, ref, M, lam, sig, eps, window, extra):
         np.fill_diagonal(W, 0)
         ref._W = W
     R = M[:, :2] / np.sqrt(abs(np.linalg.det(M[:, :2])))
-    G = np.einsum("ij,ljk,mk->lim", R, ref._G, R) + extra
+    G = (np.einsum("ij,ljk,mk->lim", R, ref._G, R) + extra) * dw[:, None, None]
     base = ref.points @ M[:, :2].T + M[:, 2]
     dm = est - base
     Gd = G + eps * np.eye(2)
     D = np.zeros((2 * L, 2 * L))
     for i in range(L):
-        D[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Gd[i]
+        D[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Gd[i] + rw[i] * np.eye(2)
     b = np.einsum("lij,lj->li", Gd, dm).ravel()
     W = ref._W
     d = dm
@@ -459,7 +462,8 @@ def track_lk(
             if NORMAL_W and profile is not None:
                 nn = off[boundary] / np.maximum(np.linalg.norm(off[boundary], axis=1, keepdims=True), 1e-9)
                 extra[boundary] = NORMAL_W * profile.last_ok[:, None, None] * np.einsum("li,lj->lij", nn, nn)
-            est = _fuse(est, refs[0], Mh, FUSE_LAM, FUSE_SIG, FUSE_EPS, window, extra)
+            dw = GSCALE * (np.exp(-np.where(np.isfinite(err), err, 1e3) / fb_threshold) if FBW else np.ones(L))
+            est = _fuse(est, refs[0], Mh, FUSE_LAM, FUSE_SIG, FUSE_EPS, window, extra, dw, np.where(is_rigid, RIGID_W, 0.0))
             c_est = est + off
         # 3. rigid points that left the head's similarity are unreliable, then
         # unreliable points are recovered from the shape prior
