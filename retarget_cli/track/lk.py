@@ -5,8 +5,16 @@ affine motion. This tracker follows each landmark with OpenCV's pyramidal
 Lucas–Kanade flow (Bouguet's implementation) from frame to frame and checks it
 with a forward–backward pass. Frame-to-frame flow drifts, so every frame is
 also re-registered against an annotated frame warped onto the current
-estimate by the head similarity (a template update with drift correction;
-for each point the pass with the smaller forward-backward error wins). Points that both passes fail are recovered from
+estimate (a template update with drift correction, Matthews et al. 2004):
+the warp is a moving-least-squares similarity deformation (Schaefer et al.
+2006) through the landmarks, so the template follows expressions as well as
+the head. A point whose anchor match passes the forward–backward check is
+pulled halfway to it. Edges (lips, brows, the jaw line) fix a landmark
+across the edge only; along it LK drifts (the aperture problem). A
+regularisation step therefore smooths the landmarks' displacements from the
+reference shape across neighbours, weighted per point and direction by the
+reference image's LK structure tensor (robust Huber weights let the mouth
+open). Points that both passes fail are recovered from
 a shape prior built from the annotated frames
 (:class:`~retarget_cli.track.prior.ShapePrior`) and get confidence 0. Every
 annotated frame it is given re-anchors the track and becomes a reference.
@@ -24,25 +32,16 @@ from .head import default_rigid_points, fit_similarity
 from .prior import ShapePrior
 
 log = logging.getLogger(__name__)
-DEBUG = None
-ANCHOR_T = 0
-LOCAL = 0  # neighbours for local similarity (0 = global)
-ALEV = 1
-RIGID_W = 0.0
-FBW = 0
-GSCALE = 1.0
-NORMAL_W = 0.0
-HUBER = 0.0
-LIPOFF = -1
-LIPOLD = 1
-FUSE_LAM = 0.0
-FUSE_SIG = 0.3
-FUSE_EPS = 0.01
-AWIN = 0
-JAWOLD = 1
-MSTEP = 8
-GATE = 0.0
-BLEND = 1.0
+
+# Algorithm constants (dimensionless unless stated; "rms" is the RMS distance
+# of the annotated landmarks from their centroid, i.e. the face size).
+_ANCHOR_LEVELS = 1      # pyramid levels of the anchor pass (it starts from the flow estimate)
+_ANCHOR_GAIN = 0.5      # fraction of the way a point moves to its accepted anchor match
+_MLS_SOFTNESS = 0.4     # softening radius of the MLS template warp, in rms
+_SMOOTH_WEIGHT = 0.03   # weight of the displacement smoothness against the (normalised) LK information
+_SMOOTH_RADIUS = 0.3    # Gaussian radius of the neighbourhood, in rms
+_SMOOTH_HUBER = 1.0     # displacement difference (pixels at full resolution) beyond which smoothing is robust
+_RIGID_WEIGHT = 3.0     # pull of rigid points to the head similarity in the regularisation
 
 class FaceLostError(InputError):
     """The face was lost: too few landmarks tracked for several frames.
@@ -106,6 +105,27 @@ def _contour_points(n_points: int) -> np.ndarray:
     return np.arange(17) if n_points == 68 else np.zeros(0, dtype=int)
 
 
+def _inner_lip_offsets(P0: np.ndarray, length: float) -> dict[int, np.ndarray]:
+    """Proxy offsets of the inner-lip points of the 68-point layout, into the lips.
+
+    The inner lips border the mouth opening, whose appearance (dark interior,
+    teeth) a closed-mouth annotation does not show; the upper points (61-63)
+    are tracked through a proxy moved up into the upper lip, the lower ones
+    (65-67) through one moved down into the lower lip, perpendicular to the
+    mouth axis (60 -> 64). Empty for other layouts.
+    """
+    if len(P0) != 68:
+        return {}
+    axis = P0[64] - P0[60]
+    n = np.linalg.norm(axis)
+    if n < 1e-9:
+        return {}
+    up = np.array([axis[1], -axis[0]]) / n
+    if up[1] > 0:  # image y points down
+        up = -up
+    return {**{i: up * length for i in (61, 62, 63)}, **{i: -up * length for i in (65, 66, 67)}}
+
+
 def normalize_annotations(annotations) -> dict[int, np.ndarray]:
     """``(L, 2)`` array (frame 0) or ``{frame: (L, 2)}`` to a sorted dict of float64 arrays.
 
@@ -146,124 +166,196 @@ def check_inside(P, size, what: str) -> None:
 
 
 class _Reference:
-    """An annotated frame used as an anchor template."""
+    """An annotated frame used as an anchor template.
 
-    def __init__(self, image, points, offsets):
+    Parameters
+    ----------
+    image : ndarray, shape (H, W), uint8
+    points, offsets : ndarray, shape (L, 2)
+        Landmarks and the offsets of their tracked carriers (proxies).
+    window : int
+        LK window, for the structure tensors.
+    """
+
+    def __init__(self, image, points, offsets, window: int):
         self.image = image
         self.points = points
         self.carriers = points + offsets
+        rms = float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()))
+        self.soft = max(_MLS_SOFTNESS * rms, 1.0)
+        self.info = _structure_tensors(image, self.carriers, window)
+        d = np.linalg.norm(points[:, None] - points[None], axis=2)
+        self.neighbours = np.exp(-0.5 * (d / max(_SMOOTH_RADIUS * rms, 1e-9)) ** 2)
+        np.fill_diagonal(self.neighbours, 0.0)
 
-    def template(self, M, size):
-        """Reference image warped by the similarity *M* (2, 3) and its carriers' positions in it."""
+    def template(self, est, c_est, margin: float):
+        """Reference image warped onto the current estimate, and where its carriers land in it.
+
+        The warp is the moving-least-squares similarity deformation (Schaefer
+        et al. 2006, eqs. 5-6, with the softened weights
+        ``1 / (|p - v|^2 + soft^2)``) taking the landmarks *est* to the
+        reference landmarks, evaluated on a coarse grid over the face and
+        interpolated bilinearly; outside the face's box plus *margin* the
+        template is black.
+
+        Parameters
+        ----------
+        est, c_est : ndarray, shape (L, 2)
+            Current landmark and carrier estimates.
+        margin : float
+            Pixels around the carriers' bounding box to fill.
+
+        Returns
+        -------
+        template : ndarray, shape (H, W), uint8
+        carriers : ndarray, shape (L, 2)
+            The reference carriers' positions in the template.
+        """
         import cv2
 
-        img = cv2.warpAffine(self.image, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return img, self.carriers @ M[:, :2].T + M[:, 2]
-
-    def mls(self, c_est, est, wts, size, margin, eps2, step):
-        """Reference warped onto the current estimate by a moving-least-squares similarity."""
-        import cv2
-
-        w, h = size
-        lo = np.floor(np.maximum(c_est.min(0) - margin, 0)).astype(int)
+        h, w = self.image.shape[:2]
+        lo = np.floor(np.clip(c_est.min(0) - margin, 0, None)).astype(int)
         hi = np.ceil(np.minimum(c_est.max(0) + margin, (w - 1, h - 1))).astype(int)
-        gx = np.arange(lo[0], hi[0] + step, step, dtype=np.float64)
-        gy = np.arange(lo[1], hi[1] + step, step, dtype=np.float64)
+        hi = np.maximum(hi, lo)
+        step = max(4.0, self.soft / 2)
+        gx = lo[0] + np.arange(int(np.ceil((hi[0] - lo[0]) / step)) + 2) * step
+        gy = lo[1] + np.arange(int(np.ceil((hi[1] - lo[1]) / step)) + 2) * step
         X, Y = np.meshgrid(gx, gy)
         p = est[:, 0] + 1j * est[:, 1]
         q = self.points[:, 0] + 1j * self.points[:, 1]
-        f, _ = _mls(p, q, (X + 1j * Y).ravel(), eps2, wts)
-        f = f.reshape(X.shape)
-        ow, oh = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1
-        # bilinear upsampling of the coarse map: grid node k sits at pixel lo + k*step
-        xs = (np.arange(ow)) / step
-        ys = (np.arange(oh)) / step
-        XX, YY = np.meshgrid(xs, ys)
-        mx = cv2.remap(f.real.astype(np.float32), XX.astype(np.float32), YY.astype(np.float32), cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
-        my = cv2.remap(f.imag.astype(np.float32), XX.astype(np.float32), YY.astype(np.float32), cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
+        f, _ = _mls_similarity(p, q, (X + 1j * Y).ravel(), self.soft**2)
+        fx = f.real.reshape(X.shape).astype(np.float32)
+        fy = f.imag.reshape(X.shape).astype(np.float32)
+        # bilinear upsampling of the coarse map: grid node k sits at pixel lo + k * step
+        u = (np.arange(lo[0], hi[0] + 1) - lo[0]) / step
+        v = (np.arange(lo[1], hi[1] + 1) - lo[1]) / step
+        U, V = (a.astype(np.float32) for a in np.meshgrid(u, v))
+        mx = cv2.remap(fx, U, V, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        my = cv2.remap(fy, U, V, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         img = np.zeros((h, w), np.uint8)
         img[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = cv2.remap(self.image, mx, my, cv2.INTER_LINEAR,
                                                            borderMode=cv2.BORDER_REPLICATE)
-        # where each reference carrier lies in the template: one Newton step from the estimate
+        # The sampled map at the current carriers, then one Newton step (local
+        # similarity factor a) to where the reference carriers land in the template.
+        cu = ((c_est[:, 0] - lo[0]) / step).astype(np.float32)[None]
+        cv_ = ((c_est[:, 1] - lo[1]) / step).astype(np.float32)[None]
+        r = (cv2.remap(fx, cu, cv_, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+             + 1j * cv2.remap(fy, cu, cv_, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0])
         cz = c_est[:, 0] + 1j * c_est[:, 1]
-        # value of the *sampled* map at the carriers (bilinear on the coarse grid)
-        fx = cv2.remap(f.real.astype(np.float32), ((c_est[:, 0] - lo[0]) / step).astype(np.float32)[None],
-                       ((c_est[:, 1] - lo[1]) / step).astype(np.float32)[None], cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)[0]
-        fy = cv2.remap(f.imag.astype(np.float32), ((c_est[:, 0] - lo[0]) / step).astype(np.float32)[None],
-                       ((c_est[:, 1] - lo[1]) / step).astype(np.float32)[None], cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)[0]
-        _, a = _mls(p, q, cz, eps2, wts)
-        r = fx + 1j * fy
-        cr = self.carriers[:, 0] + 1j * self.carriers[:, 1]
-        tz = cz + (cr - r) / a
+        _, a = _mls_similarity(p, q, cz, self.soft**2)
+        tz = cz + ((self.carriers[:, 0] + 1j * self.carriers[:, 1]) - r) / a
         return img, np.stack([tz.real, tz.imag], 1)
 
 
-def _structure(image, points, window):
-    """Normalised LK structure tensors (L, 2, 2) of *image* at *points*."""
-    import cv2
+def _mls_similarity(p, q, v, soft2: float):
+    """Moving-least-squares similarity deformation (Schaefer et al. 2006, eq. 6) in complex form.
 
-    g = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
-    ix = cv2.Scharr(g, cv2.CV_32F, 1, 0) / 32
-    iy = cv2.Scharr(g, cv2.CV_32F, 0, 1) / 32
-    k = (window, window)
-    sxx = cv2.boxFilter(ix * ix, -1, k)
-    sxy = cv2.boxFilter(ix * iy, -1, k)
-    syy = cv2.boxFilter(iy * iy, -1, k)
-    h, w = image.shape[:2]
-    xi = np.clip(np.round(points[:, 0]).astype(int), 0, w - 1)
-    yi = np.clip(np.round(points[:, 1]).astype(int), 0, h - 1)
-    G = np.stack([np.stack([sxx[yi, xi], sxy[yi, xi]], -1), np.stack([sxy[yi, xi], syy[yi, xi]], -1)], -2).astype(float)
-    tr = np.trace(G, axis1=1, axis2=2)
-    return G / max(np.median(tr), 1e-9)
+    Parameters
+    ----------
+    p, q : ndarray, shape (L,), complex
+        Control points and where they go.
+    v : ndarray, shape (G,), complex
+        Query points.
+    soft2 : float
+        Squared softening radius of the weights ``1 / (|p_i - v|^2 + soft2)``.
 
-
-def _fuse(est, ref, M, lam, sig, eps, window, extra, dw, rw):
-    """Aperture-aware regularisation: displacements from the head-moved reference shape are smoothed
-    across neighbours only along directions the image does not constrain."""
-    L = len(est)
-    if getattr(ref, "_G", None) is None:
-        ref._G = _structure(ref.image, ref.carriers, window)
-        d = np.linalg.norm(ref.points[:, None] - ref.points[None], axis=2)
-        rms = np.sqrt(((ref.points - ref.points.mean(0)) ** 2).sum(1).mean())
-        W = np.exp(-0.5 * (d / (sig * rms)) ** 2)
-        np.fill_diagonal(W, 0)
-        ref._W = W
-    R = M[:, :2] / np.sqrt(abs(np.linalg.det(M[:, :2])))
-    G = (np.einsum("ij,ljk,mk->lim", R, ref._G, R) + extra) * dw[:, None, None]
-    base = ref.points @ M[:, :2].T + M[:, 2]
-    dm = est - base
-    Gd = G + eps * np.eye(2)
-    D = np.zeros((2 * L, 2 * L))
-    for i in range(L):
-        D[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Gd[i] + rw[i] * np.eye(2)
-    b = np.einsum("lij,lj->li", Gd, dm).ravel()
-    W = ref._W
-    d = dm
-    for _ in range(3 if HUBER else 1):
-        if HUBER:
-            r = np.linalg.norm(d[:, None] - d[None], axis=2)
-            Wr = W * np.where(r <= HUBER, 1.0, HUBER / np.maximum(r, 1e-12))
-        else:
-            Wr = W
-        Lap = np.diag(Wr.sum(1)) - Wr
-        d = np.linalg.solve(D + lam * np.kron(Lap, np.eye(2)), b).reshape(L, 2)
-    return base + d
-
-
-def _mls(p, q, v, eps2, wts):
-    """Moving-least-squares similarity deformation (Schaefer et al. 2006) mapping control points
-    *p* to *q* (complex (L,)), evaluated at *v* (complex (G,)); returns f(v) and the local factor a."""
-    wv = wts[None, :] / (np.abs(p[None, :] - v[:, None]) ** 2 + eps2)
+    Returns
+    -------
+    f : ndarray, shape (G,), complex
+        Deformed query points.
+    a : ndarray, shape (G,), complex
+        Local similarity factor (scale and rotation) at each query point.
+    """
+    wv = 1.0 / (np.abs(p[None, :] - v[:, None]) ** 2 + soft2)
     ws = wv.sum(1, keepdims=True)
     ps = (wv * p).sum(1, keepdims=True) / ws
     qs = (wv * q).sum(1, keepdims=True) / ws
     ph, qh = p[None, :] - ps, q[None, :] - qs
     a = (wv * np.conj(ph) * qh).sum(1) / np.maximum((wv * np.abs(ph) ** 2).sum(1), 1e-12)
     return a * (v - ps[:, 0]) + qs[:, 0], a
+
+
+def _structure_tensors(image, points, window: int) -> np.ndarray:
+    """LK structure tensors of *image* over a *window* square at *points*.
+
+    ``sum [Ix^2, IxIy; IxIy, Iy^2]`` (Lucas & Kanade; the inverse covariance
+    of an LK match up to the noise level), normalised by the median trace
+    over the points so that it is independent of contrast.
+
+    Returns
+    -------
+    ndarray, shape (L, 2, 2)
+    """
+    import cv2
+
+    g = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
+    ix = cv2.Scharr(g, cv2.CV_32F, 1, 0) / 32
+    iy = cv2.Scharr(g, cv2.CV_32F, 0, 1) / 32
+    k = (window, window)
+    sxx, sxy, syy = (cv2.boxFilter(a, -1, k) for a in (ix * ix, ix * iy, iy * iy))
+    h, w = image.shape[:2]
+    xi = np.clip(np.round(points[:, 0]).astype(int), 0, w - 1)
+    yi = np.clip(np.round(points[:, 1]).astype(int), 0, h - 1)
+    G = np.empty((len(points), 2, 2))
+    G[:, 0, 0], G[:, 0, 1], G[:, 1, 1] = sxx[yi, xi], sxy[yi, xi], syy[yi, xi]
+    G[:, 1, 0] = G[:, 0, 1]
+    return G / max(float(np.median(np.trace(G, axis1=1, axis2=2))), 1e-9)
+
+
+def _regularize(est, ref: _Reference, M, confidence, rigid_mask, huber: float, iterations: int = 3):
+    """Aperture-aware smoothing of the landmarks' displacements from the reference shape.
+
+    With ``d_i = x_i - M(r_i)`` (landmark minus reference landmark under the
+    head similarity *M*) and the measured ``m_i``, minimises
+
+    ``sum_i c_i (d_i - m_i)^T G_i (d_i - m_i) + rho_i |d_i|^2
+    + lambda sum_ij w_ij h_ij |d_i - d_j|^2``
+
+    where ``G_i`` is the reference's LK structure tensor rotated by *M*,
+    ``c_i`` the tracking confidence, ``rho_i`` pulls rigid points to the head
+    similarity, ``w_ij`` Gaussian neighbourhood weights and ``h_ij`` Huber
+    weights of the current differences (IRLS), so large true deformations
+    (mouth opening) are not smoothed away. Where the image constrains a
+    point in one direction only (an edge), the neighbours decide the other.
+
+    Parameters
+    ----------
+    est : ndarray, shape (L, 2)
+    ref : _Reference
+    M : ndarray, shape (2, 3)
+        Head similarity from the reference to the current frame.
+    confidence : ndarray, shape (L,)
+    rigid_mask : ndarray, shape (L,), bool
+    huber : float
+        Huber threshold in (tracking-resolution) pixels.
+
+    Returns
+    -------
+    ndarray, shape (L, 2)
+    """
+    L = len(est)
+    R = M[:, :2] / np.sqrt(max(abs(np.linalg.det(M[:, :2])), 1e-12))
+    G = np.einsum("ij,ljk,mk->lim", R, ref.info, R) * confidence[:, None, None] + 0.01 * np.eye(2)
+    base = ref.points @ M[:, :2].T + M[:, 2]
+    m = est - base
+    D = np.zeros((2 * L, 2 * L))
+    i2 = 2 * np.arange(L)
+    for a in (0, 1):
+        for b in (0, 1):
+            D[i2 + a, i2 + b] = G[:, a, b]
+    D[i2, i2] += _RIGID_WEIGHT * rigid_mask
+    D[i2 + 1, i2 + 1] += _RIGID_WEIGHT * rigid_mask
+    rhs = np.einsum("lij,lj->li", G, m).ravel()
+    d = m
+    for _ in range(iterations):
+        r = np.linalg.norm(d[:, None] - d[None], axis=2)
+        W = ref.neighbours * np.minimum(1.0, huber / np.maximum(r, 1e-12))
+        Lap = np.diag(W.sum(1)) - W
+        A = D.copy()
+        A[0::2, 0::2] += _SMOOTH_WEIGHT * Lap
+        A[1::2, 1::2] += _SMOOTH_WEIGHT * Lap
+        d = np.linalg.solve(A, rhs).reshape(L, 2)
+    return base + d
 
 
 def track_lk(
@@ -358,7 +450,8 @@ def track_lk(
     contour = _contour_points(L) if contour_points is None else np.asarray(contour_points, dtype=int)
     lk = dict(winSize=(window, window), maxLevel=levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 0.001))
-    lk_init = dict(lk, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    lk_anchor = dict(lk, maxLevel=min(levels, _ANCHOR_LEVELS))
+    lk_anchor_init = dict(lk_anchor, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     # Silhouette points (the jaw line) have background under half their window,
     # which drags them when the head moves. Track a proxy moved inward by about
     # half a window instead and move the landmark by the proxy's displacement.
@@ -367,15 +460,12 @@ def track_lk(
         inward = P0.mean(0) - P0[contour]
         inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-9)
         offset0[contour] = inward * (window // 2 + 2)
-    lips = np.array([61, 62, 63, 65, 66, 67]) if (L == 68 and LIPOFF >= 0) else np.zeros(0, dtype=int)
-    if lips.size:
-        axis = P0[64] - P0[60]
-        up = np.array([axis[1], -axis[0]]) / np.linalg.norm(axis)  # perpendicular, pointing up in the image
-        if up[1] > 0:
-            up = -up
-        offset0[[61, 62, 63]] = up * (LIPOFF or (window // 2 + 2))
-        offset0[[65, 66, 67]] = -up * (LIPOFF or (window // 2 + 2))
-    boundary = np.concatenate([contour, lips]).astype(int)
+    # Likewise the inner lips, whose other side is the mouth opening.
+    lips = _inner_lip_offsets(P0, window // 2 + 2)
+    for i, o in lips.items():
+        offset0[i] = o
+    boundary = np.concatenate([contour, list(lips)]).astype(int)
+    is_boundary = np.isin(np.arange(L), boundary)
 
     def prep(frame):
         g = _gray(frame)
@@ -395,9 +485,9 @@ def track_lk(
     scale_back = lambda P: (P + 0.5) / s - 0.5  # noqa: E731
     check_inside(P0, (w, h), "annotations: frame 0")
     prior = ShapePrior(np.stack(list(ann.values()))) if shape_prior else ShapePrior(P0[None])
-    refs = [_Reference(first, P0, offset0)]
-    # Silhouette points are then refined along their normal by matching the
-    # annotated frame's intensity profile across the edge (ASM-style).
+    refs = [_Reference(first, P0, offset0, window)]
+    # Silhouette and inner-lip points are then refined along their normal by
+    # matching the annotated frame's intensity profile across the edge (ASM-style).
     profile = _Profiles(first, P0[boundary], offset0[boundary]) if boundary.size and contour_refine else None
     pts, conf = [scale_back(P0)], [np.ones(L)]
     Q0 = P0 + offset0
@@ -412,7 +502,7 @@ def track_lk(
             check_inside(ann[t], (w, h), f"annotations: frame {t}")
             p = ann[t]
             off = offset0 @ similarity(P0, p, np.ones(L))[:, :2].T
-            refs.append(_Reference(cur, p, off))
+            refs.append(_Reference(cur, p, off, window))
             pts.append(scale_back(p))
             conf.append(np.ones(L))
             prev, c_prev, lost_run = cur, p + off, 0
@@ -427,45 +517,30 @@ def track_lk(
         wts = good.astype(float) if good[rigid].sum() >= 2 else np.ones(L)
         off = offset0 @ similarity(Q0, c_est, wts)[:, :2].T
         est = c_est - off
-        # 2. drift correction against the reference closest in shape
+        ref = refs[0] if len(refs) == 1 else min(refs, key=lambda r: _shape_distance(r.points, est, wts))
+        # 2. drift correction against the reference closest in shape, warped
+        # onto the current estimate
         if anchor:
-            ref = refs[0] if len(refs) == 1 else min(refs, key=lambda r: _shape_distance(r.points, est, wts))
-            if LOCAL:
-                mos, c_t = ref.mls(c_est, est, np.maximum(wts, 0.05), (w, h), window * 2**ALEV // 2 + 8, LOCAL, MSTEP)
-                lka = dict(lk, maxLevel=ALEV)
-                afw, aerr = flow_forward_backward(mos, cur, c_t.astype(np.float32).reshape(-1, 1, 2), lka,
-                                                  guess=fwd.copy(), lk_init=dict(lka, flags=cv2.OPTFLOW_USE_INITIAL_FLOW))
-            else:
-                M = similarity(ref.points, est, wts)
-                tmpl, c_tmpl = ref.template(M, (w, h))
-                c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
-                lka = dict(lk, winSize=(AWIN, AWIN)) if AWIN else lk
-                afw, aerr = flow_forward_backward(tmpl, cur, c_t, lka, guess=fwd.copy(), lk_init=dict(lka, flags=cv2.OPTFLOW_USE_INITIAL_FLOW))
-            ferr = err.copy()
-            if GATE:
-                aerr = np.where(np.linalg.norm(afw.reshape(-1, 2) - c_est, axis=1) > GATE, np.inf, aerr)
-            use = aerr <= (ANCHOR_T * fb_threshold if ANCHOR_T else np.minimum(err, 3 * fb_threshold))
-            if ANCHOR_T and JAWOLD:
-                use[contour] = (aerr <= np.minimum(err, 3 * fb_threshold))[contour]
-                if LIPOLD:
-                    use[lips] = (aerr <= np.minimum(err, 3 * fb_threshold))[lips]
-            c_est = np.where(use[:, None], c_est + BLEND * (afw.reshape(-1, 2) - c_est), c_est)
+            tmpl, c_tmpl = ref.template(est, c_est, window * 2**_ANCHOR_LEVELS // 2 + 8)
+            c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
+            afw, aerr = flow_forward_backward(tmpl, cur, c_t, lk_anchor, guess=fwd.copy(), lk_init=lk_anchor_init)
+            # A match that passes the forward-backward check is drift-free;
+            # frame-to-frame flow always has the smaller error, so comparing
+            # the two would keep the drift. Proxies next to appearance the
+            # reference does not show (background, mouth opening) keep that
+            # comparison: their anchor matches are less reliable.
+            use = np.where(is_boundary, aerr <= np.minimum(err, 3 * fb_threshold), aerr <= fb_threshold)
+            c_est = np.where(use[:, None], c_est + _ANCHOR_GAIN * (afw.reshape(-1, 2) - c_est), c_est)
             err = np.where(use, aerr, err)
             est = c_est - off
-            if DEBUG is not None:
-                DEBUG.append(dict(t=t, use=use.copy(), aerr=aerr.copy(), afw=afw.reshape(-1, 2).copy(), flow=fwd.reshape(-1, 2).astype(float), off=off.copy(), ferr=ferr))
         if boundary.size and profile is not None:
             est[boundary] = profile.refine(cur, est[boundary], off[boundary])
-        if FUSE_LAM:
-            Mh = similarity(P0, est, wts)
-            extra = np.zeros((L, 2, 2))
-            if NORMAL_W and profile is not None:
-                nn = off[boundary] / np.maximum(np.linalg.norm(off[boundary], axis=1, keepdims=True), 1e-9)
-                extra[boundary] = NORMAL_W * profile.last_ok[:, None, None] * np.einsum("li,lj->lij", nn, nn)
-            dw = GSCALE * (np.exp(-np.where(np.isfinite(err), err, 1e3) / fb_threshold) if FBW else np.ones(L))
-            est = _fuse(est, refs[0], Mh, FUSE_LAM, FUSE_SIG, FUSE_EPS, window, extra, dw, np.where(is_rigid, RIGID_W, 0.0))
-            c_est = est + off
-        # 3. rigid points that left the head's similarity are unreliable, then
+        # 3. aperture-aware smoothing of the displacements from the reference
+        Mh = similarity(ref.points, est, wts)
+        fb_conf = np.exp(-np.where(np.isfinite(err), err, 1e3) / fb_threshold)
+        est = _regularize(est, ref, Mh, fb_conf, is_rigid, _SMOOTH_HUBER * s)
+        c_est = est + off
+        # 4. rigid points that left the head's similarity are unreliable, then
         # unreliable points are recovered from the shape prior
         good = err < 3 * fb_threshold
         Mr = similarity(P0, est, good.astype(float) if good[rigid].sum() >= 2 else np.ones(L))
@@ -491,8 +566,6 @@ def track_lk(
                     f"tracked for {lost_run} frames", f0, np.stack(pts[:f0]), np.stack(conf[:f0]))
         else:
             lost_run = 0
-        if DEBUG is not None:
-            DEBUG[-1].update(good=good.copy())
         pts.append(scale_back(est))
         conf.append(c)
         prev, c_prev = cur, c_est
@@ -549,7 +622,6 @@ class _Profiles:
         frac = np.where((k > 0) & (k < len(self.shifts) - 1) & (den < 0), 0.5 * (a - c) / np.where(den < 0, den, -1), 0)
         shift = self.shifts[k] + frac * self.step
         ok = best > self.min_ncc
-        self.last_ok = ok
         return np.where(ok[:, None], points + shift[:, None] * n, points)
 
 
