@@ -515,6 +515,13 @@ def track_lk(
         c_est = fwd.reshape(-1, 2).astype(np.float64)
         good = err < 3 * fb_threshold
         wts = good.astype(float) if good[rigid].sum() >= 2 else np.ones(L)
+        # points whose flow fails the check start from where the motion of
+        # the others (a similarity) takes them, not from the failed flow
+        jump = err > fb_threshold
+        if jump.any() and (~jump).sum() >= 3:
+            Mf = fit_similarity(c_prev[~jump], c_est[None, ~jump])[0]
+            c_est[jump] = c_prev[jump] @ Mf[:, :2].T + Mf[:, 2]
+            fwd = c_est.astype(np.float32).reshape(-1, 1, 2)
         off = offset0 @ similarity(Q0, c_est, wts)[:, :2].T
         est = c_est - off
         ref = refs[0] if len(refs) == 1 else min(refs, key=lambda r: _shape_distance(r.points, est, wts))
@@ -536,8 +543,8 @@ def track_lk(
         if boundary.size and profile is not None:
             est[boundary] = profile.refine(cur, est[boundary], off[boundary])
         # 3. aperture-aware smoothing of the displacements from the reference
-        Mh = similarity(ref.points, est, wts)
         fb_conf = np.exp(-np.where(np.isfinite(err), err, 1e3) / fb_threshold)
+        Mh = similarity(ref.points, est, fb_conf if fb_conf[rigid].sum() > 0.5 else wts)
         est = _regularize(est, ref, Mh, fb_conf, is_rigid, _SMOOTH_HUBER * s)
         c_est = est + off
         # 4. rigid points that left the head's similarity are unreliable, then
