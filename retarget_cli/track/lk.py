@@ -347,15 +347,29 @@ def _regularize(est, ref: _Reference, M, confidence, rigid_mask, huber: float, i
     D[i2 + 1, i2 + 1] += _RIGID_WEIGHT * rigid_mask
     rhs = np.einsum("lij,lj->li", G, m).ravel()
     d = m
-    for _ in range(iterations):
-        r = np.linalg.norm(d[:, None] - d[None], axis=2)
-        W = ref.neighbours * np.minimum(1.0, huber / np.maximum(r, 1e-12))
-        Lap = np.diag(W.sum(1)) - W
-        A = D.copy()
-        A[0::2, 0::2] += _SMOOTH_WEIGHT * Lap
-        A[1::2, 1::2] += _SMOOTH_WEIGHT * Lap
-        d = np.linalg.solve(A, rhs).reshape(L, 2)
+    # a multithreaded BLAS is ~10x slower on this small system on a busy machine
+    with _single_thread_blas():
+        for _ in range(iterations):
+            r = np.linalg.norm(d[:, None] - d[None], axis=2)
+            W = ref.neighbours * np.minimum(1.0, huber / np.maximum(r, 1e-12))
+            Lap = np.diag(W.sum(1)) - W
+            A = D.copy()
+            A[0::2, 0::2] += _SMOOTH_WEIGHT * Lap
+            A[1::2, 1::2] += _SMOOTH_WEIGHT * Lap
+            d = np.linalg.solve(A, rhs).reshape(L, 2)
     return base + d
+
+
+_BLAS = []
+
+
+def _single_thread_blas():
+    """Context manager limiting BLAS to one thread (threadpoolctl, cached controller)."""
+    if not _BLAS:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS.append(ThreadpoolController())
+    return _BLAS[0].limit(limits=1, user_api="blas")
 
 
 def track_lk(
