@@ -5,8 +5,16 @@ affine motion. This tracker follows each landmark with OpenCV's pyramidal
 Lucas–Kanade flow (Bouguet's implementation) from frame to frame and checks it
 with a forward–backward pass. Frame-to-frame flow drifts, so every frame is
 also re-registered against an annotated frame warped onto the current
-estimate by the head similarity (a template update with drift correction;
-for each point the pass with the smaller forward-backward error wins). Points that both passes fail are recovered from
+estimate (a template update with drift correction, Matthews et al. 2004):
+the warp is a moving-least-squares similarity deformation (Schaefer et al.
+2006) through the landmarks, so the template follows expressions as well as
+the head. A point whose anchor match passes the forward–backward check is
+pulled halfway to it. Edges (lips, brows, the jaw line) fix a landmark
+across the edge only; along it LK drifts (the aperture problem). A
+regularisation step therefore smooths the landmarks' displacements from the
+reference shape across neighbours, weighted per point and direction by the
+reference image's LK structure tensor (robust Huber weights let the mouth
+open). Points that both passes fail are recovered from
 a shape prior built from the annotated frames
 (:class:`~retarget_cli.track.prior.ShapePrior`) and get confidence 0. Every
 annotated frame it is given re-anchors the track and becomes a reference.
@@ -20,11 +28,22 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from ..decompose import small_blas
 from ..errors import InputError, ShapeError
 from .head import default_rigid_points, fit_similarity
 from .prior import ShapePrior
 
 log = logging.getLogger(__name__)
+
+# Algorithm constants (dimensionless unless stated; "rms" is the RMS distance
+# of the annotated landmarks from their centroid, i.e. the face size).
+_ANCHOR_LEVELS = 1      # pyramid levels of the anchor pass (it starts from the flow estimate)
+_ANCHOR_GAIN = 0.5      # fraction of the way a point moves to its accepted anchor match
+_MLS_SOFTNESS = 0.4     # softening radius of the MLS template warp, in rms
+_SMOOTH_WEIGHT = 0.03   # weight of the displacement smoothness against the (normalised) LK information
+_SMOOTH_RADIUS = 0.3    # Gaussian radius of the neighbourhood, in rms
+_SMOOTH_HUBER = 1.0     # displacement difference (pixels at full resolution) beyond which smoothing is robust
+_RIGID_WEIGHT = 3.0     # pull of rigid points to the head similarity in the regularisation
 
 class FaceLostError(InputError):
     """The face was lost: too few landmarks tracked for several frames.
@@ -142,6 +161,27 @@ def _contour_points(n_points: int) -> np.ndarray:
     return np.arange(17) if n_points == 68 else np.zeros(0, dtype=int)
 
 
+def _inner_lip_offsets(P0: np.ndarray, length: float) -> dict[int, np.ndarray]:
+    """Proxy offsets of the inner-lip points of the 68-point layout, into the lips.
+
+    The inner lips border the mouth opening, whose appearance (dark interior,
+    teeth) a closed-mouth annotation does not show; the upper points (61-63)
+    are tracked through a proxy moved up into the upper lip, the lower ones
+    (65-67) through one moved down into the lower lip, perpendicular to the
+    mouth axis (60 -> 64). Empty for other layouts.
+    """
+    if len(P0) != 68:
+        return {}
+    axis = P0[64] - P0[60]
+    n = np.linalg.norm(axis)
+    if n < 1e-9:
+        return {}
+    up = np.array([axis[1], -axis[0]]) / n
+    if up[1] > 0:  # image y points down
+        up = -up
+    return {**{i: up * length for i in (61, 62, 63)}, **{i: -up * length for i in (65, 66, 67)}}
+
+
 def normalize_annotations(annotations) -> dict[int, np.ndarray]:
     """``(L, 2)`` array (frame 0) or ``{frame: (L, 2)}`` to a sorted dict of float64 arrays.
 
@@ -182,29 +222,198 @@ def check_inside(P, size, what: str) -> None:
 
 
 class _Reference:
-    """An annotated frame used as an anchor template."""
+    """An annotated frame used as an anchor template.
 
-    def __init__(self, image, points, offsets):
+    Parameters
+    ----------
+    image : ndarray, shape (H, W), uint8
+    points, offsets : ndarray, shape (L, 2)
+        Landmarks and the offsets of their tracked carriers (proxies).
+    window : int
+        LK window, for the structure tensors.
+    """
+
+    def __init__(self, image, points, offsets, window: int):
         self.image = image
         self.points = points
         self.carriers = points + offsets
+        rms = float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()))
+        self.soft = max(_MLS_SOFTNESS * rms, 1.0)
+        self.info = _structure_tensors(image, self.carriers, window)
+        d = np.linalg.norm(points[:, None] - points[None], axis=2)
+        self.neighbours = np.exp(-0.5 * (d / max(_SMOOTH_RADIUS * rms, 1e-9)) ** 2)
+        np.fill_diagonal(self.neighbours, 0.0)
 
-    def template(self, M, size, box: _Box | None = None):
-        """Reference image warped by the similarity *M* (2, 3) and its carriers' positions in it.
+    def template(self, est, c_est, margin: float):
+        """Reference image warped onto the current estimate, and where its carriers land in it.
 
-        With *box*, only that crop of the warped image is rendered (the
-        positions stay in full-image pixels).
+        The warp is the moving-least-squares similarity deformation (Schaefer
+        et al. 2006, eqs. 5-6, with the softened weights
+        ``1 / (|p - v|^2 + soft^2)``) taking the landmarks *est* to the
+        reference landmarks, evaluated on a coarse grid over the face and
+        interpolated bilinearly; outside the face's box plus *margin* the
+        template is black.
+
+        Parameters
+        ----------
+        est, c_est : ndarray, shape (L, 2)
+            Current landmark and carrier estimates.
+        margin : float
+            Pixels around the carriers' bounding box to fill.
+
+        Returns
+        -------
+        template : ndarray, shape (H, W), uint8
+        carriers : ndarray, shape (L, 2)
+            The reference carriers' positions in the template.
         """
         import cv2
 
-        if box is not None:
-            M_box = M.copy()
-            M_box[:, 2] -= box.offset
-            img = cv2.warpAffine(self.image, M_box, (box.x1 - box.x0, box.y1 - box.y0), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_REPLICATE)
-        else:
-            img = cv2.warpAffine(self.image, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return img, self.carriers @ M[:, :2].T + M[:, 2]
+        h, w = self.image.shape[:2]
+        lo = np.floor(np.clip(c_est.min(0) - margin, 0, None)).astype(int)
+        hi = np.ceil(np.minimum(c_est.max(0) + margin, (w - 1, h - 1))).astype(int)
+        hi = np.maximum(hi, lo)
+        step = max(4.0, self.soft / 2)
+        gx = lo[0] + np.arange(int(np.ceil((hi[0] - lo[0]) / step)) + 2) * step
+        gy = lo[1] + np.arange(int(np.ceil((hi[1] - lo[1]) / step)) + 2) * step
+        X, Y = np.meshgrid(gx, gy)
+        p = est[:, 0] + 1j * est[:, 1]
+        q = self.points[:, 0] + 1j * self.points[:, 1]
+        f, _ = _mls_similarity(p, q, (X + 1j * Y).ravel(), self.soft**2)
+        fx = f.real.reshape(X.shape).astype(np.float32)
+        fy = f.imag.reshape(X.shape).astype(np.float32)
+        # bilinear upsampling of the coarse map: grid node k sits at pixel lo + k * step
+        u = (np.arange(lo[0], hi[0] + 1) - lo[0]) / step
+        v = (np.arange(lo[1], hi[1] + 1) - lo[1]) / step
+        U, V = (a.astype(np.float32) for a in np.meshgrid(u, v))
+        mx = cv2.remap(fx, U, V, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        my = cv2.remap(fy, U, V, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        img = np.zeros((h, w), np.uint8)
+        img[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = cv2.remap(self.image, mx, my, cv2.INTER_LINEAR,
+                                                           borderMode=cv2.BORDER_REPLICATE)
+        # The sampled map at the current carriers, then one Newton step (local
+        # similarity factor a) to where the reference carriers land in the template.
+        cu = ((c_est[:, 0] - lo[0]) / step).astype(np.float32)[None]
+        cv_ = ((c_est[:, 1] - lo[1]) / step).astype(np.float32)[None]
+        r = (cv2.remap(fx, cu, cv_, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+             + 1j * cv2.remap(fy, cu, cv_, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0])
+        cz = c_est[:, 0] + 1j * c_est[:, 1]
+        _, a = _mls_similarity(p, q, cz, self.soft**2)
+        tz = cz + ((self.carriers[:, 0] + 1j * self.carriers[:, 1]) - r) / a
+        return img, np.stack([tz.real, tz.imag], 1)
+
+
+def _mls_similarity(p, q, v, soft2: float):
+    """Moving-least-squares similarity deformation (Schaefer et al. 2006, eq. 6) in complex form.
+
+    Parameters
+    ----------
+    p, q : ndarray, shape (L,), complex
+        Control points and where they go.
+    v : ndarray, shape (G,), complex
+        Query points.
+    soft2 : float
+        Squared softening radius of the weights ``1 / (|p_i - v|^2 + soft2)``.
+
+    Returns
+    -------
+    f : ndarray, shape (G,), complex
+        Deformed query points.
+    a : ndarray, shape (G,), complex
+        Local similarity factor (scale and rotation) at each query point.
+    """
+    wv = 1.0 / (np.abs(p[None, :] - v[:, None]) ** 2 + soft2)
+    ws = wv.sum(1, keepdims=True)
+    ps = (wv * p).sum(1, keepdims=True) / ws
+    qs = (wv * q).sum(1, keepdims=True) / ws
+    ph, qh = p[None, :] - ps, q[None, :] - qs
+    a = (wv * np.conj(ph) * qh).sum(1) / np.maximum((wv * np.abs(ph) ** 2).sum(1), 1e-12)
+    return a * (v - ps[:, 0]) + qs[:, 0], a
+
+
+def _structure_tensors(image, points, window: int) -> np.ndarray:
+    """LK structure tensors of *image* over a *window* square at *points*.
+
+    ``sum [Ix^2, IxIy; IxIy, Iy^2]`` (Lucas & Kanade; the inverse covariance
+    of an LK match up to the noise level), normalised by the median trace
+    over the points so that it is independent of contrast.
+
+    Returns
+    -------
+    ndarray, shape (L, 2, 2)
+    """
+    import cv2
+
+    g = cv2.GaussianBlur(image.astype(np.float32), (0, 0), 1.0)
+    ix = cv2.Scharr(g, cv2.CV_32F, 1, 0) / 32
+    iy = cv2.Scharr(g, cv2.CV_32F, 0, 1) / 32
+    k = (window, window)
+    sxx, sxy, syy = (cv2.boxFilter(a, -1, k) for a in (ix * ix, ix * iy, iy * iy))
+    h, w = image.shape[:2]
+    xi = np.clip(np.round(points[:, 0]).astype(int), 0, w - 1)
+    yi = np.clip(np.round(points[:, 1]).astype(int), 0, h - 1)
+    G = np.empty((len(points), 2, 2))
+    G[:, 0, 0], G[:, 0, 1], G[:, 1, 1] = sxx[yi, xi], sxy[yi, xi], syy[yi, xi]
+    G[:, 1, 0] = G[:, 0, 1]
+    return G / max(float(np.median(np.trace(G, axis1=1, axis2=2))), 1e-9)
+
+
+def _regularize(est, ref: _Reference, M, confidence, rigid_mask, huber: float, iterations: int = 3):
+    """Aperture-aware smoothing of the landmarks' displacements from the reference shape.
+
+    With ``d_i = x_i - M(r_i)`` (landmark minus reference landmark under the
+    head similarity *M*) and the measured ``m_i``, minimises
+
+    ``sum_i c_i (d_i - m_i)^T G_i (d_i - m_i) + rho_i |d_i|^2
+    + lambda sum_ij w_ij h_ij |d_i - d_j|^2``
+
+    where ``G_i`` is the reference's LK structure tensor rotated by *M*,
+    ``c_i`` the tracking confidence, ``rho_i`` pulls rigid points to the head
+    similarity, ``w_ij`` Gaussian neighbourhood weights and ``h_ij`` Huber
+    weights of the current differences (IRLS), so large true deformations
+    (mouth opening) are not smoothed away. Where the image constrains a
+    point in one direction only (an edge), the neighbours decide the other.
+
+    Parameters
+    ----------
+    est : ndarray, shape (L, 2)
+    ref : _Reference
+    M : ndarray, shape (2, 3)
+        Head similarity from the reference to the current frame.
+    confidence : ndarray, shape (L,)
+    rigid_mask : ndarray, shape (L,), bool
+    huber : float
+        Huber threshold in (tracking-resolution) pixels.
+
+    Returns
+    -------
+    ndarray, shape (L, 2)
+    """
+    L = len(est)
+    R = M[:, :2] / np.sqrt(max(abs(np.linalg.det(M[:, :2])), 1e-12))
+    G = np.einsum("ij,ljk,mk->lim", R, ref.info, R) * confidence[:, None, None] + 0.01 * np.eye(2)
+    base = ref.points @ M[:, :2].T + M[:, 2]
+    m = est - base
+    D = np.zeros((2 * L, 2 * L))
+    i2 = 2 * np.arange(L)
+    for a in (0, 1):
+        for b in (0, 1):
+            D[i2 + a, i2 + b] = G[:, a, b]
+    D[i2, i2] += _RIGID_WEIGHT * rigid_mask
+    D[i2 + 1, i2 + 1] += _RIGID_WEIGHT * rigid_mask
+    rhs = np.einsum("lij,lj->li", G, m).ravel()
+    d = m
+    # a multithreaded BLAS is ~10x slower on this small system on a busy machine
+    with small_blas():
+        for _ in range(iterations):
+            r = np.linalg.norm(d[:, None] - d[None], axis=2)
+            W = ref.neighbours * np.minimum(1.0, huber / np.maximum(r, 1e-12))
+            Lap = np.diag(W.sum(1)) - W
+            A = D.copy()
+            A[0::2, 0::2] += _SMOOTH_WEIGHT * Lap
+            A[1::2, 1::2] += _SMOOTH_WEIGHT * Lap
+            d = np.linalg.solve(A, rhs).reshape(L, 2)
+    return base + d
 
 
 def track_lk(
@@ -304,7 +513,8 @@ def track_lk(
     contour = _contour_points(L) if contour_points is None else np.asarray(contour_points, dtype=int)
     lk = dict(winSize=(window, window), maxLevel=levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 0.001))
-    lk_init = dict(lk, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    lk_anchor = dict(lk, maxLevel=min(levels, _ANCHOR_LEVELS))
+    lk_anchor_init = dict(lk_anchor, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     # Silhouette points (the jaw line) have background under half their window,
     # which drags them when the head moves. Track a proxy moved inward by about
     # half a window instead and move the landmark by the proxy's displacement.
@@ -313,6 +523,12 @@ def track_lk(
         inward = P0.mean(0) - P0[contour]
         inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-9)
         offset0[contour] = inward * (window // 2 + 2)
+    # Likewise the inner lips, whose other side is the mouth opening.
+    lips = _inner_lip_offsets(P0, window // 2 + 2)
+    for i, o in lips.items():
+        offset0[i] = o
+    boundary = np.concatenate([contour, list(lips)]).astype(int)
+    is_boundary = np.isin(np.arange(L), boundary)
 
     def prep(frame):
         g = _gray(frame)
@@ -340,10 +556,10 @@ def track_lk(
     scale_back = lambda P: (P + 0.5) / s - 0.5  # noqa: E731
     check_inside(P0, (w, h), "annotations: frame 0")
     prior = ShapePrior(np.stack(list(ann.values()))) if shape_prior else ShapePrior(P0[None])
-    refs = [_Reference(first, P0, offset0)]
-    # Silhouette points are then refined along their normal by matching the
-    # annotated frame's intensity profile across the edge (ASM-style).
-    profile = _Profiles(first, P0[contour], offset0[contour]) if contour.size and contour_refine else None
+    refs = [_Reference(first, P0, offset0, window)]
+    # Silhouette and inner-lip points are then refined along their normal by
+    # matching the annotated frame's intensity profile across the edge (ASM-style).
+    profile = _Profiles(first, P0[boundary], offset0[boundary]) if boundary.size and contour_refine else None
     pts, conf = [scale_back(P0)], [np.ones(L)]
     Q0 = P0 + offset0
     prev, c_prev = first, Q0.copy()
@@ -357,7 +573,7 @@ def track_lk(
             check_inside(ann[t], (w, h), f"annotations: frame {t}")
             p = ann[t]
             off = offset0 @ similarity(P0, p, np.ones(L))[:, :2].T
-            refs.append(_Reference(cur, p, off))
+            refs.append(_Reference(cur, p, off, window))
             pts.append(scale_back(p))
             conf.append(np.ones(L))
             prev, c_prev, lost_run = cur, p + off, 0
@@ -371,24 +587,40 @@ def track_lk(
         c_est = fwd.reshape(-1, 2).astype(np.float64)
         good = err < 3 * fb_threshold
         wts = good.astype(float) if good[rigid].sum() >= 2 else np.ones(L)
+        # points whose flow fails the check start from where the motion of
+        # the others (a similarity) takes them, not from the failed flow
+        jump = err > fb_threshold
+        if jump.any() and (~jump).sum() >= 3:
+            Mf = fit_similarity(c_prev[~jump], c_est[None, ~jump])[0]
+            c_est[jump] = c_prev[jump] @ Mf[:, :2].T + Mf[:, 2]
+            fwd = c_est.astype(np.float32).reshape(-1, 1, 2)
         off = offset0 @ similarity(Q0, c_est, wts)[:, :2].T
         est = c_est - off
-        # 2. drift correction against the reference closest in shape
+        ref = refs[0] if len(refs) == 1 else min(refs, key=lambda r: _shape_distance(r.points, est, wts))
+        # 2. drift correction against the reference closest in shape, warped
+        # onto the current estimate
         if anchor:
-            ref = refs[0] if len(refs) == 1 else min(refs, key=lambda r: _shape_distance(r.points, est, wts))
-            M = similarity(ref.points, est, wts)
-            c_tmpl = ref.carriers @ M[:, :2].T + M[:, 2]
-            box = _Box(np.concatenate([c_tmpl, fwd.reshape(-1, 2)]) if roi else [], (w, h), window, levels)
-            tmpl, c_tmpl = ref.template(M, (w, h), box)
+            tmpl, c_tmpl = ref.template(est, c_est, window * 2**_ANCHOR_LEVELS // 2 + 8)
             c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
-            afw, aerr = box.flow(tmpl, box.crop(cur), c_t, lk, guess=fwd, lk_init=lk_init)
-            use = aerr <= np.minimum(err, 3 * fb_threshold)
-            c_est = np.where(use[:, None], afw.reshape(-1, 2), c_est)
+            box = _Box(np.concatenate([c_tmpl, fwd.reshape(-1, 2)]) if roi else [], (w, h), window, _ANCHOR_LEVELS)
+            afw, aerr = box.flow(box.crop(tmpl), box.crop(cur), c_t, lk_anchor, guess=fwd, lk_init=lk_anchor_init)
+            # A match that passes the forward-backward check is drift-free;
+            # frame-to-frame flow always has the smaller error, so comparing
+            # the two would keep the drift. Proxies next to appearance the
+            # reference does not show (background, mouth opening) keep that
+            # comparison: their anchor matches are less reliable.
+            use = np.where(is_boundary, aerr <= np.minimum(err, 3 * fb_threshold), aerr <= fb_threshold)
+            c_est = np.where(use[:, None], c_est + _ANCHOR_GAIN * (afw.reshape(-1, 2) - c_est), c_est)
             err = np.where(use, aerr, err)
             est = c_est - off
-        if contour.size and profile is not None:
-            est[contour] = profile.refine(cur, est[contour], off[contour])
-        # 3. rigid points that left the head's similarity are unreliable, then
+        if boundary.size and profile is not None:
+            est[boundary] = profile.refine(cur, est[boundary], off[boundary])
+        # 3. aperture-aware smoothing of the displacements from the reference
+        fb_conf = np.exp(-np.where(np.isfinite(err), err, 1e3) / fb_threshold)
+        Mh = similarity(ref.points, est, fb_conf if fb_conf[rigid].sum() > 0.5 else wts)
+        est = _regularize(est, ref, Mh, fb_conf, is_rigid, _SMOOTH_HUBER * s)
+        c_est = est + off
+        # 4. rigid points that left the head's similarity are unreliable, then
         # unreliable points are recovered from the shape prior
         good = err < 3 * fb_threshold
         Mr = similarity(P0, est, good.astype(float) if good[rigid].sum() >= 2 else np.ones(L))
