@@ -71,6 +71,7 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
     prevF = np.empty(K, np.int64)  # the free set whose factor L holds
     N = np.empty(K, np.int64)  # bound variables with a nonzero value
     L = np.empty((K, K))
+    dinv = np.empty(K)  # reciprocals of L's diagonal
     b = np.empty(K)
     x = np.empty(K)
     bad = np.empty(K, np.bool_)
@@ -104,7 +105,7 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
                         nn += 1
             schur = False
             if it == 0 and Hinv is not None and K - m < m:
-                schur = _schur_point(Hinv, X0[t], status, x, Z, L, b)
+                schur = _schur_point(Hinv, X0[t], status, x, Z, L, dinv, b)
                 pm = 0
             if not schur:
                 # reduced system H_FF x_F = q_F − H_FB x_B, by Cholesky; the rows of
@@ -117,12 +118,12 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
                 r = 0
                 while r < min(m, pm) and F[r] == prevF[r]:
                     r += 1
-                if not _factor(H, F, r, m, L):
+                if not _factor(H, F, r, m, L, dinv):
                     break  # numerically singular: the caller finishes this frame
                 for a in range(m):
                     prevF[a] = F[a]
                 pm = m
-                _solve(L, m, b)
+                _solve(L, dinv, m, b)
                 for a in range(m):
                     x[F[a]] = b[a]
             xm = 0.0
@@ -141,11 +142,7 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
                 if status[i] == 0:
                     bad[i] = x[i] < lo[i] - tolf or x[i] > hi[i] + tolf
                 else:
-                    g = -Q[t, i]
-                    for a in range(m):
-                        g += H[i, F[a]] * x[F[a]]
-                    for c in range(nn):
-                        g += H[i, N[c]] * x[N[c]]
+                    g = _gatherdot(H, i, F, m, x) + _gatherdot(H, i, N, nn, x) - Q[t, i]
                     bad[i] = (status[i] == -1 and g < -tolg) or (status[i] == 1 and g > tolg)
                 if bad[i]:
                     ninf += 1
@@ -175,7 +172,7 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
 
 
 @njit(cache=True, nogil=True)
-def _schur_point(Hinv, x0, status, x, Z, L, b):  # pragma: no cover - compiled
+def _schur_point(Hinv, x0, status, x, Z, L, dinv, b):  # pragma: no cover - compiled
     """Minimiser with the bound variables at their values *x* (in place), from *x0* through ``H⁻¹``.
 
     Returns False (and leaves the free entries of *x* undefined) when
@@ -188,9 +185,9 @@ def _schur_point(Hinv, x0, status, x, Z, L, b):  # pragma: no cover - compiled
             Z[z] = i
             b[z] = x[i] - x0[i]
             z += 1
-    if not _factor(Hinv, Z, 0, z, L):
+    if not _factor(Hinv, Z, 0, z, L, dinv):
         return False
-    _solve(L, z, b)
+    _solve(L, dinv, z, b)
     for i in range(K):
         if status[i] == 0:
             s = x0[i]
@@ -201,35 +198,74 @@ def _schur_point(Hinv, x0, status, x, Z, L, b):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _factor(H, idx, start, m, L):  # pragma: no cover - compiled
+def _factor(H, idx, start, m, L, dinv):  # pragma: no cover - compiled
     """Rows ``start..m-1`` of the Cholesky factor *L* of ``H[idx[:m]][:, idx[:m]]`` (rows above kept).
 
-    Returns False if the matrix is not numerically positive definite.
+    *dinv* receives the reciprocals of the diagonal (multiplying by them is
+    several times cheaper than dividing). Returns False if the matrix is not
+    numerically positive definite.
     """
     for a in range(start, m):
-        for c in range(a + 1):
-            s = H[idx[a], idx[c]]
-            for k in range(c):
-                s -= L[a, k] * L[c, k]
-            if a == c:
-                if not s > 0.0:
-                    return False
-                L[a, a] = math.sqrt(s)
-            else:
-                L[a, c] = s / L[c, c]
+        for c in range(a):
+            L[a, c] = (H[idx[a], idx[c]] - _rowdot(L, a, c, c)) * dinv[c]
+        s = H[idx[a], idx[a]] - _rowdot(L, a, a, a)
+        if not s > 0.0:
+            return False
+        L[a, a] = math.sqrt(s)
+        dinv[a] = 1.0 / L[a, a]
     return True
 
 
 @njit(cache=True, nogil=True)
-def _solve(L, m, b):  # pragma: no cover - compiled
+def _solve(L, dinv, m, b):  # pragma: no cover - compiled
     """``b[:m] ← (LLᵀ)⁻¹ b[:m]`` by forward and back substitution."""
     for a in range(m):
         s = b[a]
         for k in range(a):
             s -= L[a, k] * b[k]
-        b[a] = s / L[a, a]
+        b[a] = s * dinv[a]
     for a in range(m - 1, -1, -1):
         s = b[a]
         for k in range(a + 1, m):
             s -= L[k, a] * b[k]
-        b[a] = s / L[a, a]
+        b[a] = s * dinv[a]
+
+
+# The two dot products below carry most of the kernel's work. Summed with one
+# accumulator, each step waits for the previous addition (no reassociation
+# without fastmath); four independent accumulators keep the FPU busy. The
+# order of summation is fixed, so results are reproducible.
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rowdot(L, a, c, n):  # pragma: no cover - compiled
+    """``Σ_{k<n} L[a, k]·L[c, k]``."""
+    s0 = s1 = s2 = s3 = 0.0
+    k = 0
+    while k + 4 <= n:
+        s0 += L[a, k] * L[c, k]
+        s1 += L[a, k + 1] * L[c, k + 1]
+        s2 += L[a, k + 2] * L[c, k + 2]
+        s3 += L[a, k + 3] * L[c, k + 3]
+        k += 4
+    while k < n:
+        s0 += L[a, k] * L[c, k]
+        k += 1
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _gatherdot(H, i, idx, n, x):  # pragma: no cover - compiled
+    """``Σ_{a<n} H[i, idx[a]]·x[idx[a]]``."""
+    s0 = s1 = s2 = s3 = 0.0
+    a = 0
+    while a + 4 <= n:
+        s0 += H[i, idx[a]] * x[idx[a]]
+        s1 += H[i, idx[a + 1]] * x[idx[a + 1]]
+        s2 += H[i, idx[a + 2]] * x[idx[a + 2]]
+        s3 += H[i, idx[a + 3]] * x[idx[a + 3]]
+        a += 4
+    while a < n:
+        s0 += H[i, idx[a]] * x[idx[a]]
+        a += 1
+    return (s0 + s1) + (s2 + s3)
