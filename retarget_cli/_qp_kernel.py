@@ -75,6 +75,7 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
     b = np.empty(K)
     x = np.empty(K)
     bad = np.empty(K, np.bool_)
+    grad = np.empty(K)
     Z = np.empty(K, np.int64)
     for t in range(T):
         done[t] = False
@@ -138,11 +139,19 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
             # within 1e-8 of a bound are taken to be at it (a wrong guess is
             # undone by the multiplier check of the next, direct, iteration)
             tolf = -1e-8 * (1.0 + xm) if schur else tolx
+            # gradient Hx − q, as a sum of rows of H (H is symmetric) over the
+            # nonzero entries of x: contiguous loops the compiler vectorises
+            for i in range(K):
+                grad[i] = -Q[t, i]
+            for a in range(m):
+                _axpy(x[F[a]], H, F[a], grad, K)
+            for c in range(nn):
+                _axpy(x[N[c]], H, N[c], grad, K)
             for i in range(K):
                 if status[i] == 0:
                     bad[i] = x[i] < lo[i] - tolf or x[i] > hi[i] + tolf
                 else:
-                    g = _gatherdot(H, i, F, m, x) + _gatherdot(H, i, N, nn, x) - Q[t, i]
+                    g = grad[i]
                     bad[i] = (status[i] == -1 and g < -tolg) or (status[i] == 1 and g > tolg)
                 if bad[i]:
                     ninf += 1
@@ -231,10 +240,10 @@ def _solve(L, dinv, m, b):  # pragma: no cover - compiled
         b[a] = s * dinv[a]
 
 
-# The two dot products below carry most of the kernel's work. Summed with one
-# accumulator, each step waits for the previous addition (no reassociation
-# without fastmath); four independent accumulators keep the FPU busy. The
-# order of summation is fixed, so results are reproducible.
+# The factorisation's dot products carry much of the kernel's work. Summed
+# with one accumulator, each step waits for the previous addition (no
+# reassociation without fastmath); four independent accumulators keep the FPU
+# busy. The order of summation is fixed, so results are reproducible.
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -255,17 +264,7 @@ def _rowdot(L, a, c, n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _gatherdot(H, i, idx, n, x):  # pragma: no cover - compiled
-    """``Σ_{a<n} H[i, idx[a]]·x[idx[a]]``."""
-    s0 = s1 = s2 = s3 = 0.0
-    a = 0
-    while a + 4 <= n:
-        s0 += H[i, idx[a]] * x[idx[a]]
-        s1 += H[i, idx[a + 1]] * x[idx[a + 1]]
-        s2 += H[i, idx[a + 2]] * x[idx[a + 2]]
-        s3 += H[i, idx[a + 3]] * x[idx[a + 3]]
-        a += 4
-    while a < n:
-        s0 += H[i, idx[a]] * x[idx[a]]
-        a += 1
-    return (s0 + s1) + (s2 + s3)
+def _axpy(alpha, H, j, y, n):  # pragma: no cover - compiled
+    """``y[:n] += alpha·H[j, :n]``."""
+    for i in range(n):
+        y[i] += alpha * H[j, i]
