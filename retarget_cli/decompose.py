@@ -462,7 +462,8 @@ def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk, compiled):
     Hd = H + 1e-14 * hscale * np.eye(K)
     X0 = _equality_ls(Hd, Q, sum_to)
     Hinv = None
-    if sum_to is None and np.linalg.cond(Hd) < _SCHUR_MAX_COND:
+    # (for a handful of frames the Schur start does not repay the inverse)
+    if sum_to is None and T >= 64 and np.linalg.cond(Hd) < _SCHUR_MAX_COND:
         Hinv = np.linalg.inv(Hd)
         Hinv = (Hinv + Hinv.T) / 2
     rows = np.arange(T)
