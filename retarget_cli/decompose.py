@@ -23,8 +23,9 @@ Every constrained problem here is a box-constrained quadratic programme with
 a Hessian shared by all frames, ``min ½ wᵀHw − q_tᵀw, lo ≤ w ≤ hi``
 (optionally ``1ᵀw = 1``). :func:`box_qp` solves all frames together by a
 primal–dual active-set iteration (Hintermüller, Ito & Kunisch 2002) whose
-per-frame reduced systems are solved as stacked LAPACK solves, bucketed by
-free-set size; each frame's answer is certified by its KKT conditions, and the
+per-frame reduced systems are solved by Cholesky factorisations vectorised
+across frames, bucketed by free-set size (or, for long takes, per frame in a
+compiled kernel); each frame's answer is certified by its KKT conditions, and the
 few frames that do not settle are finished by an exact per-frame primal
 active-set method (Nocedal & Wright, Algorithm 16.3). The result is the exact
 optimum, not an approximation. With per-frame confidence weights the Hessian
@@ -392,14 +393,14 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     current free set F; a frame is finished when its KKT conditions hold
     (free variables within their bounds, multipliers of the bound ones
     correctly signed), so the solution on its free set is the exact optimum.
-    Active sets differ from frame to frame, so without an equality the
-    iteration runs per frame in compiled code (:mod:`retarget_cli._qp_kernel`,
-    Cholesky factorisations, an anti-cycling backup rule). With ``sum_to``,
-    and for the rare frames the kernel leaves, it runs in numpy on all frames
-    at once, the reduced systems bucketed by size into vectorised Cholesky
-    solves. Frames still unsettled after *max_iter* iterations are finished
-    one by one by an exact primal active-set method (Nocedal & Wright 2006,
-    Algorithm 16.3).
+    Active sets differ from frame to frame, so frames cannot share
+    factorisations. The iteration runs in numpy on all frames at once, the
+    reduced systems bucketed by size into vectorised Cholesky solves; for
+    large problems without an equality (see *compiled*) it runs per frame in
+    compiled code instead (:mod:`retarget_cli._qp_kernel`), and the rare
+    frames the kernel leaves go back to numpy. Frames still unsettled after
+    *max_iter* iterations are finished one by one by an exact primal
+    active-set method (Nocedal & Wright 2006, Algorithm 16.3).
 
     A singular *H* (duplicated or dependent keys) is handled by adding
     ``1e-14·max(diag H)`` to the reduced diagonals, which changes the
