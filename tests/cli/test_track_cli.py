@@ -96,24 +96,8 @@ def test_track_point_outside_image(small_take, tmp_path):
     assert r.exit_code == 1 and "bad.pts: frame 0: point 3" in r.output and "192x192" in r.output
 
 
-def _truncated_avi(small_take, tmp_path):
-    cap = cv2.VideoCapture(str(small_take / "face.mp4"))
-    avi = tmp_path / "full.avi"
-    w = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 30, (192, 192))
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        w.write(f)
-    w.release()
-    data = avi.read_bytes()
-    cut = tmp_path / "cut.avi"
-    cut.write_bytes(data[: len(data) // 2])
-    return cut
-
-
-def test_truncated_video_stops_naming_file_and_last_frame(small_take, tmp_path):
-    cut = _truncated_avi(small_take, tmp_path)
+def test_truncated_video_stops_naming_file_and_last_frame(small_take, truncated_avi, tmp_path):
+    cut = truncated_avi
     out = tmp_path / "x.npz"
     r = run("track", cut, "--init", small_take / "face_00000.pts", "-o", out)
     assert r.exit_code == 1

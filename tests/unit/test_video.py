@@ -30,18 +30,9 @@ def _decode_threads():
 
 
 @pytest.fixture
-def truncated(small_take, tmp_path):
-    """An MJPG avi cut in half: the container announces more frames than decode."""
-    frames = _plain(small_take / "face.mp4")
-    avi = tmp_path / "full.avi"
-    w = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 30, (192, 192))
-    for f in frames:
-        w.write(f)
-    w.release()
-    data = avi.read_bytes()
-    cut = tmp_path / "cut.avi"
-    cut.write_bytes(data[: len(data) // 2])
-    return cut
+def truncated(truncated_avi):
+    """An MJPG avi cut in half (``tests/conftest.py``)."""
+    return truncated_avi
 
 
 @pytest.mark.parametrize("prefetch", [0, 1, 4])
