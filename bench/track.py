@@ -9,7 +9,7 @@ each take and tracker it measures in the same run:
 
 - decode-only frames/s of the video (the peer: a plain sequential
   ``cv2.VideoCapture.read`` loop, nothing else -- not the prefetching
-  :class:`~retarget_cli.io.video.VideoReader`);
+  :class:`~retarget_cli.io.video.VideoReader`, and no colour conversion);
 - the tracker's frames/s on the same video, read by ``VideoReader`` as
   ``retarget track`` does (decoding included, overlapped with tracking by
   its prefetch thread), and the ratio;
@@ -116,7 +116,8 @@ def bench_take(d: Path, label: str, trackers=None) -> list[tuple]:
     rows = [(label, "decode only (sequential cv2.VideoCapture.read)", None, None, None, decode, 1.0)]
     for name, fn in (trackers or methods()).items():
         t0 = time.perf_counter()
-        with VideoReader(d / "face.mp4") as r:
+        # as retarget track reads for lk: grayscale, converted in the decoding thread
+        with VideoReader(d / "face.mp4", gray=name.startswith("lk")) as r:
             pts, _ = fn(r, truth)
         fps = n / (time.perf_counter() - t0)
         err = np.linalg.norm(pts - truth, axis=2).mean(1)

@@ -82,7 +82,8 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
                              f"{init} has {n_ann}")
     elif model:
         log.warning("model %s is used by method facemark only; ignored by %s", model, method)
-    with FrameSource(video, start=start, end=end, step=step, fps=fps) as source:
+    # lk tracks grayscale frames: convert them in the decoding thread
+    with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=method == "lk") as source:
         check_not_input(output, source.files() + [init, *extra])
         if overlay:
             check_not_input(overlay, source.files() + [init, *extra])

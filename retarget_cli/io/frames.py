@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .video import VIDEO_SUFFIXES, VideoReader
+from .video import VIDEO_SUFFIXES, VideoReader, to_gray
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +132,8 @@ class FrameSource:
         Frames ``start, start + step, ...`` below ``end`` (``None``: to the last).
     fps : float, optional
         Frame rate of an image sequence (videos report their own); default 30.
+    gray : bool
+        Yield grayscale frames (H, W); a video's are converted in its decoding thread.
 
     Attributes
     ----------
@@ -145,12 +147,14 @@ class FrameSource:
         Source numbers of the frames yielded so far.
     """
 
-    def __init__(self, spec, *, start: int = 0, end: int | None = None, step: int = 1, fps: float | None = None):
+    def __init__(self, spec, *, start: int = 0, end: int | None = None, step: int = 1, fps: float | None = None,
+                 gray: bool = False):
         if start < 0 or step < 1 or (end is not None and end <= start):
             raise InputError(f"frame range: expected 0 <= start < end and step >= 1, got start={start}, "
                              f"end={end}, step={step}")
         self.spec, self.start, self.end, self.step = str(spec), start, end, step
         self.frames: list[int] = []
+        self.gray = bool(gray)
         if is_sequence(spec):
             self._files = sequence_files(spec)
             self._video = None
@@ -167,7 +171,7 @@ class FrameSource:
             if p.suffix.lower() not in VIDEO_SUFFIXES and p.is_file():
                 raise InputError(f"{p}: unsupported input type {p.suffix!r}; expected a video "
                                  f"({', '.join(VIDEO_SUFFIXES)}) or an image-sequence pattern")
-            self._video = VideoReader(p)
+            self._video = VideoReader(p, gray=gray)
             self._files = None
             self.frame_size = self._video.frame_size
             self.frame_count = self._video.frame_count
@@ -198,7 +202,7 @@ class FrameSource:
                     raise InputError(f"{f}: frame {i} is {img.shape[1]}x{img.shape[0]}, the sequence is "
                                      f"{self.frame_size[0]}x{self.frame_size[1]}")
                 self.frames.append(i)
-                yield img
+                yield to_gray(img) if self.gray else img
             return
         decoded = self._video.decoded()  # decoded ahead in a background thread
         i = -1

@@ -30,7 +30,14 @@ class _Failed:
         self.exc = exc
 
 
-def decode_frames(cap, prefetch: int = PREFETCH) -> Iterator[np.ndarray]:
+def to_gray(frame: np.ndarray) -> np.ndarray:
+    """A BGR frame (H, W, 3) as grayscale (H, W); a 2-D frame is returned as it is."""
+    import cv2
+
+    return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+
+
+def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator[np.ndarray]:
     """Frames of ``cap.read()`` until it fails, decoded ahead in a background thread.
 
     OpenCV releases the GIL while it decodes, so decoding the next frames
@@ -46,18 +53,22 @@ def decode_frames(cap, prefetch: int = PREFETCH) -> Iterator[np.ndarray]:
     prefetch : int
         Bound of the queue of decoded frames; 0 reads sequentially in the
         caller's thread.
+    gray : bool
+        Convert colour frames to grayscale (``cv2.COLOR_BGR2GRAY``) in the
+        decoding thread, off the consumer's time.
 
     Yields
     ------
     ndarray
         Each frame, in order.
     """
+    convert = to_gray if gray else (lambda frame: frame)
     if prefetch <= 0:
         while True:
             ok, frame = cap.read()
             if not ok:
                 return
-            yield frame
+            yield convert(frame)
     q: queue.Queue = queue.Queue(maxsize=prefetch)
     stop = threading.Event()
     end = object()
@@ -78,7 +89,7 @@ def decode_frames(cap, prefetch: int = PREFETCH) -> Iterator[np.ndarray]:
                 ok, frame = cap.read()
                 if not ok:
                     break
-                if not put(frame):
+                if not put(convert(frame)):
                     return
         except BaseException as exc:  # handed to the consumer
             item = _Failed(exc)
@@ -110,6 +121,8 @@ class VideoReader:
         Frames decoded ahead in a background thread while the caller works
         on the current one (see :func:`decode_frames`); 0 decodes in the
         caller's thread.
+    gray : bool
+        Yield grayscale frames, converted in the decoding thread.
 
     Attributes
     ----------
@@ -120,11 +133,12 @@ class VideoReader:
         The container's frame count (may be an estimate; 0 if unknown).
     """
 
-    def __init__(self, path: str | os.PathLike, *, prefetch: int = PREFETCH):
+    def __init__(self, path: str | os.PathLike, *, prefetch: int = PREFETCH, gray: bool = False):
         import cv2
 
         self.path = Path(path)
         self.prefetch = int(prefetch)
+        self.gray = bool(gray)
         self._decoding = None
         if not self.path.is_file():
             raise InputError(f"{self.path}: video file not found")
@@ -143,7 +157,7 @@ class VideoReader:
         self.frame_count = max(int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        """Yield BGR uint8 frames of shape (H, W, 3).
+        """Yield BGR uint8 frames of shape (H, W, 3), or (H, W) when the reader is *gray*.
 
         Raises
         ------
@@ -166,7 +180,7 @@ class VideoReader:
         """The raw decoded frames (:func:`decode_frames` on this reader), without the end-of-video checks."""
         if self._decoding is not None:
             self._decoding.close()  # one reader of the capture at a time
-        self._decoding = decode_frames(self._cap, self.prefetch)
+        self._decoding = decode_frames(self._cap, self.prefetch, self.gray)
         return self._decoding
 
     def close(self) -> None:

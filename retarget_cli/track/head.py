@@ -73,33 +73,14 @@ def fit_similarity(src, dst, weights=None, *, iterations: int = 3) -> np.ndarray
         raise ShapeError(f"weights: expected shape {(T, L)}, got {w0.shape}")
     finite = np.isfinite(dst).all(-1)
     w0 = np.where(finite, np.clip(w0, 0, None), 0.0)
-    zs = src[..., 0] + 1j * src[..., 1]
     if not finite.all():
         dst = np.nan_to_num(dst)
-    zd = dst[..., 0] + 1j * dst[..., 1]
-    # A frame with a zero weight has a NaN median residual below, hence scale 1 (as np.median gives NaN).
-    unweighted = (w0 <= 0).any(1, keepdims=True)
-    w = w0
-    for it in range(iterations + 1):
-        wsum = w.sum(1, keepdims=True)
-        wsum = np.where(wsum > 0, wsum, 1.0)
-        ms = (w * zs).sum(1, keepdims=True) / wsum
-        md = (w * zd).sum(1, keepdims=True) / wsum
-        cs, cd = zs - ms, zd - md
-        den = (w * np.abs(cs) ** 2).sum(1)
-        a = (w * np.conj(cs) * cd).sum(1) / np.where(den > 0, den, 1.0)
-        a = np.where(den > 0, a, 1.0)
-        b = md[:, 0] - a * ms[:, 0]
-        if it == iterations:
-            break
-        r = np.abs(zd - (a[:, None] * zs + b[:, None]))
-        scale = 1.4826 * np.median(r, axis=1, keepdims=True)
-        scale = np.where(unweighted | np.isnan(scale), 1.0, np.maximum(scale, 1e-3))
-        k = 1.345 * scale
-        w = w0 * np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
+    from ._kernels import similarity_irls  # numba: imported on first use
+
+    zs = np.ascontiguousarray(np.broadcast_to(src[..., 0] + 1j * src[..., 1], (T, L)))
+    zd = np.ascontiguousarray(dst[..., 0] + 1j * dst[..., 1])
     out = np.empty((T, 2, 3))
-    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = a.real, -a.imag, b.real
-    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = a.imag, a.real, b.imag
+    similarity_irls(zs, zd, np.ascontiguousarray(w0), int(iterations), out)
     return out
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..decompose import small_blas
 from ..errors import InputError, ShapeError
+from ..io.video import to_gray as _gray
 from .head import default_rigid_points, fit_similarity
 from .prior import ShapePrior
 
@@ -38,6 +39,7 @@ log = logging.getLogger(__name__)
 # Algorithm constants (dimensionless unless stated; "rms" is the RMS distance
 # of the annotated landmarks from their centroid, i.e. the face size).
 _ANCHOR_LEVELS = 1      # pyramid levels of the anchor pass (it starts from the flow estimate)
+_PREDICTED_LEVELS = 1   # pyramid levels of the flow pass from the motion prediction (full pyramid on failure)
 _ANCHOR_GAIN = 0.5      # fraction of the way a point moves to its accepted anchor match
 _MLS_SOFTNESS = 0.4     # softening radius of the MLS template warp, in rms
 _SMOOTH_WEIGHT = 0.03   # weight of the displacement smoothness against the (normalised) LK information
@@ -61,15 +63,7 @@ class FaceLostError(InputError):
         self.frame, self.points, self.confidence = frame, points, confidence
 
 
-def _gray(frame: np.ndarray) -> np.ndarray:
-    import cv2
-
-    if frame.ndim == 3:
-        return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-    return frame
-
-
-def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict | None = None):
+def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict | None = None, back_guess=None):
     """Pyramidal LK from *src* to *dst* and back, with the forward–backward error.
 
     Parameters
@@ -82,6 +76,12 @@ def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict 
     guess : ndarray, shape (L, 1, 2), float32, optional
         Initial positions in *dst*, used with *lk_init* (which must carry
         ``flags=cv2.OPTFLOW_USE_INITIAL_FLOW``).
+    back_guess : ndarray, shape (L, 1, 2), float32, optional
+        Offsets from the forward result at which the backward pass starts
+        (with *lk_init*); by default it starts at the forward result with *lk*.
+        Starting both passes from a motion prediction lets them search a
+        shallower pyramid: the check stays fair because neither pass starts
+        at the other's answer.
 
     Returns
     -------
@@ -96,7 +96,10 @@ def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict 
         fwd, st1, _ = cv2.calcOpticalFlowPyrLK(src, dst, points, None, **lk)
     else:
         fwd, st1, _ = cv2.calcOpticalFlowPyrLK(src, dst, points, guess, **(lk_init or lk))
-    bwd, st2, _ = cv2.calcOpticalFlowPyrLK(dst, src, fwd, None, **lk)
+    if back_guess is None:
+        bwd, st2, _ = cv2.calcOpticalFlowPyrLK(dst, src, fwd, None, **lk)
+    else:
+        bwd, st2, _ = cv2.calcOpticalFlowPyrLK(dst, src, fwd, fwd + back_guess, **(lk_init or lk))
     fb = np.linalg.norm((bwd - points).reshape(-1, 2), axis=1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb)
     return fwd, np.where(ok, fb, np.inf)
@@ -148,11 +151,13 @@ class _Box:
     def crop(self, image: np.ndarray) -> np.ndarray:
         return image[self.y0:self.y1, self.x0:self.x1]
 
-    def flow(self, src, dst, points, lk: dict, guess=None, lk_init: dict | None = None):
+    def flow(self, src, dst, points, lk: dict, guess=None, lk_init: dict | None = None, back_guess=None):
         """:func:`flow_forward_backward` between crops *src* and *dst* of this box, points in full-image pixels."""
         o = self.offset
         local = lambda p: None if p is None else (p.reshape(-1, 2) - o).astype(np.float32).reshape(-1, 1, 2)  # noqa: E731
-        moved, err = flow_forward_backward(src, dst, local(points), lk, guess=local(guess), lk_init=lk_init)
+        back = None if back_guess is None else np.asarray(back_guess, np.float32).reshape(-1, 1, 2)
+        moved, err = flow_forward_backward(src, dst, local(points), lk, guess=local(guess), lk_init=lk_init,
+                                           back_guess=back)
         return (moved.reshape(-1, 2) + o).astype(np.float32).reshape(-1, 1, 2), err
 
 
@@ -273,28 +278,33 @@ class _Reference:
         lo = np.floor(np.clip(c_est.min(0) - margin, 0, None)).astype(int)
         hi = np.ceil(np.minimum(c_est.max(0) + margin, (w - 1, h - 1))).astype(int)
         hi = np.maximum(hi, lo)
-        step = max(4.0, self.soft / 2)
-        gx = lo[0] + np.arange(int(np.ceil((hi[0] - lo[0]) / step)) + 2) * step
-        gy = lo[1] + np.arange(int(np.ceil((hi[1] - lo[1]) / step)) + 2) * step
+        # The map is evaluated on a coarse grid of nodes over the box padded
+        # by a node on each side and upsampled bilinearly by cv2.resize,
+        # which puts node k of n over N pixels at pixel (k + 1/2) N / n - 1/2.
+        target = max(4.0, self.soft / 2)
+        pad = int(np.ceil(target))
+        o = lo - pad
+        size = hi - lo + 1 + 2 * pad
+        n = np.ceil(size / target).astype(int) + 1
+        step = size / n
+        gx = o[0] + (np.arange(n[0]) + 0.5) * step[0] - 0.5
+        gy = o[1] + (np.arange(n[1]) + 0.5) * step[1] - 0.5
         X, Y = np.meshgrid(gx, gy)
         p = est[:, 0] + 1j * est[:, 1]
         q = self.points[:, 0] + 1j * self.points[:, 1]
         f, _ = _mls_similarity(p, q, (X + 1j * Y).ravel(), self.soft**2)
         fx = f.real.reshape(X.shape).astype(np.float32)
         fy = f.imag.reshape(X.shape).astype(np.float32)
-        # bilinear upsampling of the coarse map: grid node k sits at pixel lo + k * step
-        u = (np.arange(lo[0], hi[0] + 1) - lo[0]) / step
-        v = (np.arange(lo[1], hi[1] + 1) - lo[1]) / step
-        U, V = (a.astype(np.float32) for a in np.meshgrid(u, v))
-        mx = cv2.remap(fx, U, V, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        my = cv2.remap(fy, U, V, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        inner = np.s_[pad:pad + hi[1] - lo[1] + 1, pad:pad + hi[0] - lo[0] + 1]
+        mx = cv2.resize(fx, (int(size[0]), int(size[1])), interpolation=cv2.INTER_LINEAR)[inner]
+        my = cv2.resize(fy, (int(size[0]), int(size[1])), interpolation=cv2.INTER_LINEAR)[inner]
         img = np.zeros((h, w), np.uint8)
         img[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = cv2.remap(self.image, mx, my, cv2.INTER_LINEAR,
                                                            borderMode=cv2.BORDER_REPLICATE)
         # The sampled map at the current carriers, then one Newton step (local
         # similarity factor a) to where the reference carriers land in the template.
-        cu = ((c_est[:, 0] - lo[0]) / step).astype(np.float32)[None]
-        cv_ = ((c_est[:, 1] - lo[1]) / step).astype(np.float32)[None]
+        cu = ((c_est[:, 0] - o[0] + 0.5) / step[0] - 0.5).astype(np.float32)[None]
+        cv_ = ((c_est[:, 1] - o[1] + 0.5) / step[1] - 0.5).astype(np.float32)[None]
         r = (cv2.remap(fx, cu, cv_, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
              + 1j * cv2.remap(fy, cu, cv_, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0])
         cz = c_est[:, 0] + 1j * c_est[:, 1]
@@ -322,13 +332,13 @@ def _mls_similarity(p, q, v, soft2: float):
     a : ndarray, shape (G,), complex
         Local similarity factor (scale and rotation) at each query point.
     """
-    wv = 1.0 / (np.abs(p[None, :] - v[:, None]) ** 2 + soft2)
-    ws = wv.sum(1, keepdims=True)
-    ps = (wv * p).sum(1, keepdims=True) / ws
-    qs = (wv * q).sum(1, keepdims=True) / ws
-    ph, qh = p[None, :] - ps, q[None, :] - qs
-    a = (wv * np.conj(ph) * qh).sum(1) / np.maximum((wv * np.abs(ph) ** 2).sum(1), 1e-12)
-    return a * (v - ps[:, 0]) + qs[:, 0], a
+    from ._kernels import mls_similarity
+
+    v = np.ascontiguousarray(v, dtype=np.complex128)
+    f, a = np.empty_like(v), np.empty_like(v)
+    mls_similarity(np.ascontiguousarray(p, dtype=np.complex128), np.ascontiguousarray(q, dtype=np.complex128),
+                   v, float(soft2), f, a)
+    return f, a
 
 
 def _structure_tensors(image, points, window: int) -> np.ndarray:
@@ -389,30 +399,16 @@ def _regularize(est, ref: _Reference, M, confidence, rigid_mask, huber: float, i
     -------
     ndarray, shape (L, 2)
     """
-    L = len(est)
     R = M[:, :2] / np.sqrt(max(abs(np.linalg.det(M[:, :2])), 1e-12))
     G = np.einsum("ij,ljk,mk->lim", R, ref.info, R) * confidence[:, None, None] + 0.01 * np.eye(2)
     base = ref.points @ M[:, :2].T + M[:, 2]
     m = est - base
-    D = np.zeros((2 * L, 2 * L))
-    i2 = 2 * np.arange(L)
-    for a in (0, 1):
-        for b in (0, 1):
-            D[i2 + a, i2 + b] = G[:, a, b]
-    D[i2, i2] += _RIGID_WEIGHT * rigid_mask
-    D[i2 + 1, i2 + 1] += _RIGID_WEIGHT * rigid_mask
-    rhs = np.einsum("lij,lj->li", G, m).ravel()
-    d = m
+    from ._kernels import regularize_solve
+
     # a multithreaded BLAS is ~10x slower on this small system on a busy machine
     with small_blas():
-        for _ in range(iterations):
-            r = np.linalg.norm(d[:, None] - d[None], axis=2)
-            W = ref.neighbours * np.minimum(1.0, huber / np.maximum(r, 1e-12))
-            Lap = np.diag(W.sum(1)) - W
-            A = D.copy()
-            A[0::2, 0::2] += _SMOOTH_WEIGHT * Lap
-            A[1::2, 1::2] += _SMOOTH_WEIGHT * Lap
-            d = np.linalg.solve(A, rhs).reshape(L, 2)
+        d = regularize_solve(np.ascontiguousarray(G), np.ascontiguousarray(m), _RIGID_WEIGHT * rigid_mask.astype(float),
+                             ref.neighbours, _SMOOTH_WEIGHT, float(huber), iterations)
     return base + d
 
 
@@ -512,7 +508,8 @@ def track_lk(
         raise ShapeError(f"rigid_points: need at least 2 indices in [0, {L}), got {rigid.tolist()}")
     contour = _contour_points(L) if contour_points is None else np.asarray(contour_points, dtype=int)
     lk = dict(winSize=(window, window), maxLevel=levels,
-              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 0.001))
+              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    lk_fast = dict(lk, maxLevel=min(levels, _PREDICTED_LEVELS), flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     lk_anchor = dict(lk, maxLevel=min(levels, _ANCHOR_LEVELS))
     lk_anchor_init = dict(lk_anchor, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     # Silhouette points (the jaw line) have background under half their window,
@@ -563,6 +560,7 @@ def track_lk(
     pts, conf = [scale_back(P0)], [np.ones(L)]
     Q0 = P0 + offset0
     prev, c_prev = first, Q0.copy()
+    velocity = np.zeros((L, 2))  # carriers' last displacement, the motion prediction
     is_rigid = np.isin(np.arange(L), rigid)
     lost_run = 0
     for t, frame in enumerate(it, start=1):
@@ -577,13 +575,26 @@ def track_lk(
             pts.append(scale_back(p))
             conf.append(np.ones(L))
             prev, c_prev, lost_run = cur, p + off, 0
+            velocity[:] = 0
             if progress is not None:
                 progress(t)
             continue
         # 1. frame-to-frame flow of the carriers, checked forward-backward
+        # from the constant-velocity prediction on a shallow pyramid; points
+        # that fail the check are tracked again on the full pyramid
         c0 = c_prev.astype(np.float32).reshape(-1, 1, 2)
-        box = _Box(c0 if roi else [], (w, h), window, levels)
-        fwd, err = box.flow(box.crop(prev), box.crop(cur), c0, lk)
+        v = velocity.astype(np.float32).reshape(-1, 1, 2)
+        fast = min(levels, _PREDICTED_LEVELS)
+        box = _Box(np.concatenate([c_prev, c_prev + velocity]) if roi else [], (w, h), window, fast)
+        fwd, err = box.flow(box.crop(prev), box.crop(cur), c0, lk_fast, guess=c0 + v, lk_init=lk_fast,
+                            back_guess=-v)
+        retry = ~(err < 3 * fb_threshold)
+        if fast < levels and retry.any():
+            box = _Box(c0[retry] if roi else [], (w, h), window, levels)
+            fwd2, err2 = box.flow(box.crop(prev), box.crop(cur), c0[retry], lk)
+            better = err2 < err[retry]
+            idx = np.flatnonzero(retry)[better]
+            fwd[idx], err[idx] = fwd2[better], err2[better]
         c_est = fwd.reshape(-1, 2).astype(np.float64)
         good = err < 3 * fb_threshold
         wts = good.astype(float) if good[rigid].sum() >= 2 else np.ones(L)
@@ -648,6 +659,7 @@ def track_lk(
             lost_run = 0
         pts.append(scale_back(est))
         conf.append(c)
+        velocity = c_est - c_prev
         prev, c_prev = cur, c_est
         if progress is not None:
             progress(t)

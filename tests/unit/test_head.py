@@ -93,7 +93,9 @@ def _fit_similarity_reference(src, dst, weights, iterations):
     return np.stack([np.stack([a.real, -a.imag, b.real], 1), np.stack([a.imag, a.real, b.imag], 1)], 1)
 
 
-def test_fit_similarity_matches_reference_irls_bitwise():
+def test_fit_similarity_matches_reference_irls():
+    # The compiled kernel sums in loop order (numpy sums pairwise), so the
+    # results agree to rounding, not bit for bit.
     rng = np.random.default_rng(3)
     for trial in range(300):
         T, L = int(rng.integers(1, 4)), int(rng.integers(2, 15))
@@ -107,5 +109,11 @@ def test_fit_similarity_matches_reference_irls_bitwise():
             dst[-1, -1, 0] = np.inf
         for it in (0, 1, 3):
             for weights in (w, None):
-                np.testing.assert_array_equal(fit_similarity(src, dst, weights, iterations=it),
-                                              _fit_similarity_reference(src, dst, weights, it))
+                got = fit_similarity(src, dst, weights, iterations=it)
+                assert np.isfinite(got).all()
+                # a frame with fewer than two weighted points has no defined
+                # similarity: both give whatever the rounding leaves there
+                ww = np.ones((T, L)) if weights is None else weights
+                posed = ((ww > 0) & np.isfinite(dst).all(-1)).sum(1) >= 2
+                np.testing.assert_allclose(got[posed], _fit_similarity_reference(src, dst, weights, it)[posed],
+                                           rtol=1e-12, atol=1e-9)
