@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 # Algorithm constants (dimensionless unless stated; "rms" is the RMS distance
 # of the annotated landmarks from their centroid, i.e. the face size).
 _ANCHOR_LEVELS = 1      # pyramid levels of the anchor pass (it starts from the flow estimate)
-_PREDICTED_LEVELS = 1   # pyramid levels of the flow pass from the motion prediction (full pyramid on failure)
+_PREDICTED_LEVELS = 0   # pyramid levels of the flow pass from the motion prediction (full pyramid on failure)
 _ANCHOR_GAIN = 0.5      # fraction of the way a point moves to its accepted anchor match
 _MLS_SOFTNESS = 0.4     # softening radius of the MLS template warp, in rms
 _SMOOTH_WEIGHT = 0.03   # weight of the displacement smoothness against the (normalised) LK information
@@ -563,6 +563,7 @@ def track_lk(
     velocity = np.zeros((L, 2))  # carriers' last displacement, the motion prediction
     is_rigid = np.isin(np.arange(L), rigid)
     lost_run = 0
+    retried = 0
     for t, frame in enumerate(it, start=1):
         cur = prep(frame)
         if cur.shape != first.shape:
@@ -590,6 +591,7 @@ def track_lk(
                             back_guess=-v)
         retry = ~(err < 3 * fb_threshold)
         if fast < levels and retry.any():
+            retried += int(retry.sum())
             box = _Box(c0[retry] if roi else [], (w, h), window, levels)
             fwd2, err2 = box.flow(box.crop(prev), box.crop(cur), c0[retry], lk)
             better = err2 < err[retry]
@@ -663,6 +665,7 @@ def track_lk(
         prev, c_prev = cur, c_est
         if progress is not None:
             progress(t)
+    log.debug("%d of %d point-frames tracked again on the full pyramid", retried, L * max(len(pts) - 1, 1))
     if 0 < lost_run:
         log.warning("the last %d frames have fewer than %d reliable landmarks", lost_run, max(3, L // 4))
     return np.stack(pts), np.clip(np.stack(conf), 0.0, 1.0)
