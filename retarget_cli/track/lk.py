@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 # Algorithm constants (dimensionless unless stated; "rms" is the RMS distance
 # of the annotated landmarks from their centroid, i.e. the face size).
 _ANCHOR_LEVELS = 1      # pyramid levels of the anchor pass (it starts from the flow estimate)
-_PREDICTED_LEVELS = 0   # pyramid levels of the flow pass from the motion prediction (full pyramid on failure)
+_BACK_LEVELS = 0        # pyramid levels of the backward flow check (it starts from the motion prediction)
 _ANCHOR_GAIN = 0.5      # fraction of the way a point moves to its accepted anchor match
 _MLS_SOFTNESS = 0.4     # softening radius of the MLS template warp, in rms
 _SMOOTH_WEIGHT = 0.03   # weight of the displacement smoothness against the (normalised) LK information
@@ -63,7 +63,8 @@ class FaceLostError(InputError):
         self.frame, self.points, self.confidence = frame, points, confidence
 
 
-def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict | None = None, back_guess=None):
+def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict | None = None, back_guess=None,
+                          lk_back: dict | None = None):
     """Pyramidal LK from *src* to *dst* and back, with the forward–backward error.
 
     Parameters
@@ -77,11 +78,9 @@ def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict 
         Initial positions in *dst*, used with *lk_init* (which must carry
         ``flags=cv2.OPTFLOW_USE_INITIAL_FLOW``).
     back_guess : ndarray, shape (L, 1, 2), float32, optional
-        Offsets from the forward result at which the backward pass starts
-        (with *lk_init*); by default it starts at the forward result with *lk*.
-        Starting both passes from a motion prediction lets them search a
-        shallower pyramid: the check stays fair because neither pass starts
-        at the other's answer.
+        Offsets from the forward result at which the backward pass starts,
+        used with *lk_back* (with ``cv2.OPTFLOW_USE_INITIAL_FLOW``). By
+        default the backward pass starts at the forward result with *lk*.
 
     Returns
     -------
@@ -99,7 +98,7 @@ def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict 
     if back_guess is None:
         bwd, st2, _ = cv2.calcOpticalFlowPyrLK(dst, src, fwd, None, **lk)
     else:
-        bwd, st2, _ = cv2.calcOpticalFlowPyrLK(dst, src, fwd, fwd + back_guess, **(lk_init or lk))
+        bwd, st2, _ = cv2.calcOpticalFlowPyrLK(dst, src, fwd, fwd + back_guess, **lk_back)
     fb = np.linalg.norm((bwd - points).reshape(-1, 2), axis=1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb)
     return fwd, np.where(ok, fb, np.inf)
@@ -151,13 +150,13 @@ class _Box:
     def crop(self, image: np.ndarray) -> np.ndarray:
         return image[self.y0:self.y1, self.x0:self.x1]
 
-    def flow(self, src, dst, points, lk: dict, guess=None, lk_init: dict | None = None, back_guess=None):
+    def flow(self, src, dst, points, lk: dict, guess=None, lk_init: dict | None = None, back_guess=None,
+             lk_back: dict | None = None):
         """:func:`flow_forward_backward` between crops *src* and *dst* of this box, points in full-image pixels."""
         o = self.offset
         local = lambda p: None if p is None else (p.reshape(-1, 2) - o).astype(np.float32).reshape(-1, 1, 2)  # noqa: E731
-        back = None if back_guess is None else np.asarray(back_guess, np.float32).reshape(-1, 1, 2)
         moved, err = flow_forward_backward(src, dst, local(points), lk, guess=local(guess), lk_init=lk_init,
-                                           back_guess=back)
+                                           back_guess=back_guess, lk_back=lk_back)
         return (moved.reshape(-1, 2) + o).astype(np.float32).reshape(-1, 1, 2), err
 
 
@@ -509,7 +508,8 @@ def track_lk(
     contour = _contour_points(L) if contour_points is None else np.asarray(contour_points, dtype=int)
     lk = dict(winSize=(window, window), maxLevel=levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-    lk_fast = dict(lk, maxLevel=min(levels, _PREDICTED_LEVELS), flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    lk_predicted = dict(lk, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    lk_back = dict(lk_predicted, maxLevel=min(levels, _BACK_LEVELS))
     lk_anchor = dict(lk, maxLevel=min(levels, _ANCHOR_LEVELS))
     lk_anchor_init = dict(lk_anchor, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     # Silhouette points (the jaw line) have background under half their window,
@@ -580,17 +580,18 @@ def track_lk(
             if progress is not None:
                 progress(t)
             continue
-        # 1. frame-to-frame flow of the carriers, checked forward-backward
-        # from the constant-velocity prediction on a shallow pyramid; points
-        # that fail the check are tracked again on the full pyramid
+        # 1. frame-to-frame flow of the carriers, checked forward-backward:
+        # forward on the full pyramid from the constant-velocity prediction,
+        # backward from the forward result less the prediction on the base
+        # image only; points that fail the check are tracked again by plain
+        # forward-backward flow on the full pyramid
         c0 = c_prev.astype(np.float32).reshape(-1, 1, 2)
         v = velocity.astype(np.float32).reshape(-1, 1, 2)
-        fast = min(levels, _PREDICTED_LEVELS)
-        box = _Box(np.concatenate([c_prev, c_prev + velocity]) if roi else [], (w, h), window, fast)
-        fwd, err = box.flow(box.crop(prev), box.crop(cur), c0, lk_fast, guess=c0 + v, lk_init=lk_fast,
-                            back_guess=-v)
+        box = _Box(np.concatenate([c_prev, c_prev + velocity]) if roi else [], (w, h), window, levels)
+        fwd, err = box.flow(box.crop(prev), box.crop(cur), c0, lk, guess=c0 + v, lk_init=lk_predicted,
+                            back_guess=-v, lk_back=lk_back)
         retry = ~(err < 3 * fb_threshold)
-        if fast < levels and retry.any():
+        if _BACK_LEVELS < levels and retry.any():
             retried += int(retry.sum())
             box = _Box(c0[retry] if roi else [], (w, h), window, levels)
             fwd2, err2 = box.flow(box.crop(prev), box.crop(cur), c0[retry], lk)

@@ -46,6 +46,29 @@ def test_lk_downscale_reports_full_resolution(clip):
     assert np.linalg.norm(pts - truth[:20], axis=2).mean() < 1.5
 
 
+def test_lk_follows_a_sudden_jump_beyond_the_prediction(clip, caplog):
+    # The backward check runs on the base image only, from the constant-velocity
+    # prediction; a jump far outside its reach fails it and is tracked again by
+    # plain forward-backward flow on the full pyramid. A shallow forward pass
+    # would stop short of the jump at some points and still pass the check.
+    import logging
+
+    import cv2
+
+    frames, truth = clip
+    shift = np.array([30.0, -20.0])
+    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    moved = [cv2.warpAffine(f, M, (f.shape[1], f.shape[0]), borderMode=cv2.BORDER_REPLICATE) for f in frames[10:20]]
+    with caplog.at_level(logging.DEBUG, logger="retarget_cli.track.lk"):
+        pts, conf = track_lk(frames[:10] + moved, truth[0])
+    expect = np.concatenate([truth[:10], truth[10:20] + shift])
+    err = np.linalg.norm(pts - expect, axis=2)
+    assert err[10].mean() < 1.0, err[10].mean()  # the jump frame itself
+    assert err.mean() < 0.6, err.mean()
+    retried = int(next(r.getMessage() for r in caplog.records if "full pyramid" in r.getMessage()).split()[0])
+    assert retried >= 40  # most of the 68 points needed the full pyramid on the jump frame
+
+
 def test_lk_face_lost_is_reported(clip):
     frames, truth = clip
     blank = [np.zeros_like(frames[0])] * 15

@@ -49,6 +49,30 @@ def test_prefetching_reader_yields_identical_frames(small_take, prefetch):
 
 
 @pytest.mark.parametrize("prefetch", [0, 4])
+def test_gray_reader_converts_every_frame(small_take, tmp_path, prefetch):
+    import cv2
+
+    ref = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in _plain(small_take / "face.mp4")]
+    with VideoReader(small_take / "face.mp4", prefetch=prefetch, gray=True) as r:
+        got = list(r)
+    assert len(got) == len(ref) == 60
+    for a, b in zip(got, ref):
+        assert a.shape == b.shape == ref[0].shape[:2]
+        np.testing.assert_array_equal(a, b)
+    with FrameSource(small_take / "face.mp4", start=2, end=9, step=3, gray=True) as src:
+        picked = list(src)
+    assert src.frames == [2, 5, 8]
+    for f, a in zip(src.frames, picked):
+        np.testing.assert_array_equal(a, ref[f])
+    for i in range(3):  # an image sequence too
+        cv2.imwrite(str(tmp_path / f"f_{i:03d}.png"), _plain(small_take / "face.mp4")[i])
+    with FrameSource(tmp_path / "f_%03d.png", gray=True) as src:
+        seq = list(src)
+    assert [a.shape for a in seq] == [ref[0].shape] * 3
+    np.testing.assert_array_equal(seq[2], ref[2])
+
+
+@pytest.mark.parametrize("prefetch", [0, 4])
 def test_truncated_video_still_reported(truncated, caplog, prefetch):
     ref = _plain(truncated)
     with caplog.at_level(logging.WARNING, logger="retarget_cli.io.video"):
