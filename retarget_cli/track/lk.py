@@ -2,8 +2,10 @@
 
 Chuang & Bregler (2002, §3) track facial features after removing the head's
 affine motion. This tracker follows each landmark with OpenCV's pyramidal
-Lucas–Kanade flow (Bouguet's implementation) from frame to frame and checks it
-with a forward–backward pass. Frame-to-frame flow drifts, so every frame is
+Lucas–Kanade flow (Bouguet's implementation) from frame to frame, starting
+from a constant-velocity prediction, and checks it with a forward–backward
+pass (on the base image, from the prediction; points that fail it are
+tracked again with plain forward–backward flow on the full pyramid). Frame-to-frame flow drifts, so every frame is
 also re-registered against an annotated frame warped onto the current
 estimate (a template update with drift correction, Matthews et al. 2004):
 the warp is a moving-least-squares similarity deformation (Schaefer et al.
