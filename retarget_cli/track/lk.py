@@ -331,6 +331,61 @@ def _mls_similarity(p, q, v, soft2: float):
     return a * (v - ps[:, 0]) + qs[:, 0], a
 
 
+def _match_lighting(template, image, points) -> np.ndarray:
+    """The warped reference *template* relit to match *image*: gain times a linear ramp.
+
+    The anchor pass compares the current frame with an annotated frame that
+    may be hundreds of frames old; LK assumes brightness constancy, so a
+    change of exposure or of the light's direction in between biases every
+    anchor match (frame-to-frame flow does not see it: the light changes
+    little between neighbouring frames). A low-order multiplicative light
+    field ``I(x, y) ~ T(x, y) (a + b x + c y)`` (the illumination model of
+    Hager & Belhumeur 1998, first order) is fitted by least squares over the
+    landmarks' bounding box where the template is filled, with one
+    reweighting step (Huber weights at twice the median absolute residual)
+    against what the reference cannot show (the mouth opening, background),
+    and applied to the whole template.
+
+    Parameters
+    ----------
+    template, image : ndarray, shape (H, W), uint8
+        Warped reference (0 where not filled) and current frame, same crop.
+    points : ndarray, shape (L, 2)
+        Landmark estimates in the crop's pixels.
+
+    Returns
+    -------
+    ndarray, shape (H, W), uint8
+        The relit template (unchanged where the fit is not possible).
+    """
+    h, w = template.shape[:2]
+    lo = np.clip(np.floor(points.min(0)).astype(int), 0, (w - 1, h - 1))
+    hi = np.clip(np.ceil(points.max(0)).astype(int) + 1, lo + 1, (w, h))
+    T = template[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float32)
+    m = T > 0
+    if m.sum() < 16:
+        return template
+    cx, cy = (lo + hi - 1) / 2
+    sx, sy = max((hi[0] - lo[0]) / 2, 1.0), max((hi[1] - lo[1]) / 2, 1.0)
+    yy, xx = np.nonzero(m)
+    u = ((xx + lo[0] - cx) / sx).astype(np.float32)
+    v = ((yy + lo[1] - cy) / sy).astype(np.float32)
+    t = T[m]
+    A = np.stack([t, t * u, t * v], 1)
+    b = image[lo[1]:hi[1], lo[0]:hi[0]][m].astype(np.float32)
+    wt = np.ones_like(t)
+    for _ in range(2):
+        Aw = A * wt[:, None]
+        coef = np.linalg.solve(Aw.T @ A + 1e-6 * np.eye(3), Aw.T @ b)
+        r = np.abs(A @ coef - b)
+        k = 2.0 * max(float(np.median(r)), 0.5)
+        wt = np.minimum(1.0, k / np.maximum(r, 1e-6)).astype(np.float32)
+    gx = coef[0] + coef[1] * (np.arange(w, dtype=np.float32) - cx) / sx
+    gy = coef[2] * (np.arange(h, dtype=np.float32) - cy) / sy
+    field = np.clip(gx[None, :] + gy[:, None], 0.5, 2.0)
+    return np.clip(template * field + 0.5, 0, 255).astype(np.uint8)
+
+
 def _structure_tensors(image, points, window: int) -> np.ndarray:
     """LK structure tensors of *image* over a *window* square at *points*.
 
@@ -603,7 +658,9 @@ def track_lk(
             tmpl, c_tmpl = ref.template(est, c_est, window * 2**_ANCHOR_LEVELS // 2 + 8)
             c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
             box = _Box(np.concatenate([c_tmpl, fwd.reshape(-1, 2)]) if roi else [], (w, h), window, _ANCHOR_LEVELS)
-            afw, aerr = box.flow(box.crop(tmpl), box.crop(cur), c_t, lk_anchor, guess=fwd, lk_init=lk_anchor_init)
+            crop = box.crop(cur)
+            tmpl = _match_lighting(box.crop(tmpl), crop, est - box.offset)
+            afw, aerr = box.flow(tmpl, crop, c_t, lk_anchor, guess=fwd, lk_init=lk_anchor_init)
             # A match that passes the forward-backward check is drift-free;
             # frame-to-frame flow always has the smaller error, so comparing
             # the two would keep the drift. Proxies next to appearance the
