@@ -182,6 +182,37 @@ def _inner_lip_offsets(P0: np.ndarray, length: float) -> dict[int, np.ndarray]:
     return {**{i: up * length for i in (61, 62, 63)}, **{i: -up * length for i in (65, 66, 67)}}
 
 
+def _outer_lip_offsets(P0: np.ndarray, half: float) -> dict[int, np.ndarray]:
+    """Proxy offsets of the outer-lip points of the 68-point layout, away from the mouth line.
+
+    When the lips are thinner than the LK window, the window of an outer-lip
+    point reaches across the lip seam into the other lip, which moves on its
+    own when the jaw opens: the lower lip drags the upper-lip points down
+    and the static upper lip holds the lower-lip points back. Each upper
+    outer-lip point (49-53) is tracked through a proxy moved up, each lower
+    one (55-59) through one moved down, perpendicular to the mouth axis
+    (60 -> 64), by just enough that the window (*half* its side plus a
+    margin) stays on its own side of the seam (the line 60 -> 64): ``max(0,
+    half - distance to the seam)``. Zero when the lips are thick enough
+    (high resolution); empty for other layouts.
+    """
+    if len(P0) != 68:
+        return {}
+    axis = P0[64] - P0[60]
+    n = np.linalg.norm(axis)
+    if n < 1e-9:
+        return {}
+    up = np.array([axis[1], -axis[0]]) / n
+    if up[1] > 0:  # image y points down
+        up = -up
+    out = {}
+    for ids, sign in (((49, 50, 51, 52, 53), 1.0), ((55, 56, 57, 58, 59), -1.0)):
+        for i in ids:
+            dist = sign * float((P0[i] - P0[60]) @ up)
+            out[i] = sign * up * max(0.0, half - dist)
+    return out
+
+
 def normalize_annotations(annotations) -> dict[int, np.ndarray]:
     """``(L, 2)`` array (frame 0) or ``{frame: (L, 2)}`` to a sorted dict of float64 arrays.
 
@@ -581,6 +612,9 @@ def track_lk(
     # Likewise the inner lips, whose other side is the mouth opening.
     lips = _inner_lip_offsets(P0, window // 2 + 2)
     for i, o in lips.items():
+        offset0[i] = o
+    # and the outer lips, whose windows may reach across the seam into the other lip
+    for i, o in _outer_lip_offsets(P0, window // 2 + 2).items():
         offset0[i] = o
     boundary = np.concatenate([contour, list(lips)]).astype(int)
     is_boundary = np.isin(np.arange(L), boundary)
