@@ -43,6 +43,7 @@ _MLS_SOFTNESS = 0.4     # softening radius of the MLS template warp, in rms
 _SMOOTH_WEIGHT = 0.03   # weight of the displacement smoothness against the (normalised) LK information
 _SMOOTH_RADIUS = 0.3    # Gaussian radius of the neighbourhood, in rms
 _SMOOTH_HUBER = 1.0     # displacement difference (pixels at full resolution) beyond which smoothing is robust
+_LIGHT_SAMPLES = 4096  # pixels sampled for the relighting fit (a strided grid over the face box)
 _RIGID_WEIGHT = 3.0     # pull of rigid points to the head similarity in the regularisation
 
 class FaceLostError(InputError):
@@ -389,21 +390,25 @@ def _match_lighting(template, image, points) -> np.ndarray:
     ndarray, shape (H, W), uint8
         The relit template (unchanged where the fit is not possible).
     """
+    import cv2
+
     h, w = template.shape[:2]
     lo = np.clip(np.floor(points.min(0)).astype(int), 0, (w - 1, h - 1))
     hi = np.clip(np.ceil(points.max(0)).astype(int) + 1, lo + 1, (w, h))
-    T = template[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float32)
+    # a strided sample of the box is plenty for three coefficients of a smooth field
+    step = max(1, int(np.sqrt((hi[0] - lo[0]) * (hi[1] - lo[1]) / _LIGHT_SAMPLES)))
+    T = template[lo[1]:hi[1]:step, lo[0]:hi[0]:step].astype(np.float32)
     m = T > 0
     if m.sum() < 16:
         return template
     cx, cy = (lo + hi - 1) / 2
     sx, sy = max((hi[0] - lo[0]) / 2, 1.0), max((hi[1] - lo[1]) / 2, 1.0)
     yy, xx = np.nonzero(m)
-    u = ((xx + lo[0] - cx) / sx).astype(np.float32)
-    v = ((yy + lo[1] - cy) / sy).astype(np.float32)
+    u = ((xx * step + lo[0] - cx) / sx).astype(np.float32)
+    v = ((yy * step + lo[1] - cy) / sy).astype(np.float32)
     t = T[m]
     A = np.stack([t, t * u, t * v], 1)
-    b = image[lo[1]:hi[1], lo[0]:hi[0]][m].astype(np.float32)
+    b = image[lo[1]:hi[1]:step, lo[0]:hi[0]:step][m].astype(np.float32)
     wt = np.ones_like(t)
     for _ in range(2):
         Aw = A * wt[:, None]
@@ -411,10 +416,10 @@ def _match_lighting(template, image, points) -> np.ndarray:
         r = np.abs(A @ coef - b)
         k = 2.0 * max(float(np.median(r)), 0.5)
         wt = np.minimum(1.0, k / np.maximum(r, 1e-6)).astype(np.float32)
-    gx = coef[0] + coef[1] * (np.arange(w, dtype=np.float32) - cx) / sx
-    gy = coef[2] * (np.arange(h, dtype=np.float32) - cy) / sy
+    gx = (coef[0] + coef[1] * (np.arange(w) - cx) / sx).astype(np.float32)
+    gy = (coef[2] * (np.arange(h) - cy) / sy).astype(np.float32)
     field = np.clip(gx[None, :] + gy[:, None], 0.5, 2.0)
-    return np.clip(template * field + 0.5, 0, 255).astype(np.uint8)
+    return cv2.convertScaleAbs(cv2.multiply(template, field, dtype=cv2.CV_32F))
 
 
 def _structure_tensors(image, points, window: int) -> np.ndarray:
