@@ -47,6 +47,7 @@ _MLS_SOFTNESS = 0.4     # softening radius of the MLS template warp, in rms
 _SMOOTH_WEIGHT = 0.03   # weight of the displacement smoothness against the (normalised) LK information
 _SMOOTH_RADIUS = 0.3    # Gaussian radius of the neighbourhood, in rms
 _SMOOTH_HUBER = 1.0     # displacement difference (pixels at full resolution) beyond which smoothing is robust
+_LIGHT_SAMPLES = 4096  # pixels sampled for the relighting fit (a strided grid over the face box)
 _RIGID_WEIGHT = 3.0     # pull of rigid points to the head similarity in the regularisation
 
 class FaceLostError(InputError):
@@ -186,6 +187,37 @@ def _inner_lip_offsets(P0: np.ndarray, length: float) -> dict[int, np.ndarray]:
     if up[1] > 0:  # image y points down
         up = -up
     return {**{i: up * length for i in (61, 62, 63)}, **{i: -up * length for i in (65, 66, 67)}}
+
+
+def _outer_lip_offsets(P0: np.ndarray, half: float) -> dict[int, np.ndarray]:
+    """Proxy offsets of the outer-lip points of the 68-point layout, away from the mouth line.
+
+    When the lips are thinner than the LK window, the window of an outer-lip
+    point reaches across the lip seam into the other lip, which moves on its
+    own when the jaw opens: the lower lip drags the upper-lip points down
+    and the static upper lip holds the lower-lip points back. Each upper
+    outer-lip point (49-53) is tracked through a proxy moved up, each lower
+    one (55-59) through one moved down, perpendicular to the mouth axis
+    (60 -> 64), by just enough that the window (*half* its side plus a
+    margin) stays on its own side of the seam (the line 60 -> 64): ``max(0,
+    half - distance to the seam)``. Zero when the lips are thick enough
+    (high resolution); empty for other layouts.
+    """
+    if len(P0) != 68:
+        return {}
+    axis = P0[64] - P0[60]
+    n = np.linalg.norm(axis)
+    if n < 1e-9:
+        return {}
+    up = np.array([axis[1], -axis[0]]) / n
+    if up[1] > 0:  # image y points down
+        up = -up
+    out = {}
+    for ids, sign in (((49, 50, 51, 52, 53), 1.0), ((55, 56, 57, 58, 59), -1.0)):
+        for i in ids:
+            dist = sign * float((P0[i] - P0[60]) @ up)
+            out[i] = sign * up * max(0.0, half - dist)
+    return out
 
 
 def normalize_annotations(annotations) -> dict[int, np.ndarray]:
@@ -340,6 +372,65 @@ def _mls_similarity(p, q, v, soft2: float):
     mls_similarity(np.ascontiguousarray(p, dtype=np.complex128), np.ascontiguousarray(q, dtype=np.complex128),
                    v, float(soft2), f, a)
     return f, a
+
+
+def _match_lighting(template, image, points) -> np.ndarray:
+    """The warped reference *template* relit to match *image*: gain times a linear ramp.
+
+    The anchor pass compares the current frame with an annotated frame that
+    may be hundreds of frames old; LK assumes brightness constancy, so a
+    change of exposure or of the light's direction in between biases every
+    anchor match (frame-to-frame flow does not see it: the light changes
+    little between neighbouring frames). A low-order multiplicative light
+    field ``I(x, y) ~ T(x, y) (a + b x + c y)`` (the illumination model of
+    Hager & Belhumeur 1998, first order) is fitted by least squares over the
+    landmarks' bounding box where the template is filled, with one
+    reweighting step (Huber weights at twice the median absolute residual)
+    against what the reference cannot show (the mouth opening, background),
+    and applied to the whole template.
+
+    Parameters
+    ----------
+    template, image : ndarray, shape (H, W), uint8
+        Warped reference (0 where not filled) and current frame, same crop.
+    points : ndarray, shape (L, 2)
+        Landmark estimates in the crop's pixels.
+
+    Returns
+    -------
+    ndarray, shape (H, W), uint8
+        The relit template (unchanged where the fit is not possible).
+    """
+    import cv2
+
+    h, w = template.shape[:2]
+    lo = np.clip(np.floor(points.min(0)).astype(int), 0, (w - 1, h - 1))
+    hi = np.clip(np.ceil(points.max(0)).astype(int) + 1, lo + 1, (w, h))
+    # a strided sample of the box is plenty for three coefficients of a smooth field
+    step = max(1, int(np.sqrt((hi[0] - lo[0]) * (hi[1] - lo[1]) / _LIGHT_SAMPLES)))
+    T = template[lo[1]:hi[1]:step, lo[0]:hi[0]:step].astype(np.float32)
+    m = T > 0
+    if m.sum() < 16:
+        return template
+    cx, cy = (lo + hi - 1) / 2
+    sx, sy = max((hi[0] - lo[0]) / 2, 1.0), max((hi[1] - lo[1]) / 2, 1.0)
+    yy, xx = np.nonzero(m)
+    u = ((xx * step + lo[0] - cx) / sx).astype(np.float32)
+    v = ((yy * step + lo[1] - cy) / sy).astype(np.float32)
+    t = T[m]
+    A = np.stack([t, t * u, t * v], 1)
+    b = image[lo[1]:hi[1]:step, lo[0]:hi[0]:step][m].astype(np.float32)
+    wt = np.ones_like(t)
+    for _ in range(2):
+        Aw = A * wt[:, None]
+        coef = np.linalg.solve(Aw.T @ A + 1e-6 * np.eye(3), Aw.T @ b)
+        r = np.abs(A @ coef - b)
+        k = 2.0 * max(float(np.median(r)), 0.5)
+        wt = np.minimum(1.0, k / np.maximum(r, 1e-6)).astype(np.float32)
+    gx = (coef[0] + coef[1] * (np.arange(w) - cx) / sx).astype(np.float32)
+    gy = (coef[2] * (np.arange(h) - cy) / sy).astype(np.float32)
+    field = np.clip(gx[None, :] + gy[:, None], 0.5, 2.0)
+    return cv2.convertScaleAbs(cv2.multiply(template, field, dtype=cv2.CV_32F))
 
 
 def _structure_tensors(image, points, window: int) -> np.ndarray:
@@ -526,6 +617,9 @@ def track_lk(
     lips = _inner_lip_offsets(P0, window // 2 + 2)
     for i, o in lips.items():
         offset0[i] = o
+    # and the outer lips, whose windows may reach across the seam into the other lip
+    for i, o in _outer_lip_offsets(P0, window // 2 + 2).items():
+        offset0[i] = o
     boundary = np.concatenate([contour, list(lips)]).astype(int)
     is_boundary = np.isin(np.arange(L), boundary)
 
@@ -619,7 +713,9 @@ def track_lk(
             tmpl, c_tmpl = ref.template(est, c_est, window * 2**_ANCHOR_LEVELS // 2 + 8)
             c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
             box = _Box(np.concatenate([c_tmpl, fwd.reshape(-1, 2)]) if roi else [], (w, h), window, _ANCHOR_LEVELS)
-            afw, aerr = box.flow(box.crop(tmpl), box.crop(cur), c_t, lk_anchor, guess=fwd, lk_init=lk_anchor_init)
+            crop = box.crop(cur)
+            tmpl = _match_lighting(box.crop(tmpl), crop, est - box.offset)
+            afw, aerr = box.flow(tmpl, crop, c_t, lk_anchor, guess=fwd, lk_init=lk_anchor_init)
             # A match that passes the forward-backward check is drift-free;
             # frame-to-frame flow always has the smaller error, so comparing
             # the two would keep the drift. Proxies next to appearance the

@@ -5,7 +5,7 @@ from retarget_cli.errors import ShapeError
 from retarget_cli.io.atomic import load_npz
 from retarget_cli.io.video import VideoReader
 from retarget_cli.track.head import RIGID_68
-from retarget_cli.track.lk import FaceLostError, normalize_annotations, track_lk
+from retarget_cli.track.lk import FaceLostError, _match_lighting, _outer_lip_offsets, normalize_annotations, track_lk
 from retarget_cli.track.prior import ShapePrior
 
 
@@ -257,3 +257,57 @@ def test_regularization_fills_in_along_edges_only():
     assert abs(out[7, 1] - est[7, 1]) < 0.05  # across the edge: the measurement
     assert abs(out[7, 0] - P[7, 0]) < 0.5  # along the edge: mostly the neighbours (2 px measured)
     np.testing.assert_allclose(out[[0, 14]], P[[0, 14]], atol=0.05)
+
+
+def test_lk_anchor_is_not_biased_by_lighting_drift(clip):
+    # exposure falls by 30% over the clip while a horizontal light gradient
+    # grows: the anchor template (frame 0) is relit before matching, so the
+    # error stays that of the evenly lit clip (without relighting it was 1.75x)
+    frames, truth = clip
+    x = (np.arange(frames[0].shape[1]) - frames[0].shape[1] / 2) / (frames[0].shape[1] / 2)
+    lit = []
+    for t, f in enumerate(frames):
+        a = t / (len(frames) - 1)
+        field = (1 - 0.3 * a) * (1 + 0.25 * a * x)[None, :, None]
+        lit.append(np.clip(f * field + 0.5, 0, 255).astype(np.uint8))
+    plain, _ = track_lk(frames, truth[0])
+    relit, _ = track_lk(lit, truth[0])
+    e_plain = np.linalg.norm(plain - truth, axis=2).mean()
+    e_lit = np.linalg.norm(relit - truth, axis=2).mean()
+    assert e_lit < 1.15 * e_plain, (e_lit, e_plain)
+
+
+def test_match_lighting_recovers_gain_and_ramp():
+    rng = np.random.default_rng(0)
+    image = np.clip(120 + 40 * rng.standard_normal((60, 80)), 20, 235)
+    x = np.arange(80)[None, :] / 80.0
+    field = 0.8 * (1 + 0.3 * (x - 0.5))
+    template = np.clip(image / field + 0.5, 1, 255).astype(np.uint8)
+    template[:5] = 0  # not filled by the warp
+    cur = image.astype(np.uint8).copy()
+    cur[25:35, 30:50] = 10  # something the reference does not show (a mouth opening)
+    pts = np.array([[5.0, 8.0], [75.0, 55.0]])
+    out = _match_lighting(template, cur, pts)
+    inside = np.ones_like(cur, bool)
+    inside[:5] = False
+    inside[25:35, 30:50] = False
+    assert np.abs(out[inside].astype(float) - image[inside]).mean() < 2.0  # uint8 rounding of both images
+    assert np.abs(template[inside].astype(float) - image[inside]).mean() > 20
+
+
+def test_outer_lip_offsets_keep_windows_on_their_own_lip():
+    from retarget_cli.synth import place_neutral, source_neutral
+
+    P = source_neutral()
+    small = P @ place_neutral((192, 192))[:, :2].T  # thin lips: 10 px apart at the centre
+    big = P @ place_neutral((1280, 720))[:, :2].T
+    off = _outer_lip_offsets(small, 21 // 2 + 2)
+    assert sorted(off) == [49, 50, 51, 52, 53, 55, 56, 57, 58, 59]
+    assert all(off[i][1] < 0 for i in (50, 51, 52)) and all(off[i][1] > 0 for i in (56, 57, 58))
+    # the window stays off the seam: carrier at least half a window (+2) from the line 60 -> 64
+    seam_y = small[[60, 64], 1].mean()
+    assert abs(small[51, 1] + off[51][1] - seam_y) >= 12 - 1e-6
+    # lips thicker than the window (720p): the carriers (nearly) stay on the landmarks
+    assert max(np.linalg.norm(v) for v in _outer_lip_offsets(big, 21 // 2 + 2).values()) < 2.5
+    assert np.linalg.norm(off[51]) > 5
+    assert _outer_lip_offsets(np.zeros((5, 2)), 12) == {}
