@@ -47,7 +47,7 @@ _MLS_SOFTNESS = 0.4     # softening radius of the MLS template warp, in rms
 _SMOOTH_WEIGHT = 0.03   # weight of the displacement smoothness against the (normalised) LK information
 _SMOOTH_RADIUS = 0.3    # Gaussian radius of the neighbourhood, in rms
 _SMOOTH_HUBER = 1.0     # displacement difference (pixels at full resolution) beyond which smoothing is robust
-_LIGHT_SAMPLES = 4096  # pixels sampled for the relighting fit (a strided grid over the face box)
+_LIGHT_SAMPLES = 4096   # pixels sampled for the relighting fit (a strided grid over the face box)
 _RIGID_WEIGHT = 3.0     # pull of rigid points to the head similarity in the regularisation
 
 class FaceLostError(InputError):
