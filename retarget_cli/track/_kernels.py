@@ -203,3 +203,69 @@ def _cholesky_solve(A, b):  # pragma: no cover - compiled
             s -= C[k, i] * x[k]
         x[i] = s / C[i, i]
     return x
+
+
+@njit(cache=True, nogil=True)
+def light_fit(T, image, u, v, iterations):  # pragma: no cover - compiled
+    """Robust least-squares fit of ``image ≈ T (a + b u + c v)`` over the pixels where ``T > 0``.
+
+    The relighting model of :func:`~retarget_cli.track.lk._match_lighting`
+    (Hager & Belhumeur 1998, first order): weighted normal equations, then
+    Huber reweighting at twice the median absolute residual (at least 0.5
+    grey levels) for *iterations* - 1 further solves.
+
+    Parameters
+    ----------
+    T, image : ndarray, shape (h, w), uint8
+        Template and image samples.
+    u, v : ndarray, shape (w,) and (h,), float64
+        Normalised coordinates of the sample columns and rows.
+    iterations : int
+        Number of solves (>= 1).
+
+    Returns
+    -------
+    coef : ndarray, shape (3,)
+        ``(a, b, c)``; ``(1, 0, 0)`` when fewer than 16 samples are usable.
+    """
+    h, w = T.shape
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            if T[y, x] > 0:
+                n += 1
+    coef = np.array([1.0, 0.0, 0.0])
+    if n < 16:
+        return coef
+    A = np.empty((n, 3))
+    b = np.empty(n)
+    k = 0
+    for y in range(h):
+        for x in range(w):
+            if T[y, x] > 0:
+                t = float(T[y, x])
+                A[k, 0] = t
+                A[k, 1] = t * u[x]
+                A[k, 2] = t * v[y]
+                b[k] = float(image[y, x])
+                k += 1
+    wt = np.ones(n)
+    r = np.empty(n)
+    for _ in range(iterations):
+        N = np.zeros((3, 3))
+        rhs = np.zeros(3)
+        for i in range(n):
+            for p in range(3):
+                wa = wt[i] * A[i, p]
+                rhs[p] += wa * b[i]
+                for q in range(3):
+                    N[p, q] += wa * A[i, q]
+        for p in range(3):
+            N[p, p] += 1e-6
+        coef = np.linalg.solve(N, rhs)
+        for i in range(n):
+            r[i] = abs(A[i, 0] * coef[0] + A[i, 1] * coef[1] + A[i, 2] * coef[2] - b[i])
+        kk = 2.0 * max(np.median(r), 0.5)
+        for i in range(n):
+            wt[i] = min(1.0, kk / max(r[i], 1e-6))
+    return coef

@@ -403,33 +403,27 @@ def _match_lighting(template, image, points) -> np.ndarray:
     """
     import cv2
 
+    from ._kernels import light_fit
+
     h, w = template.shape[:2]
     lo = np.clip(np.floor(points.min(0)).astype(int), 0, (w - 1, h - 1))
     hi = np.clip(np.ceil(points.max(0)).astype(int) + 1, lo + 1, (w, h))
     # a strided sample of the box is plenty for three coefficients of a smooth field
     step = max(1, int(np.sqrt((hi[0] - lo[0]) * (hi[1] - lo[1]) / _LIGHT_SAMPLES)))
-    T = template[lo[1]:hi[1]:step, lo[0]:hi[0]:step].astype(np.float32)
-    m = T > 0
-    if m.sum() < 16:
-        return template
     cx, cy = (lo + hi - 1) / 2
     sx, sy = max((hi[0] - lo[0]) / 2, 1.0), max((hi[1] - lo[1]) / 2, 1.0)
-    yy, xx = np.nonzero(m)
-    u = ((xx * step + lo[0] - cx) / sx).astype(np.float32)
-    v = ((yy * step + lo[1] - cy) / sy).astype(np.float32)
-    t = T[m]
-    A = np.stack([t, t * u, t * v], 1)
-    b = image[lo[1]:hi[1]:step, lo[0]:hi[0]:step][m].astype(np.float32)
-    wt = np.ones_like(t)
-    for _ in range(2):
-        Aw = A * wt[:, None]
-        coef = np.linalg.solve(Aw.T @ A + 1e-6 * np.eye(3), Aw.T @ b)
-        r = np.abs(A @ coef - b)
-        k = 2.0 * max(float(np.median(r)), 0.5)
-        wt = np.minimum(1.0, k / np.maximum(r, 1e-6)).astype(np.float32)
+    T = template[lo[1]:hi[1]:step, lo[0]:hi[0]:step]
+    u = (np.arange(lo[0], hi[0], step) - cx) / sx
+    v = (np.arange(lo[1], hi[1], step) - cy) / sy
+    coef = light_fit(np.ascontiguousarray(T), np.ascontiguousarray(image[lo[1]:hi[1]:step, lo[0]:hi[0]:step]),
+                     u, v, 2)
+    if (coef == (1.0, 0.0, 0.0)).all():  # the identity, also what too few samples give
+        return template
     gx = (coef[0] + coef[1] * (np.arange(w) - cx) / sx).astype(np.float32)
     gy = (coef[2] * (np.arange(h) - cy) / sy).astype(np.float32)
-    field = np.clip(gx[None, :] + gy[:, None], 0.5, 2.0)
+    field = np.add.outer(gy, gx)
+    if gx.min() + gy.min() < 0.5 or gx.max() + gy.max() > 2.0:  # the field is linear: its extremes are corners
+        np.clip(field, 0.5, 2.0, out=field)
     return cv2.convertScaleAbs(cv2.multiply(template, field, dtype=cv2.CV_32F))
 
 
