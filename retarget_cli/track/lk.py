@@ -168,6 +168,18 @@ def _contour_points(n_points: int) -> np.ndarray:
     return np.arange(17) if n_points == 68 else np.zeros(0, dtype=int)
 
 
+def _mouth_up(P0: np.ndarray) -> np.ndarray | None:
+    """Unit normal of the mouth axis (60 -> 64) of the 68-point layout, pointing up in the image; None otherwise."""
+    if len(P0) != 68:
+        return None
+    axis = P0[64] - P0[60]
+    n = np.linalg.norm(axis)
+    if n < 1e-9:
+        return None
+    up = np.array([axis[1], -axis[0]]) / n
+    return -up if up[1] > 0 else up  # image y points down
+
+
 def _inner_lip_offsets(P0: np.ndarray, length: float) -> dict[int, np.ndarray]:
     """Proxy offsets of the inner-lip points of the 68-point layout, into the lips.
 
@@ -177,15 +189,9 @@ def _inner_lip_offsets(P0: np.ndarray, length: float) -> dict[int, np.ndarray]:
     (65-67) through one moved down into the lower lip, perpendicular to the
     mouth axis (60 -> 64). Empty for other layouts.
     """
-    if len(P0) != 68:
+    up = _mouth_up(P0)
+    if up is None:
         return {}
-    axis = P0[64] - P0[60]
-    n = np.linalg.norm(axis)
-    if n < 1e-9:
-        return {}
-    up = np.array([axis[1], -axis[0]]) / n
-    if up[1] > 0:  # image y points down
-        up = -up
     return {**{i: up * length for i in (61, 62, 63)}, **{i: -up * length for i in (65, 66, 67)}}
 
 
@@ -203,15 +209,9 @@ def _outer_lip_offsets(P0: np.ndarray, half: float) -> dict[int, np.ndarray]:
     half - distance to the seam)``. Zero when the lips are thick enough
     (high resolution); empty for other layouts.
     """
-    if len(P0) != 68:
+    up = _mouth_up(P0)
+    if up is None:
         return {}
-    axis = P0[64] - P0[60]
-    n = np.linalg.norm(axis)
-    if n < 1e-9:
-        return {}
-    up = np.array([axis[1], -axis[0]]) / n
-    if up[1] > 0:  # image y points down
-        up = -up
     out = {}
     for ids, sign in (((49, 50, 51, 52, 53), 1.0), ((55, 56, 57, 58, 59), -1.0)):
         for i in ids:
