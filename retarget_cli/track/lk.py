@@ -5,12 +5,14 @@ affine motion. This tracker follows each landmark with OpenCV's pyramidal
 Lucas–Kanade flow (Bouguet's implementation) from frame to frame, starting
 from a constant-velocity prediction, and checks it with a forward–backward
 pass (on the base image, from the prediction; points that fail it are
-tracked again with plain forward–backward flow on the full pyramid). Frame-to-frame flow drifts, so every frame is
-also re-registered against an annotated frame warped onto the current
-estimate (a template update with drift correction, Matthews et al. 2004):
-the warp is a moving-least-squares similarity deformation (Schaefer et al.
-2006) through the landmarks, so the template follows expressions as well as
-the head. A point whose anchor match passes the forward–backward check is
+tracked again with plain forward–backward flow on the full pyramid).
+Frame-to-frame flow drifts, so every frame is also re-registered against an
+annotated frame warped onto the current estimate (a template update with
+drift correction, Matthews et al. 2004) and relit to match it (gain times a
+linear ramp, Hager & Belhumeur 1998). The warp is a moving-least-squares
+similarity deformation (Schaefer et al. 2006) through the landmarks, so the
+template follows expressions as well as the head; the annotated frame used
+is the one closest in shape (the first one favoured). A point whose anchor match passes the forward–backward check is
 pulled halfway to it. Edges (lips, brows, the jaw line) fix a landmark
 across the edge only; along it LK drifts (the aperture problem). A
 regularisation step therefore smooths the landmarks' displacements from the
