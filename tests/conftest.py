@@ -40,3 +40,41 @@ def truncated_avi(small_take, tmp_path):
     cut = tmp_path / "cut.avi"
     cut.write_bytes(data[: len(data) // 2])
     return cut
+
+
+SAMPLE = __import__("pathlib").Path(__file__).resolve().parents[1] / "sample_data"
+
+
+@pytest.fixture(scope="session")
+def ict_rig_dir(tmp_path_factory):
+    """The ICT FaceKit (sample_data/ict, MIT) unpacked once per session, with its rig.yaml beside the OBJs."""
+    import tarfile
+
+    d = tmp_path_factory.mktemp("ict")
+    with tarfile.open(SAMPLE / "ict" / "ict-facekit-rig.tar.xz") as tar:
+        tar.extractall(d, filter="data")
+    rig_dir = d / "ict-facekit"
+    shutil.copy(SAMPLE / "ict" / "rig.yaml", rig_dir / "rig.yaml")
+    return rig_dir
+
+
+@pytest.fixture(scope="session")
+def real_clip(tmp_path_factory):
+    """The first 60 frames of the real clip sample_data/real/d3.mp4 (MIT) and its frame-0 annotation."""
+    import cv2
+
+    d = tmp_path_factory.mktemp("real_clip")
+    cap = cv2.VideoCapture(str(SAMPLE / "real" / "d3.mp4"))
+    fps = cap.get(cv2.CAP_PROP_FPS)
+    out = None
+    for _ in range(60):
+        ok, frame = cap.read()
+        assert ok, "sample_data/real/d3.mp4 has fewer than 60 frames"
+        if out is None:
+            h, w = frame.shape[:2]
+            out = cv2.VideoWriter(str(d / "d3.avi"), cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h))
+        out.write(frame)
+    cap.release()
+    out.release()
+    shutil.copy(SAMPLE / "real" / "d3_00000.pts", d / "d3_00000.pts")
+    return d

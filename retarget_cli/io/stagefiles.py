@@ -317,12 +317,17 @@ class Rig:
     library: dict = field(default_factory=dict)
     #: Raw ``correctives`` list from the YAML (parsed by :mod:`retarget_cli.io.rigfiles`), or None.
     correctives: list | None = None
+    #: Rig vertex of each tracked landmark (``landmarks:``; a list of ids, or a map file read by
+    #: :func:`read_vertex_map`), or None when the rig does not say.
+    landmarks: list | Path | None = None
+    #: Pairs of slider names that never act together (``exclusive:``), or None to infer them.
+    exclusive: list | None = None
 
     def files(self) -> list[Path]:
         return [self.neutral, *self.shapes.values()]
 
 
-RIG_KEYS = ("neutral", "shapes", "shapes_are", "range", "ranges", "library", "correctives")
+RIG_KEYS = ("neutral", "shapes", "shapes_are", "range", "ranges", "library", "correctives", "landmarks", "exclusive")
 
 
 def _rig_range(value, where: str) -> tuple[float, float]:
@@ -395,7 +400,26 @@ def read_rig(path: str | os.PathLike) -> Rig:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
                 raise InputError(f"{where}.{name}: expected a number in the slider's range [{lo:g}, {hi:g}], got {value!r}")
             library[str(expr)][name] = float(value)
-    return Rig(path, path.parent / data["neutral"], shapes, rng, ranges, shapes_are, library, data.get("correctives"))
+    landmarks = data.get("landmarks")
+    if isinstance(landmarks, str):
+        landmarks = path.parent / landmarks
+    elif landmarks is not None:
+        if (not isinstance(landmarks, list) or not landmarks
+                or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in landmarks)):
+            raise InputError(f"{path}: landmarks: expected a list of vertex ids (one per landmark, >= 0) or a map "
+                             f"file, got {str(landmarks)[:60]!r}")
+    exclusive = data.get("exclusive")
+    if exclusive is not None:
+        if not isinstance(exclusive, list):
+            raise InputError(f"{path}: exclusive: expected a list of [slider, slider] pairs")
+        pairs = []
+        for i, pair in enumerate(exclusive):
+            if not isinstance(pair, list) or len(pair) != 2 or pair[0] == pair[1]:
+                raise InputError(f"{path}: exclusive[{i}]: expected a pair of two different slider names, got {pair!r}")
+            pairs.append(tuple(check_name(n, f"{path}: exclusive[{i}]") for n in pair))
+        exclusive = pairs
+    return Rig(path, path.parent / data["neutral"], shapes, rng, ranges, shapes_are, library, data.get("correctives"),
+               landmarks, exclusive)
 
 
 __all__ = [
