@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .io.atomic import check_not_input, sha256_file, write_text
+from ..errors import InputError
+from ..io.atomic import check_not_input, sha256_file, write_text
 
 log = logging.getLogger(__name__)
 
@@ -54,12 +54,12 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     *overlay* video. *model* is the Facemark model file of method
     ``facemark`` (see :func:`run_train_tracker`).
     """
-    from .io.annotations import read_annotations
-    from .io.frames import FrameSource, TruncatedInputError
-    from .io.landmarks import Landmarks, save_landmarks
-    from .track.head import apply_similarity, estimate_head, invert_similarity
-    from .track.head import smooth_head as smooth_head_fn
-    from .track.lk import FaceLostError, check_inside, track_lk
+    from ..io.annotations import read_annotations
+    from ..io.frames import FrameSource, TruncatedInputError
+    from ..io.landmarks import Landmarks, save_landmarks
+    from ..track.head import apply_similarity, estimate_head, invert_similarity
+    from ..track.head import smooth_head as smooth_head_fn
+    from ..track.lk import FaceLostError, check_inside, track_lk
 
     init = _require(init, "annotation file")
     extra = [Path(base_dir or ".") / a for a in (annotations or [])]
@@ -70,7 +70,7 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     ann, src = read_annotations([init, *extra], frame=init_frame)
     fitter = None
     if method == "facemark":
-        from .io.facemark import load_facemark
+        from ..io.facemark import load_facemark
 
         if not model:
             raise InputError("method facemark needs a model file (--model, or track.model); "
@@ -118,18 +118,18 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
         with progress(n_expected, "track") as bar:
             try:
                 if method == "eigenpoints":
-                    from .track.eigenpoints import track_eigenpoints
+                    from ..track.eigenpoints import track_eigenpoints
 
                     if downscale != 1:
                         log.warning("downscale applies to the lk tracker only; eigenpoints uses its own window")
                     points, conf = track_eigenpoints(frames(), index, rigid_points=rigid_points,
                                                      progress=lambda t: bar.update(1))
                 elif method == "markers":
-                    from .track.markers import track_markers
+                    from ..track.markers import track_markers
 
                     points, conf = track_markers(frames(), index, progress=lambda t: bar.update(1))
                 elif method == "facemark":
-                    from .track.facemark import track_facemark
+                    from ..track.facemark import track_facemark
 
                     if downscale != 1:
                         log.warning("downscale applies to the lk tracker only; facemark fits at full resolution")
@@ -177,7 +177,7 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     written = [Path(output)]
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
     if overlay:
-        from .io.overlay import write_overlay
+        from ..io.overlay import write_overlay
 
         with FrameSource(video, start=start, end=end, step=step, fps=fps) as again, \
                 progress(len(points), "overlay") as bar:
@@ -201,11 +201,11 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
     an OpenCV ``FacemarkLBF`` model (``cv::FileStorage`` YAML, gzip-compressed
     when *output* ends in ``.gz``) for ``track --method facemark --model``.
     """
-    from .io.annotations import read_annotations
-    from .io.facemark import save_lbf_model
-    from .io.frames import FrameSource, TruncatedInputError
-    from .track.facemark import train_lbf
-    from .track.lk import check_inside
+    from ..io.annotations import read_annotations
+    from ..io.facemark import save_lbf_model
+    from ..io.frames import FrameSource, TruncatedInputError
+    from ..track.facemark import train_lbf
+    from ..track.lk import check_inside
 
     files = [_require(a, "annotation file") for a in (annotations or [])]
     if not files:
@@ -263,11 +263,11 @@ def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, 
     stabilization are computed with :func:`~retarget_cli.track.head.estimate_head`
     (the routine ``track`` uses), optionally smoothed in time.
     """
-    from .io.annotations import read_annotations, read_csv_landmarks
-    from .io.atomic import load_npz
-    from .io.landmarks import Landmarks, save_landmarks
-    from .track.head import apply_similarity, estimate_head, invert_similarity
-    from .track.head import smooth_head as _smooth
+    from ..io.annotations import read_annotations, read_csv_landmarks
+    from ..io.atomic import load_npz
+    from ..io.landmarks import Landmarks, save_landmarks
+    from ..track.head import apply_similarity, estimate_head, invert_similarity
+    from ..track.head import smooth_head as _smooth
 
     src = _require(source, "landmarks source")
     check_not_input(output, [src])
@@ -396,9 +396,9 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
     with *plot*, the curves as a picture (Fig. 6 of Chuang & Bregler 2002).
     With *contact_sheet*, the key frames cropped from *video* with their landmarks.
     """
-    from .io.landmarks import load_landmarks
-    from .io.stagefiles import write_keys, write_targets
-    from .select import curve_winner, evaluation_curve, key_error, select_keys
+    from ..io.landmarks import load_landmarks
+    from ..io.stagefiles import write_keys, write_targets
+    from ..select import curve_winner, evaluation_curve, key_error, select_keys
 
     landmarks = _require(landmarks, "landmarks file")
     outs = [o for o in (output, template, evaluate, plot, contact_sheet) if o]
@@ -462,8 +462,8 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
             "before editing: select rewrites it."))
         written.append(t)
     if evaluate:
-        from .io.atomic import write_json
-        from .select_report import curve_csv, write_curve_plot
+        from ..io.atomic import write_json
+        from ..select_report import curve_csv, write_curve_plot
 
         write_text(evaluate, curve_csv(curves))
         summary = {"method": method, "regions": {}}
@@ -481,7 +481,7 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
             write_curve_plot(plot, curves, chosen_k)
             written.append(Path(plot))
     if contact_sheet:
-        from .select_report import write_contact_sheet
+        from ..select_report import write_contact_sheet
 
         video = _require(video, "video file")
         write_contact_sheet(contact_sheet, video, lm.points,
@@ -514,9 +514,9 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
     neutral key's column holds ``1 − Σ`` of the others, so ``apply`` needs no
     change (Lewis et al. 2005, §3).
     """
-    from .decompose import cardinality, decompose, interpolate_lost, jitter
-    from .io.landmarks import load_landmarks
-    from .io.stagefiles import read_keys, save_weights, weights_csv
+    from ..decompose import cardinality, decompose, interpolate_lost, jitter
+    from ..io.landmarks import load_landmarks
+    from ..io.stagefiles import read_keys, save_weights, weights_csv
 
     landmarks, keys = _require(landmarks, "landmarks file"), _require(keys, "keys file")
     check_not_input(output, [landmarks, keys])
@@ -612,10 +612,10 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None) -> list[Pat
     This is the automatic "artist" for takes whose slider values are known
     (synthetic takes, or a performance recorded on a rig).
     """
-    from .io.atomic import load_npz
-    from .io.obj import write_obj
-    from .io.stagefiles import read_keys
-    from .rig import BlendshapeRig
+    from ..io.atomic import load_npz
+    from ..io.obj import write_obj
+    from ..io.stagefiles import read_keys
+    from ..rig import BlendshapeRig
 
     keys, rig_path, poses = _require(keys, "keys file"), _require(rig, "rig file"), _require(poses, "poses file")
     kf, rig = read_keys(keys), BlendshapeRig.load(rig_path)
@@ -646,7 +646,7 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None) -> list[Pat
 
 def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path, command) -> Path:
     """Add the region masks to *regions* and write ``out/targets.yaml`` (neutral = the rig's)."""
-    from .io.stagefiles import read_rig, write_targets
+    from ..io.stagefiles import read_rig, write_targets
 
     masks = masks or {}
     unknown = sorted(set(masks) - set(kf.regions))
@@ -688,8 +688,8 @@ def _check_formats(formats) -> list[str]:
 
 def _head_transforms(landmarks, T: int, neutral: np.ndarray, scale, pivot) -> np.ndarray:
     """(T, 3, 4) head-motion transforms from ``landmarks.npz`` (see :func:`~retarget_cli.apply.head_motion_transforms`)."""
-    from .apply import head_motion_transforms
-    from .io.landmarks import load_landmarks
+    from ..apply import head_motion_transforms
+    from ..io.landmarks import load_landmarks
 
     if landmarks is None:
         raise InputError("head_motion 2d needs the landmarks file (--landmarks, or a 'track' section)")
@@ -722,9 +722,9 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     ``weights.csv``, ``animation.exr`` + ``animation.json`` (vertex-animation
     texture) and ``animation.glb``, as *formats* asks.
     """
-    from .apply import apply_transforms, blend_keys, blend_regions, morph_targets, morph_weights, region_weights
-    from .io.obj import check_same_topology, read_obj, write_obj
-    from .io.stagefiles import load_weights, read_targets, read_vertex_mask, weights_csv
+    from ..apply import apply_transforms, blend_keys, blend_regions, morph_targets, morph_weights, region_weights
+    from ..io.obj import check_same_topology, read_obj, write_obj
+    from ..io.stagefiles import load_weights, read_targets, read_vertex_mask, weights_csv
 
     weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
     formats = _check_formats(formats)
@@ -803,12 +803,12 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         write_text(out / APPLY_FILES["csv"], weights_csv(regions, fps))
         written.append(out / APPLY_FILES["csv"])
     if vat_values is not None:
-        from .io.exr import write_vat
+        from ..io.exr import write_vat
 
         write_vat(out / APPLY_FILES["exr"], vat_values, fps=fps, mode=vat, sidecar=out / APPLY_FILES["exr_json"])
         written += [out / APPLY_FILES["exr"], out / APPLY_FILES["exr_json"]]
     if "glb" in formats:
-        from .io.gltf import write_glb
+        from ..io.gltf import write_glb
 
         names = []
         for name, (_, frames, _) in sorted(regions.items()):
@@ -836,7 +836,7 @@ def digest_files(paths) -> str:
 
 def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path]:
     """Write ``frame_%05d.obj`` (named by frame number) for each pose; remove stale frames of earlier runs."""
-    from .io.obj import write_obj
+    from ..io.obj import write_obj
 
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
@@ -862,9 +862,9 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
     edited weights to *output* (CSV or NPZ, by extension) and, with *objs*,
     the posed OBJ sequence (``frame_%05d.obj``, by frame number).
     """
-    from .edit import apply_edits
-    from .io.editfiles import edits_rig, read_animation, read_edits, write_animation
-    from .rig import BlendshapeRig
+    from ..edit import apply_edits
+    from ..io.editfiles import edits_rig, read_animation, read_edits, write_animation
+    from ..rig import BlendshapeRig
 
     animation, edits = _require(animation, "animation"), _require(edits, "edits file")
     rig = rig or edits_rig(edits)
@@ -876,7 +876,7 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
     names, W_in, frames, times = read_animation(animation)
     unknown = [n for n in names if n not in r.index]
     if unknown:
-        from .config import closest
+        from ..config import closest
 
         hint = closest(unknown[0], r.names)
         raise InputError(f"{animation}: slider {unknown[0]!r} is not a shape of {rig_path}"
@@ -943,12 +943,12 @@ def run_auto_pose(*, keys, landmarks, rig, landmark_vertices, output, masks=None
     ``sliders.csv`` (the animation CSV format, one row per key frame) and
     ``targets.yaml`` ready for ``apply``.
     """
-    from .edit import auto_pose
-    from .io.editfiles import write_animation
-    from .io.landmarks import load_landmarks
-    from .io.obj import write_obj
-    from .io.stagefiles import read_keys
-    from .rig import BlendshapeRig
+    from ..edit import auto_pose
+    from ..io.editfiles import write_animation
+    from ..io.landmarks import load_landmarks
+    from ..io.obj import write_obj
+    from ..io.stagefiles import read_keys
+    from ..rig import BlendshapeRig
 
     keys, landmarks, rig_path = _require(keys, "keys file"), _require(landmarks, "landmarks file"), _require(rig, "rig file")
     kf, lm, r = read_keys(keys), load_landmarks(landmarks), BlendshapeRig.load(rig_path)
@@ -995,8 +995,8 @@ def run_solve_rig(*, rig, meshes, output, solver, alpha, tol, max_iter, metrics=
     summary : dict
         Means over frames of rmse, cardinality, objective, iterations and seconds, plus sizes.
     """
-    from .inverse_rig import CARDINALITY_THRESHOLD, solve
-    from .io.rigfiles import read_meshes, read_quadratic_rig, save_inverse_weights, write_metrics_csv
+    from ..inverse_rig import CARDINALITY_THRESHOLD, solve
+    from ..io.rigfiles import read_meshes, read_quadratic_rig, save_inverse_weights, write_metrics_csv
 
     qrig, rig_files = read_quadratic_rig(rig)
     inputs = [*rig_files, meshes]
