@@ -349,15 +349,21 @@ def _parse_masks(masks) -> dict:
 @output_option("frames", "Directory for the OBJ sequence and the other exports.", required=False)
 @click.option("--format", "formats", default="obj", show_default=True, metavar="LIST",
               help="Comma-separated exports: obj (frame_%05d.obj), csv (weights.csv), "
-                   "exr (animation.exr + animation.json), glb (animation.glb).")
+                   "exr (animation.exr + animation.json), glb (animation.glb), curves (curves.csv + curves.npz: "
+                   "the rig's sliders per frame, with keys posed by auto-pose).")
 @click.option("--landmarks", type=click.Path(dir_okay=False), default=None,
               help="landmarks.npz whose head motion --head-motion 2d applies.")
 @setting("apply", "head_motion")
 @setting("apply", "scale")
 @click.option("--pivot", default=None, metavar="X,Y,Z", help=_param("apply", "pivot").help)
 @setting("apply", "vat")
-def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivot, vat):
-    """Drive the target key shapes in TARGETS with WEIGHTS; write an OBJ sequence and other exports."""
+@setting("apply", "drive")
+def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivot, vat, drive):
+    """Drive the character in TARGETS with WEIGHTS; write an OBJ sequence, rig curves and other exports.
+
+    With a TARGETS written by auto-pose (it names the rig), every frame's rig
+    sliders follow from the weights and the meshes are the rig posed at them.
+    """
     from .stages import run_apply
 
     if pivot is not None:
@@ -369,7 +375,7 @@ def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivo
             raise click.BadParameter(f"expected X,Y,Z, got {pivot!r}", param_hint="--pivot") from None
     fmts = [f.strip() for f in formats.split(",") if f.strip()]
     written = run_apply(weights=weights, targets=targets, output=output, landmarks=landmarks, formats=fmts,
-                        head_motion=head_motion, scale=scale, pivot=pivot, vat=vat, progress=progress)
+                        head_motion=head_motion, scale=scale, pivot=pivot, vat=vat, drive=drive, progress=progress)
     n = sum(p.suffix == ".obj" for p in written)
     click.echo(f"{output} ({n} frames)")
     for p in written:
@@ -400,20 +406,34 @@ def edit(animation, edits, output, rig, objs):
 @click.argument("keys", type=click.Path(dir_okay=False))
 @click.argument("landmarks", type=click.Path(dir_okay=False))
 @click.argument("rig", type=click.Path(dir_okay=False))
-@click.option("--landmark-vertices", type=click.Path(dir_okay=False), required=True,
-              help="Rig vertex of each landmark: one id per line, or 'landmark vertex' pairs.")
+@click.option("--landmark-vertices", type=click.Path(dir_okay=False), default=None,
+              help=_param("auto_pose", "landmark_vertices").help)
 @click.option("--mask", "masks", multiple=True, metavar="REGION=FILE",
-              help="Vertex mask of a region (needed with several regions). Repeatable.")
-@click.option("--alpha", type=click.FloatRange(0), default=0.001, show_default=True,
-              help="Pull toward the neutral (eq. 3's alpha, in units of the rig's squared displacement scale).")
-@click.option("--mu", type=click.FloatRange(0), default=0.0001, show_default=True, help="Weight decay (eq. 3's mu).")
-@output_option("targets", "Directory for the key OBJs, sliders.csv and targets.yaml.", required=False)
-def auto_pose(keys, landmarks, rig, landmark_vertices, masks, alpha, mu, output):
-    """Pose RIG at every key frame from its landmarks: a first draft of each target key shape."""
+              help="Vertex mask of a region, overriding the mask derived from the rig. Repeatable.")
+@setting("auto_pose", "fit")
+@setting("auto_pose", "neutral_frame")
+@setting("auto_pose", "sparsity")
+@setting("auto_pose", "ridge")
+@click.option("--exclude", "exclude", multiple=True, metavar="PATTERN",
+              help="Slider-name pattern kept at 0 (repeatable; default eyeLook*, *pupil*: gaze and pupils).")
+@setting("auto_pose", "alpha")
+@setting("auto_pose", "mu")
+@output_option("targets", "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml.", required=False)
+def auto_pose(keys, landmarks, rig, landmark_vertices, masks, fit, neutral_frame, sparsity, ridge, exclude, alpha,
+              mu, output):
+    """Pose RIG at every key frame of KEYS from its LANDMARKS: the rig as the artist.
+
+    The default delta fit reproduces each key frame's landmark displacement
+    from the neutral frame, so the actor's face shape stays out of the
+    sliders; apply then writes the rig's slider curves.
+    """
     from .stages import run_auto_pose
 
     _print_outputs(run_auto_pose(keys=keys, landmarks=landmarks, rig=rig, landmark_vertices=landmark_vertices,
-                                 output=output, masks=_parse_masks(masks), alpha=alpha, mu=mu))
+                                 output=output, masks=_parse_masks(masks), fit=fit, neutral_frame=neutral_frame,
+                                 sparsity=sparsity, ridge=ridge,
+                                 exclude=list(exclude) if exclude else list(_param("auto_pose", "exclude").default),
+                                 alpha=alpha, mu=mu))
 
 
 @main.command("solve-rig")

@@ -65,7 +65,9 @@ def _pose_files(kw) -> list[Path]:
     from .io.stagefiles import read_rig
 
     masks = [Path(kw["base_dir"]) / m for m in (kw.get("masks") or {}).values()]
-    return read_rig(kw["rig"]).files() + masks
+    spec = read_rig(kw["rig"])
+    extra = [spec.landmarks] if isinstance(spec.landmarks, Path) else []
+    return spec.files() + extra + masks
 
 
 STAGES: dict[str, Stage] = {
@@ -204,17 +206,63 @@ STAGES: dict[str, Stage] = {
             uses_base_dir=True,
         ),
         Stage(
+            "auto_pose",
+            "Pose a rig at each key frame from its landmarks (the rig as the artist): key OBJs, their sliders, "
+            "region masks and a targets.yaml from which apply writes the rig's slider curves.",
+            [
+                Param("keys", "input", str, help="keys.json.", link="select.output"),
+                Param("landmarks", "input", str, help="landmarks.npz.", link="track.output"),
+                Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs (and 'landmarks:')."),
+                Param("landmark_vertices", "input", str, None,
+                      "Rig vertex of each landmark (one id per line, or 'landmark vertex' pairs); default the "
+                      "rig.yaml's 'landmarks:' list.", nullable=True),
+                Param("output", "output", str, "targets",
+                      "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml."),
+                Param("fit", "setting", str, "delta",
+                      "delta: the key frame's landmark displacement from neutral_frame (the actor's face shape "
+                      "stays out of the sliders); absolute: the landmark positions (Lewis & Anjyo eq. 3).",
+                      choices=("delta", "absolute")),
+                Param("neutral_frame", "setting", int, 0, "The actor's neutral frame (the rig's rest pose).", min=0),
+                Param("sparsity", "setting", float, None,
+                      "L1 weight keeping unneeded sliders at 0, relative to the sliders' mean landmark energy "
+                      "(null: 0.01).", min=0, nullable=True),
+                Param("ridge", "setting", float, None, "Ridge weight, relative likewise (null: 0.001).",
+                      min=0, nullable=True),
+                Param("exclude", "setting", list, ["eyeLook*", "*pupil*"],
+                      "Slider-name patterns (fnmatch, any case) kept at 0: by default gaze and pupils, which "
+                      "landmarks without pupils cannot see."),
+                Param("skip_points", "setting", list, None,
+                      "Landmarks left out of the fit (default for 68 points: the jaw contour but the chin).",
+                      nullable=True),
+                Param("rigid_points", "setting", list, None,
+                      "Landmarks that give each key frame's head pose (default for 68 points: nose and eye "
+                      "corners).", nullable=True),
+                Param("masks", "setting", dict, None,
+                      "Region name to vertex-mask file, overriding the masks derived from the rig.", nullable=True),
+                Param("alpha", "setting", float, 0.001, "absolute fit: eq. 3's alpha.", min=0),
+                Param("mu", "setting", float, 0.0001, "absolute fit: eq. 3's mu.", min=0),
+            ],
+            stages.run_auto_pose,
+            extra_inputs=_pose_files,
+            uses_base_dir=True,
+        ),
+        Stage(
             "apply",
             "Drive the target key shapes with the weights; write an OBJ sequence and other exports.",
             [
                 Param("weights", "input", str, help="weights.npz.", link="decompose.output"),
-                Param("targets", "input", str, help="targets.yaml.", link="pose.output/targets.yaml"),
+                Param("targets", "input", str, help="targets.yaml.",
+                      link="auto_pose.output/targets.yaml|pose.output/targets.yaml"),
                 Param("landmarks", "input", str, None, "landmarks.npz, for its head motion (head_motion: 2d).",
                       nullable=True, link="track.output"),
                 Param("output", "output", str, "frames",
                       "Directory for frame_00000.obj, ..., weights.csv, animation.exr/.json, animation.glb."),
-                Param("formats", "setting", list, ["obj"], "Exports: any of obj, csv, exr, glb.",
-                      choices=("obj", "csv", "exr", "glb")),
+                Param("formats", "setting", list, ["obj"],
+                      "Exports: any of obj, csv, exr, glb, curves (the rig's slider curves: curves.csv, curves.npz; "
+                      "needs keys posed on a rig).", choices=("obj", "csv", "exr", "glb", "curves")),
+                Param("drive", "setting", str, "auto",
+                      "What drives the character: auto (the rig when targets.yaml names one, else the key shapes), "
+                      "rig, or keys (blend the key OBJs with the region masks).", choices=("auto", "rig", "keys")),
                 Param("head_motion", "setting", str, "none",
                       "Head motion on the character: none, or 2d (roll, scale, translation in the image plane).",
                       choices=("none", "2d")),
@@ -275,15 +323,20 @@ def resolve(cfg: Config, name: str) -> dict:
             if p.name in given and v is not None:
                 kw[p.name] = cfg.base_dir / v
                 continue
-            if p.link:
-                src, _, sub = p.link.partition("/")
+            linked = False
+            for link in (p.link or "").split("|") if p.link else ():
+                src, _, sub = link.partition("/")
                 lstage, lparam = src.split(".")
                 if lstage in cfg.sections:
                     base = resolve(cfg, lstage)[lparam]
                     kw[p.name] = base / sub if sub else base
-                    continue
+                    linked = True
+                    break
+            if linked:
+                continue
             if v is REQUIRED:
-                hint = f" (or add a '{p.link.split('.')[0]}' section)" if p.link else ""
+                sections = " or ".join(f"'{link.split('.')[0]}'" for link in p.link.split("|")) if p.link else ""
+                hint = f" (or add a {sections} section)" if p.link else ""
                 raise ConfigError(f"{cfg.path}: {name}.{p.name} is required{hint}")
             kw[p.name] = None
         elif p.kind == "output":

@@ -166,6 +166,10 @@ class Targets:
     path: Path
     neutral: Path | None
     regions: dict
+    #: ``rig.yaml`` the keys were posed on (``rig:``; written by ``auto-pose``), or None for sculpted keys.
+    rig: Path | None = None
+    #: The key frames' slider values (``sliders:``, an animation CSV/NPZ, one row per key frame), or None.
+    sliders: Path | None = None
 
     def files(self) -> list[Path]:
         """Every file the targets reference (inputs for up-to-date checks)."""
@@ -174,7 +178,11 @@ class Targets:
             out += list(reg["keys"].values())
             if reg["vertices"]:
                 out.append(reg["vertices"])
-        return out
+        if self.rig is not None:
+            out += [self.rig, *read_rig(self.rig).files()]
+        if self.sliders is not None:
+            out.append(self.sliders)
+        return list(dict.fromkeys(out))
 
 
 def _load_yaml(path: Path, what: str):
@@ -200,9 +208,14 @@ def read_targets(path: str | os.PathLike) -> Targets:
     data = _load_yaml(path, "targets")
     if not isinstance(data, dict) or not isinstance(data.get("regions"), dict) or not data["regions"]:
         raise InputError(f"{path}: expected 'regions: {{name: {{keys: {{frame: file.obj}}}}}}'")
-    unknown = set(data) - {"neutral", "regions"}
+    unknown = set(data) - {"neutral", "regions", "rig", "sliders"}
     if unknown:
-        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected 'neutral' and 'regions'")
+        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected neutral, regions, rig, sliders")
+    for key in ("rig", "sliders", "neutral"):
+        if data.get(key) is not None and not isinstance(data[key], str):
+            raise InputError(f"{path}: {key}: expected a file path, got {data[key]!r}")
+    if (data.get("rig") is None) != (data.get("sliders") is None):
+        raise InputError(f"{path}: 'rig' and 'sliders' go together (keys posed on a rig, with their slider values)")
     base = path.parent
     regions = {}
     for name, reg in data["regions"].items():
@@ -214,20 +227,26 @@ def read_targets(path: str | os.PathLike) -> Targets:
                 raise InputError(f"{path}: region {name!r}: key {frame!r} must map an integer frame to an OBJ path")
             keys[frame] = base / obj
         verts = reg.get("vertices")
-        unknown = set(reg) - {"keys", "vertices", "falloff"}
+        unknown = set(reg) - {"keys", "vertices", "falloff", "sliders"}
         if unknown:
             raise InputError(f"{path}: region {name!r}: unknown key {sorted(unknown)[0]!r}; "
-                             "expected keys, vertices, falloff")
+                             "expected keys, vertices, falloff, sliders")
+        owned = reg.get("sliders")
+        if owned is not None and (not isinstance(owned, list) or not all(isinstance(n, str) for n in owned)):
+            raise InputError(f"{path}: region {name!r}: sliders: expected a list of the rig's slider names")
         falloff = reg.get("falloff", 0)
         if isinstance(falloff, bool) or not isinstance(falloff, (int, float)) or not falloff >= 0:
             raise InputError(f"{path}: region {name!r}: falloff must be a number >= 0 (model units), got {falloff!r}")
         regions[str(name)] = {"keys": keys, "vertices": base / verts if isinstance(verts, str) else None,
-                              "falloff": float(falloff)}
+                              "falloff": float(falloff), "sliders": owned}
     neutral = data.get("neutral")
-    return Targets(path, base / neutral if isinstance(neutral, str) else None, regions)
+    rig, sliders = data.get("rig"), data.get("sliders")
+    return Targets(path, base / neutral if isinstance(neutral, str) else None, regions,
+                   None if rig is None else base / rig, None if sliders is None else base / sliders)
 
 
-def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = "") -> str:
+def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = "", rig: str | None = None,
+                 sliders: str | None = None) -> str:
     """Text of a ``targets.yaml`` (deterministic, commented).
 
     Parameters
@@ -238,6 +257,9 @@ def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = ""
     lines = [f"# {c}" if c else "#" for c in comment.splitlines()]
     if neutral:
         lines.append(f"neutral: {json.dumps(neutral)}")
+    if rig:
+        lines.append(f"rig: {json.dumps(rig)}")
+        lines.append(f"sliders: {json.dumps(sliders)}")
     lines.append("regions:")
     for name, reg in regions.items():
         lines.append(f"  {name}:")
@@ -248,12 +270,14 @@ def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = ""
             lines.append(f"    vertices: {json.dumps(str(reg['vertices']))}")
         if reg.get("falloff"):
             lines.append(f"    falloff: {float(reg['falloff'])!r}")
+        if reg.get("sliders") is not None:
+            lines.append(f"    sliders: {json.dumps(list(reg['sliders']))}")
     return "\n".join(lines) + "\n"
 
 
-def write_targets(path, regions: dict, *, neutral=None, comment: str = "") -> None:
+def write_targets(path, regions: dict, *, neutral=None, comment: str = "", rig=None, sliders=None) -> None:
     """Atomically write a ``targets.yaml``; see :func:`targets_yaml`."""
-    write_text(path, targets_yaml(regions, neutral=neutral, comment=comment))
+    write_text(path, targets_yaml(regions, neutral=neutral, comment=comment, rig=rig, sliders=sliders))
 
 
 def read_vertex_mask(path: Path, n_vertices: int) -> np.ndarray:

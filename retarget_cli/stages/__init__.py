@@ -665,163 +665,6 @@ def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path,
     return out / "targets.yaml"
 
 
-# --------------------------------------------------------------------------- apply
-
-FRAME_RE = re.compile(r"frame_(\d{5,})\.obj$")
-
-#: Exports ``apply`` can write (``--format``); file names inside the output directory.
-APPLY_FORMATS = ("obj", "csv", "exr", "glb")
-APPLY_FILES = {"csv": "weights.csv", "exr": "animation.exr", "exr_json": "animation.json", "glb": "animation.glb"}
-
-
-def _check_formats(formats) -> list[str]:
-    if isinstance(formats, str):
-        formats = [f.strip() for f in formats.split(",") if f.strip()]
-    formats = list(formats or [])
-    bad = [f for f in formats if f not in APPLY_FORMATS]
-    if bad or not formats:
-        raise ValueError(f"formats: expected a non-empty list of {', '.join(APPLY_FORMATS)}, got {formats!r}")
-    if len(set(formats)) != len(formats):
-        raise ValueError(f"formats: {formats!r} names a format twice")
-    return formats
-
-
-def _head_transforms(landmarks, T: int, neutral: np.ndarray, scale, pivot) -> np.ndarray:
-    """(T, 3, 4) head-motion transforms from ``landmarks.npz`` (see :func:`~retarget_cli.apply.head_motion_transforms`)."""
-    from ..apply import head_motion_transforms
-    from ..io.landmarks import load_landmarks
-
-    if landmarks is None:
-        raise InputError("head_motion 2d needs the landmarks file (--landmarks, or a 'track' section)")
-    lm = load_landmarks(_require(landmarks, "landmarks file"))
-    if lm.n_frames != T:
-        raise InputError(f"{landmarks}: has {lm.n_frames} frames but the weights have {T}")
-    # Reference frame 0: stabilized coordinates are frame-0 pixels (head[0] is the identity).
-    ok = lm.confidence[0] > 0
-    ref = lm.stabilized[0][ok if ok.any() else slice(None)].astype(np.float64)
-    lo, hi = neutral.min(0), neutral.max(0)
-    width_px = float(np.ptp(ref[:, 0]))
-    if scale is None:
-        if width_px <= 0:
-            raise InputError(f"{landmarks}: landmarks of frame 0 have no horizontal extent; set apply.scale")
-        scale = float(hi[0] - lo[0]) / width_px
-    centre = (lo + hi) / 2
-    P = centre if pivot is None else np.asarray(pivot, dtype=np.float64)
-    if P.shape != (3,):
-        raise ValueError(f"pivot: expected [x, y, z] in model units, got {pivot!r}")
-    c = ref.mean(0) + (P[:2] - centre[:2]) * [1.0, -1.0] / scale
-    log.info("head motion: %.4g model units per pixel, pivot %s", scale, np.round(P, 4).tolist())
-    return head_motion_transforms(lm.head.astype(np.float64), units_per_pixel=scale, pivot=P, image_pivot=c)
-
-
-def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), head_motion="none", scale=None,
-              pivot=None, vat="offsets", progress=_no_progress) -> list[Path]:
-    """Drive the target key shapes with the weights (Chuang & Bregler 2002, §5) and export the result.
-
-    Writes into *output*: ``frame_%05d.obj`` (streamed, chunk by chunk),
-    ``weights.csv``, ``animation.exr`` + ``animation.json`` (vertex-animation
-    texture) and ``animation.glb``, as *formats* asks.
-    """
-    from ..apply import apply_transforms, blend_keys, blend_regions, morph_targets, morph_weights, region_weights
-    from ..io.obj import check_same_topology, read_obj, write_obj
-    from ..io.stagefiles import load_weights, read_targets, read_vertex_mask, weights_csv
-
-    weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
-    formats = _check_formats(formats)
-    if head_motion not in ("none", "2d"):
-        raise ValueError(f"head_motion: expected 'none' or '2d', got {head_motion!r}")
-    if vat not in ("offsets", "positions"):
-        raise ValueError(f"vat: expected 'offsets' or 'positions', got {vat!r}")
-    regions, meta = load_weights(weights)
-    fps = float(meta.get("fps") or 30.0)
-    tg = read_targets(targets)
-    missing = sorted(set(regions) - set(tg.regions))
-    if missing:
-        raise InputError(f"{targets}: no targets for region {missing[0]!r} of {weights}")
-    per_region, meshes = [], []
-    for name, (W, frames, _) in sorted(regions.items()):
-        keyfiles = tg.regions[name]["keys"]
-        absent = [int(f) for f in frames if int(f) not in keyfiles]
-        if absent:
-            raise InputError(f"{targets}: region {name!r} has no target shape for key frame {absent[0]}")
-        objs = [read_obj(keyfiles[int(f)]) for f in frames]
-        meshes += objs
-        per_region.append((name, W, objs))
-    neutral = read_obj(tg.neutral) if tg.neutral else None
-    check_same_topology(([neutral] if neutral else []) + meshes)
-    template = neutral or meshes[0]
-    N = template.n_vertices
-    masks = None
-    if len(per_region) > 1:
-        if neutral is None:
-            raise InputError(f"{targets}: several regions need a 'neutral' mesh to blend them")
-        raw = []
-        for name, _, _ in per_region:
-            vf = tg.regions[name]["vertices"]
-            if vf is None:
-                raise InputError(f"{targets}: region {name!r} needs 'vertices' (its mask) when there are several regions")
-            raw.append(read_vertex_mask(vf, N))
-        falloff = [tg.regions[name].get("falloff", 0.0) for name, _, _ in per_region]
-        faces = template.faces() if any(falloff) else None
-        masks = list(region_weights(raw, vertices=neutral.vertices, faces=faces, falloff=falloff)[:-1])
-    base = neutral.vertices if neutral else meshes[0].vertices
-    T = per_region[0][1].shape[0]
-    head = None
-    if head_motion == "2d":
-        head = _head_transforms(landmarks, T, base, scale, pivot)
-    out = Path(output)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a directory")
-    check_not_input(out / APPLY_FILES["glb"], [weights, targets, landmarks])
-    out.mkdir(parents=True, exist_ok=True)
-    keysets = [np.stack([m.vertices for m in objs]) for _, _, objs in per_region]
-    vat_values = np.empty((T, N, 3), np.float32) if "exr" in formats else None
-    written = []
-    chunk = 64
-    with progress(T, "apply") as bar:
-        for start in range(0, T, chunk):
-            sl = slice(start, min(start + chunk, T))
-            res = [blend_keys(W[sl], B) for (_, W, _), B in zip(per_region, keysets)]
-            pos = res[0] if masks is None else blend_regions(res, masks, neutral.vertices)
-            if head is not None:
-                pos = apply_transforms(head[sl], pos)
-            if vat_values is not None:
-                vat_values[sl] = pos - (base if vat == "offsets" else 0.0)
-            if "obj" in formats:
-                for i, p in enumerate(pos):
-                    path = out / f"frame_{start + i:05d}.obj"
-                    write_obj(path, template, p)
-                    written.append(path)
-            bar.update(sl.stop - sl.start)
-    if "obj" in formats:
-        # Remove frames left over from a longer previous run (only files this stage names).
-        for stale in out.iterdir():
-            m = FRAME_RE.match(stale.name)
-            if m and int(m.group(1)) >= T:
-                stale.unlink()
-    if "csv" in formats:
-        write_text(out / APPLY_FILES["csv"], weights_csv(regions, fps))
-        written.append(out / APPLY_FILES["csv"])
-    if vat_values is not None:
-        from ..io.exr import write_vat
-
-        write_vat(out / APPLY_FILES["exr"], vat_values, fps=fps, mode=vat, sidecar=out / APPLY_FILES["exr_json"])
-        written += [out / APPLY_FILES["exr"], out / APPLY_FILES["exr_json"]]
-    if "glb" in formats:
-        from ..io.gltf import write_glb
-
-        names = []
-        for name, (_, frames, _) in sorted(regions.items()):
-            names += [f"{name}:{int(f)}" for f in frames] + [f"{name}:rest"]
-        write_glb(out / APPLY_FILES["glb"], base=base, faces=template.faces(),
-                  targets=morph_targets(keysets, None if masks is None else np.stack(masks), base),
-                  target_names=names, weights=morph_weights([W for _, W, _ in per_region]), fps=fps,
-                  node_transforms=head, name=template.path.stem)
-        written.append(out / APPLY_FILES["glb"])
-    log.info("wrote %d frames of %d vertices to %s (%s)", T, N, out, ", ".join(formats))
-    return written
-
-
 def digest_files(paths) -> str:
     """One sha256 over several files' names and contents."""
     h = hashlib.sha256()
@@ -832,6 +675,9 @@ def digest_files(paths) -> str:
 
 
 # --------------------------------------------------------------------------- edit, auto-pose
+
+FRAME_RE = re.compile(r"frame_(\d{5,})\.obj$")
+
 
 
 def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path]:
@@ -933,55 +779,6 @@ def read_vertex_map(path, n_landmarks: int, n_vertices: int) -> tuple[np.ndarray
     return lm, vx
 
 
-def run_auto_pose(*, keys, landmarks, rig, landmark_vertices, output, masks=None, alpha=0.001, mu=0.0001,
-                  base_dir=None) -> list[Path]:
-    """Pose the rig at each key frame from its stabilized landmarks; write key OBJs, sliders and ``targets.yaml``.
-
-    Per key frame: :func:`retarget_cli.edit.auto_pose` (orthographic camera fit
-    + direct manipulation with every mapped landmark as a pin, weighted by the
-    landmark's confidence). Outputs in *output*: ``REGION/key_%05d.obj``,
-    ``sliders.csv`` (the animation CSV format, one row per key frame) and
-    ``targets.yaml`` ready for ``apply``.
-    """
-    from ..edit import auto_pose
-    from ..io.editfiles import write_animation
-    from ..io.landmarks import load_landmarks
-    from ..io.obj import write_obj
-    from ..io.stagefiles import read_keys
-    from ..rig import BlendshapeRig
-
-    keys, landmarks, rig_path = _require(keys, "keys file"), _require(landmarks, "landmarks file"), _require(rig, "rig file")
-    kf, lm, r = read_keys(keys), load_landmarks(landmarks), BlendshapeRig.load(rig_path)
-    lm_ids, vx = read_vertex_map(landmark_vertices, lm.n_points, r.n_vertices)
-    out = Path(output)
-    frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
-    bad = [f for f in frames if f >= lm.n_frames]
-    if bad:
-        raise InputError(f"{keys}: key frame {bad[0]} is outside {landmarks} ({lm.n_frames} frames)")
-    poses, written = {}, []
-    for f in frames:
-        res = auto_pose(r, vx, lm.stabilized[f, lm_ids].astype(np.float64), weights=lm.confidence[f, lm_ids],
-                        alpha=alpha, mu=mu)
-        poses[f] = res["w"]
-        log.info("key %d: rms %.3f px after %d iterations, scale %.4g", f, res["rms"], res["iterations"], res["scale"])
-    regions = {}
-    for name, reg in kf.regions.items():
-        regions[name] = {"keys": {}}
-        for f in reg["frames"]:
-            rel = f"{name}/key_{f:05d}.obj"
-            write_obj(out / rel, r.template, r.evaluate(poses[f]))
-            regions[name]["keys"][f] = rel
-            written.append(out / rel)
-    write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames)
-    written.append(out / "sliders.csv")
-    written.append(_write_targets_yaml(out, kf, keys, regions, masks, base_dir, rig_path, "auto-pose"))
-    return written
-
-
-
-
-
-
 # --------------------------------------------------------------------------- solve-rig (inverse rig)
 
 
@@ -1025,3 +822,6 @@ def run_solve_rig(*, rig, meshes, output, solver, alpha, tol, max_iter, metrics=
     return written, summary
 
 
+# Stages with modules of their own (imported last: they use the helpers above).
+from .apply import APPLY_FILES, APPLY_FORMATS, run_apply  # noqa: E402, F401
+from .auto_pose import run_auto_pose  # noqa: E402, F401

@@ -121,8 +121,8 @@ def test_auto_pose_recovers_the_sliders_of_synthetic_keys(tmp_path):
     keys = sorted(int(f) for f in np.argsort(-curves.sum(1))[:4]) + [0]
     write_keys(tmp_path / "keys.json", tmp_path / "lm.npz",
                {"face": {"points": list(range(68)), "method": "test", "frames": keys, "error": 0.0}})
-    res = run("auto-pose", tmp_path / "keys.json", tmp_path / "lm.npz", tmp_path / "rig.yaml",
-              "--landmark-vertices", tmp_path / "map.txt", "-o", tmp_path / "targets")
+    res = run("auto-pose", tmp_path / "keys.json", tmp_path / "lm.npz", tmp_path / "rig.yaml", "--fit", "absolute",
+              "--exclude", "none", "--landmark-vertices", tmp_path / "map.txt", "-o", tmp_path / "targets")
     assert res.exit_code == 0, res.output
     names, W, frames, _ = read_animation(tmp_path / "targets" / "sliders.csv")
     assert list(frames) == sorted(keys) and names == list(L["names"])

@@ -27,9 +27,11 @@ def test_every_stage_declares_outputs_and_a_runner_that_accepts_its_params():
 
 
 def test_every_stage_writes_a_manifest_with_hashes(small_take):
+    # auto_pose needs a rig with landmark vertices: tests/e2e/test_real_rig.py runs it on the ICT rig.
+    synthetic = [n for n in ORDER if n != "auto_pose"]
     cfg, status = run(small_take)
-    assert set(status.values()) == {"ran"} and list(status) == ORDER
-    for name in ORDER:
+    assert set(status.values()) == {"ran"} and list(status) == synthetic
+    for name in synthetic:
         man = json.loads(manifest_path(cfg, name).read_text())
         assert man["stage"] == name and man["outputs"] and man["inputs"]
         assert all(len(rec["sha256"]) == 64 for rec in [*man["inputs"].values(), *man["outputs"].values()])

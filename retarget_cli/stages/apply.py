@@ -1,0 +1,284 @@
+"""``apply``: drive the character with the weights (Chuang & Bregler 2002, §5) and export the result.
+
+Two ways to drive it, chosen by ``targets.yaml``:
+
+- **key shapes** (sculpted, or posed by ``pose-keys``): each region's frame is
+  ``Σ_k w_k B_k`` over its target key shapes, regions blended by their masks;
+- **a rig** (``targets.yaml`` names ``rig:`` and ``sliders:``, as ``auto-pose``
+  writes it): every frame's rig sliders follow from the weights and the key
+  frames' sliders (:func:`retarget_cli.rigpose.rig_curves`), are written as
+  curves (``curves.csv``, ``curves.npz``), and the meshes are the rig posed at
+  them, so correctives aside every shell the rig moves (teeth, tongue, eyes)
+  moves.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.atomic import check_not_input, write_text
+from . import FRAME_RE, _no_progress, _require
+
+log = logging.getLogger(__name__)
+
+#: Exports ``apply`` can write (``--format``); file names inside the output directory.
+APPLY_FORMATS = ("obj", "csv", "exr", "glb", "curves")
+APPLY_FILES = {"csv": "weights.csv", "exr": "animation.exr", "exr_json": "animation.json", "glb": "animation.glb",
+               "curves": "curves.csv", "curves_npz": "curves.npz"}
+DRIVES = ("auto", "rig", "keys")
+
+
+def _check_formats(formats) -> list[str]:
+    if isinstance(formats, str):
+        formats = [f.strip() for f in formats.split(",") if f.strip()]
+    formats = list(formats or [])
+    bad = [f for f in formats if f not in APPLY_FORMATS]
+    if bad or not formats:
+        raise ValueError(f"formats: expected a non-empty list of {', '.join(APPLY_FORMATS)}, got {formats!r}")
+    if len(set(formats)) != len(formats):
+        raise ValueError(f"formats: {formats!r} names a format twice")
+    return formats
+
+
+def _head_transforms(landmarks, T: int, neutral: np.ndarray, scale, pivot) -> np.ndarray:
+    """(T, 3, 4) head-motion transforms from ``landmarks.npz`` (see :func:`~retarget_cli.apply.head_motion_transforms`)."""
+    from ..apply import head_motion_transforms
+    from ..io.landmarks import load_landmarks
+
+    if landmarks is None:
+        raise InputError("head_motion 2d needs the landmarks file (--landmarks, or a 'track' section)")
+    lm = load_landmarks(_require(landmarks, "landmarks file"))
+    if lm.n_frames != T:
+        raise InputError(f"{landmarks}: has {lm.n_frames} frames but the weights have {T}")
+    # Reference frame 0: stabilized coordinates are frame-0 pixels (head[0] is the identity).
+    ok = lm.confidence[0] > 0
+    ref = lm.stabilized[0][ok if ok.any() else slice(None)].astype(np.float64)
+    lo, hi = neutral.min(0), neutral.max(0)
+    width_px = float(np.ptp(ref[:, 0]))
+    if scale is None:
+        if width_px <= 0:
+            raise InputError(f"{landmarks}: landmarks of frame 0 have no horizontal extent; set apply.scale")
+        scale = float(hi[0] - lo[0]) / width_px
+    centre = (lo + hi) / 2
+    P = centre if pivot is None else np.asarray(pivot, dtype=np.float64)
+    if P.shape != (3,):
+        raise ValueError(f"pivot: expected [x, y, z] in model units, got {pivot!r}")
+    c = ref.mean(0) + (P[:2] - centre[:2]) * [1.0, -1.0] / scale
+    log.info("head motion: %.4g model units per pixel, pivot %s", scale, np.round(P, 4).tolist())
+    return head_motion_transforms(lm.head.astype(np.float64), units_per_pixel=scale, pivot=P, image_pivot=c)
+
+
+def _key_driver(regions, tg, targets, weights):
+    """Key-shape driving: (positions(slice), template, base, glb targets, glb names, glb weights)."""
+    from ..apply import blend_keys, blend_regions, morph_targets, morph_weights, region_weights
+    from ..io.obj import check_same_topology, read_obj
+    from ..io.stagefiles import read_vertex_mask
+
+    per_region, meshes = [], []
+    for name, (W, frames, _) in sorted(regions.items()):
+        keyfiles = tg.regions[name]["keys"]
+        absent = [int(f) for f in frames if int(f) not in keyfiles]
+        if absent:
+            raise InputError(f"{targets}: region {name!r} has no target shape for key frame {absent[0]}")
+        objs = [read_obj(keyfiles[int(f)]) for f in frames]
+        meshes += objs
+        per_region.append((name, W, objs))
+    neutral = read_obj(tg.neutral) if tg.neutral else None
+    check_same_topology(([neutral] if neutral else []) + meshes)
+    template = neutral or meshes[0]
+    N = template.n_vertices
+    masks = None
+    if len(per_region) > 1:
+        if neutral is None:
+            raise InputError(f"{targets}: several regions need a 'neutral' mesh to blend them")
+        raw = []
+        for name, _, _ in per_region:
+            vf = tg.regions[name]["vertices"]
+            if vf is None:
+                raise InputError(f"{targets}: region {name!r} needs 'vertices' (its mask) when there are several regions")
+            raw.append(read_vertex_mask(vf, N))
+        falloff = [tg.regions[name].get("falloff", 0.0) for name, _, _ in per_region]
+        faces = template.faces() if any(falloff) else None
+        masks = list(region_weights(raw, vertices=neutral.vertices, faces=faces, falloff=falloff)[:-1])
+    base = neutral.vertices if neutral else meshes[0].vertices
+    keysets = [np.stack([m.vertices for m in objs]) for _, _, objs in per_region]
+
+    def positions(sl):
+        res = [blend_keys(W[sl], B) for (_, W, _), B in zip(per_region, keysets)]
+        return res[0] if masks is None else blend_regions(res, masks, neutral.vertices)
+
+    def glb():
+        names = []
+        for name, (_, frames, _) in sorted(regions.items()):
+            names += [f"{name}:{int(f)}" for f in frames] + [f"{name}:rest"]
+        return (morph_targets(keysets, None if masks is None else np.stack(masks), base), names,
+                morph_weights([W for _, W, _ in per_region]))
+
+    return positions, template, base, glb, None
+
+
+def rig_key_sliders(regions, tg, targets, rig):
+    """Per region, the sliders of its key frames in the weights' column order (only the sliders it owns).
+
+    Returns
+    -------
+    list of ndarray, each shape (K_r, n), in sorted region order
+    """
+    from ..io.editfiles import read_animation
+
+    names, S, frames, _ = read_animation(tg.sliders)
+    unknown = [n for n in names if n not in rig.index]
+    if unknown:
+        raise InputError(f"{tg.sliders}: slider {unknown[0]!r} is not a shape of {tg.rig}")
+    row = {int(f): i for i, f in enumerate(frames)}
+    full = np.zeros((len(S), rig.n_sliders))
+    full[:, [rig.index[n] for n in names]] = S
+    out = []
+    for name, (_, kframes, _) in sorted(regions.items()):
+        owned = tg.regions[name].get("sliders")
+        keep = np.ones(rig.n_sliders, dtype=bool)
+        if owned is not None:
+            bad = [n for n in owned if n not in rig.index]
+            if bad:
+                raise InputError(f"{targets}: region {name!r}: slider {bad[0]!r} is not a shape of {tg.rig}")
+            keep = np.isin(rig.names, owned)
+        absent = [int(f) for f in kframes if int(f) not in row]
+        if absent:
+            raise InputError(f"{tg.sliders}: no sliders for key frame {absent[0]} of region {name!r}")
+        out.append(np.where(keep, full[[row[int(f)] for f in kframes]], 0.0))
+    return out
+
+
+def _rig_driver(regions, tg, targets, cache_dir):
+    """Rig driving: curves from the weights, meshes from the rig at the curves."""
+    from ..rig import BlendshapeRig
+    from ..rigpose import rig_curves
+
+    rig = BlendshapeRig.load(tg.rig, **({"cache_dir": cache_dir} if cache_dir is not None else {}))
+    S = rig_key_sliders(regions, tg, targets, rig)
+    curves = rig_curves([W for _, (W, _, _) in sorted(regions.items())], S, rig.lower, rig.upper)
+
+    def positions(sl):
+        return rig.evaluate(curves[sl])
+
+    def glb():
+        D = rig.D.toarray() if rig.sparse else np.asarray(rig.D)
+        return D.T.reshape(rig.n_sliders, -1, 3), list(rig.names), curves
+
+    return positions, rig.template, rig.neutral, glb, (rig, curves)
+
+
+def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), head_motion="none", scale=None,
+              pivot=None, vat="offsets", drive="auto", progress=_no_progress, cache_dir=None) -> list[Path]:
+    """Drive the character with the weights and export the result.
+
+    Writes into *output*: ``frame_%05d.obj`` (streamed, chunk by chunk),
+    ``weights.csv``, ``animation.exr`` + ``animation.json`` (vertex-animation
+    texture), ``animation.glb`` and, when driving a rig, ``curves.csv`` +
+    ``curves.npz`` (every frame's slider values, clipped to the rig's ranges),
+    as *formats* asks.
+
+    Parameters
+    ----------
+    drive : {"auto", "rig", "keys"}
+        ``auto``: the rig when ``targets.yaml`` names one (``auto-pose``
+        output), else the key shapes; ``keys`` blends the key OBJs with the
+        region masks even when a rig is named.
+    """
+    from ..apply import apply_transforms
+    from ..io.editfiles import write_animation
+    from ..io.obj import write_obj
+    from ..io.stagefiles import load_weights, read_targets, weights_csv
+
+    weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
+    formats = _check_formats(formats)
+    if head_motion not in ("none", "2d"):
+        raise ValueError(f"head_motion: expected 'none' or '2d', got {head_motion!r}")
+    if vat not in ("offsets", "positions"):
+        raise ValueError(f"vat: expected 'offsets' or 'positions', got {vat!r}")
+    if drive not in DRIVES:
+        raise ValueError(f"drive: expected one of {', '.join(DRIVES)}, got {drive!r}")
+    regions, meta = load_weights(weights)
+    fps = float(meta.get("fps") or 30.0)
+    tg = read_targets(targets)
+    missing = sorted(set(regions) - set(tg.regions))
+    if missing:
+        raise InputError(f"{targets}: no targets for region {missing[0]!r} of {weights}")
+    use_rig = tg.rig is not None and drive != "keys"
+    if drive == "rig" and tg.rig is None:
+        raise InputError(f"{targets}: drive rig needs a targets.yaml that names 'rig' and 'sliders' (from auto-pose)")
+    if "curves" in formats and not use_rig:
+        raise InputError(f"{targets}: format curves needs keys posed on a rig (a targets.yaml from auto-pose)")
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    for f in formats:
+        for key in (f, f + "_npz", f + "_json"):
+            if key in APPLY_FILES:
+                check_not_input(out / APPLY_FILES[key], [weights, targets, landmarks, *tg.files()])
+    T = next(iter(regions.values()))[0].shape[0]
+    if use_rig:
+        positions, template, base, glb, rig_out = _rig_driver(regions, tg, targets, cache_dir)
+    else:
+        positions, template, base, glb, rig_out = _key_driver(regions, tg, targets, weights)
+    N = template.n_vertices
+    head = None
+    if head_motion == "2d":
+        head = _head_transforms(landmarks, T, base, scale, pivot)
+    out.mkdir(parents=True, exist_ok=True)
+    vat_values = np.empty((T, N, 3), np.float32) if "exr" in formats else None
+    written = []
+    chunk = 64
+    if vat_values is not None or "obj" in formats:
+        with progress(T, "apply") as bar:
+            for start in range(0, T, chunk):
+                sl = slice(start, min(start + chunk, T))
+                pos = positions(sl)
+                if head is not None:
+                    pos = apply_transforms(head[sl], pos)
+                if vat_values is not None:
+                    vat_values[sl] = pos - (base if vat == "offsets" else 0.0)
+                if "obj" in formats:
+                    for i, p in enumerate(pos):
+                        path = out / f"frame_{start + i:05d}.obj"
+                        write_obj(path, template, p)
+                        written.append(path)
+                bar.update(sl.stop - sl.start)
+    if "obj" in formats:
+        # Remove frames left over from a longer previous run (only files this stage names).
+        for stale in out.iterdir():
+            m = FRAME_RE.match(stale.name)
+            if m and int(m.group(1)) >= T:
+                stale.unlink()
+    if "curves" in formats:
+        rig, curves = rig_out
+        frames = np.arange(T)
+        write_animation(out / APPLY_FILES["curves"], rig.names, curves, frames, frames / fps)
+        write_animation(out / APPLY_FILES["curves_npz"], rig.names, curves, frames,
+                        meta={"fps": fps, "rig": Path(tg.rig).name, "weights": Path(weights).name})
+        written += [out / APPLY_FILES["curves"], out / APPLY_FILES["curves_npz"]]
+    if "csv" in formats:
+        write_text(out / APPLY_FILES["csv"], weights_csv(regions, fps))
+        written.append(out / APPLY_FILES["csv"])
+    if vat_values is not None:
+        from ..io.exr import write_vat
+
+        write_vat(out / APPLY_FILES["exr"], vat_values, fps=fps, mode=vat, sidecar=out / APPLY_FILES["exr_json"])
+        written += [out / APPLY_FILES["exr"], out / APPLY_FILES["exr_json"]]
+    if "glb" in formats:
+        from ..io.gltf import write_glb
+
+        mt, names, mw = glb()
+        write_glb(out / APPLY_FILES["glb"], base=base, faces=template.faces(), targets=mt, target_names=names,
+                  weights=mw, fps=fps, node_transforms=head, name=template.path.stem)
+        written.append(out / APPLY_FILES["glb"])
+    log.info("wrote %d frames of %d vertices to %s (%s; driven by %s)", T, N, out, ", ".join(formats),
+             "the rig" if use_rig else "the key shapes")
+    return written
+
+
+__all__ = ["APPLY_FILES", "APPLY_FORMATS", "DRIVES", "rig_key_sliders", "run_apply"]

@@ -1,0 +1,217 @@
+"""``auto-pose``: pose a rig at every key frame from the landmarks (the rig as the artist).
+
+Reads ``keys.json``, ``landmarks.npz`` and ``rig.yaml``; writes into the output
+directory ``REGION/key_%05d.obj`` (the rig posed at each key's sliders),
+``sliders.csv`` (one row per key frame, the animation CSV that ``edit`` reads),
+``masks/REGION.txt`` (region masks derived from the rig) and ``targets.yaml``,
+which names the rig and the sliders so that ``apply`` writes the rig's slider
+curves. The math is in :mod:`retarget_cli.rigpose` (delta fit, default) and
+:func:`retarget_cli.edit.auto_pose` (absolute fit).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.atomic import check_not_input, write_text
+from . import _require, read_vertex_map
+
+log = logging.getLogger(__name__)
+
+FITS = ("delta", "absolute")
+#: Sliders left at 0 by default: gaze and pupils, which 2D landmarks without pupils cannot observe
+#: (ARKit-style names; fnmatch patterns, case-insensitive).
+DEFAULT_EXCLUDE = ("eyeLook*", "*pupil*")
+#: Landmarks of the 68-point layout left out of the fit by default: the jaw contour apart from the chin.
+#: On a real face they are the silhouette, which slides over the skin as the head turns; on the rig they
+#: are fixed vertices (on d3 they carried 20-40 px of displacement that no expression explains).
+CONTOUR_68 = (0, 1, 2, 3, 4, 5, 11, 12, 13, 14, 15, 16)
+#: Landmarks of the 68-point layout that do not move with expression: the nose and the eye corners.
+RIGID_68 = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)
+
+
+def _rig_landmark_vertices(spec, landmark_vertices, n_points: int, n_vertices: int, rig_path):
+    """(landmark ids, vertex ids) from --landmark-vertices, else from rig.yaml's ``landmarks:``."""
+    source = landmark_vertices if landmark_vertices is not None else spec.landmarks
+    if source is None:
+        raise InputError(f"{rig_path}: the rig does not say which vertex is each landmark; add "
+                         "'landmarks: [vertex ids]' to it or pass --landmark-vertices")
+    if isinstance(source, (str, os.PathLike)):
+        return read_vertex_map(source, n_points, n_vertices)
+    vx = np.asarray(source, dtype=np.int64)
+    if len(vx) != n_points:
+        raise InputError(f"{rig_path}: landmarks: lists {len(vx)} vertices but the landmarks file has {n_points}")
+    bad = np.flatnonzero(vx >= n_vertices)
+    if bad.size:
+        raise InputError(f"{rig_path}: landmarks[{int(bad[0])}]: vertex {int(vx[bad[0]])} is outside the mesh "
+                         f"({n_vertices} vertices)")
+    return np.arange(n_points), vx
+
+
+def excluded_sliders(names, patterns) -> np.ndarray:
+    """Boolean mask of the slider names matching any fnmatch *pattern* (case-insensitive)."""
+    pats = [str(p).lower() for p in (patterns or ())]
+    return np.array([any(fnmatch.fnmatchcase(n.lower(), p) for p in pats) for n in names], dtype=bool)
+
+
+def _mask_text(weights: np.ndarray) -> str:
+    return "".join(f"{w:.6g}\n" for w in weights)
+
+
+def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
+                  neutral_frame=0, sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
+                  rigid_points=None, alpha=0.001, mu=0.0001, base_dir=None, cache_dir=None) -> list[Path]:
+    """Pose *rig* at each key frame of *keys*; write key OBJs, ``sliders.csv``, masks and ``targets.yaml``.
+
+    ``fit="delta"`` (default): :func:`retarget_cli.rigpose.delta_pose`, the
+    key frame's landmark displacement from *neutral_frame* (Lewis et al.
+    2005 §3) reproduced per region by the sliders the region owns; the
+    neutral frame poses every slider at 0. ``fit="absolute"``: the landmark
+    positions themselves (:func:`retarget_cli.edit.auto_pose`, eq. 3 of
+    Lewis & Anjyo 2010 with every landmark as a pin), which turns the
+    difference between the actor's and the character's faces into expression.
+
+    Parameters
+    ----------
+    masks : dict, optional
+        Region name to a vertex-mask file (relative to *base_dir*), overriding
+        the masks derived from the rig (:func:`retarget_cli.rigpose.rig_region_masks`).
+    sparsity, ridge : float, optional
+        λ and μ of :func:`retarget_cli.rigpose.fit_sliders` (None: defaults).
+    exclude : sequence of str
+        Slider-name patterns kept at 0.
+    skip_points : sequence of int, optional
+        Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
+    rigid_points : sequence of int, optional
+        Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
+    """
+    from ..edit import auto_pose
+    from ..io.editfiles import write_animation
+    from ..io.landmarks import load_landmarks
+    from ..io.obj import write_obj
+    from ..io.stagefiles import read_keys, read_rig, write_targets
+    from ..rig import BlendshapeRig
+    from ..rigpose import DEFAULT_RIDGE, DEFAULT_SPARSITY, delta_pose, rig_region_masks
+
+    if fit not in FITS:
+        raise InputError(f"fit: expected one of {', '.join(FITS)}, got {fit!r}")
+    keys, landmarks, rig_path = _require(keys, "keys file"), _require(landmarks, "landmarks file"), _require(rig, "rig file")
+    if landmark_vertices is not None:
+        landmark_vertices = _require(landmark_vertices, "landmark-vertex map")
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    # Everything that is cheap to check, before the rig's OBJs are read.
+    spec = read_rig(rig_path)
+    kf, lm = read_keys(keys), load_landmarks(landmarks)
+    inputs = [keys, landmarks, rig_path, *spec.files()] + ([landmark_vertices] if landmark_vertices else [])
+    check_not_input(out / "targets.yaml", inputs)
+    check_not_input(out / "sliders.csv", inputs)
+    frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
+    bad = [f for f in frames if f >= lm.n_frames]
+    if bad:
+        raise InputError(f"{keys}: key frame {bad[0]} is outside {landmarks} ({lm.n_frames} frames)")
+    if not 0 <= neutral_frame < lm.n_frames:
+        raise InputError(f"neutral_frame: {neutral_frame} is outside {landmarks} ({lm.n_frames} frames)")
+    L = lm.n_points
+    for label, pts in (("skip_points", skip_points), ("rigid_points", rigid_points)):
+        if pts is not None and any(not isinstance(i, int) or not 0 <= i < L for i in pts):
+            raise InputError(f"{label}: expected landmark ids in [0, {L}), got {list(pts)!r}")
+    masks = masks or {}
+    unknown = sorted(set(masks) - set(kf.regions))
+    if unknown:
+        raise InputError(f"masks: region {unknown[0]!r} is not a region of {keys} ({', '.join(kf.regions)})")
+    mask_files = {name: _require(Path(base_dir or ".") / m, "region mask") for name, m in masks.items()}
+
+    r = BlendshapeRig.load(rig_path, **({"cache_dir": cache_dir} if cache_dir is not None else {}))
+    lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, L, r.n_vertices, rig_path)
+    fixed = excluded_sliders(r.names, exclude)
+    if skip_points is None:
+        skip_points = CONTOUR_68 if L == 68 else ()
+    if rigid_points is None:
+        rigid_points = RIGID_68 if L == 68 else None
+    pos = {int(p): i for i, p in enumerate(lm_ids)}  # landmark id -> row among the mapped landmarks
+    skip = set(skip_points)
+    region_rows = {}
+    for name, reg in kf.regions.items():
+        rows = [pos[p] for p in reg["points"] if p in pos and p not in skip]
+        if not rows:
+            raise InputError(f"{keys}: region {name!r} has no landmark with a rig vertex (after skip_points)")
+        region_rows[name] = rows
+    rigid = None if rigid_points is None else [pos[p] for p in rigid_points if p in pos]
+    Y = lm.stabilized[:, lm_ids].astype(np.float64)
+    Cf = lm.confidence[:, lm_ids].astype(np.float64)
+    names = list(kf.regions)
+    region_sliders = {}
+    if fit == "delta":
+        exclusive = spec.exclusive
+        if exclusive is None:
+            from ..rigpose import infer_exclusive, project, rig_landmarks
+
+            _, DL = rig_landmarks(r, vx)
+            exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
+            log.info("auto-pose: inferred exclusive pairs %s", exclusive)
+        res = delta_pose(r, vx, Y[neutral_frame], Y[frames], weights=Cf[frames], neutral_weights=Cf[neutral_frame],
+                         regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,
+                         sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
+                         ridge=DEFAULT_RIDGE if ridge is None else ridge)
+        poses = dict(zip(frames, res["w"]))
+        owner = res["owner"]
+        for f, e in zip(frames, res["rms"]):
+            log.info("key %d: landmark displacement rms %.3f px", f, e)
+        for ri, name in enumerate(res["regions"]):
+            region_sliders[name] = [r.names[j] for j in np.flatnonzero(owner == ri)]
+    else:
+        poses = {}
+        upper_saved = r.upper.copy()
+        r.upper = np.where(fixed, r.lower + 1e-12, r.upper)
+        try:
+            for f in frames:
+                one = auto_pose(r, vx, Y[f], weights=Cf[f], alpha=alpha, mu=mu)
+                poses[f] = np.where(fixed, 0.0, one["w"])
+                log.info("key %d: rms %.3f px after %d iterations", f, one["rms"], one["iterations"])
+        finally:
+            r.upper = upper_saved
+        # Absolute poses are whole-face poses: every region's key carries every slider.
+        from ..rigpose import project, rig_landmarks, slider_owners
+
+        _, DL = rig_landmarks(r, vx)
+        owner = slider_owners(project(DL, np.eye(3)), [region_rows[n] for n in names])
+        owner[fixed] = -1
+        for ri, name in enumerate(names):
+            region_sliders[name] = [r.names[j] for j in np.flatnonzero(owner == ri)]
+    derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
+    written, regions = [], {}
+    for ri, name in enumerate(names):
+        owned = np.isin(r.names, region_sliders[name])
+        regions[name] = {"keys": {}, "sliders": region_sliders[name]}
+        for f in kf.regions[name]["frames"]:
+            rel = f"{name}/key_{f:05d}.obj"
+            write_obj(out / rel, r.template, r.evaluate(np.where(owned, poses[f], 0.0)))
+            regions[name]["keys"][f] = rel
+            written.append(out / rel)
+        if name in mask_files:
+            regions[name]["vertices"] = os.path.relpath(mask_files[name].resolve(), out.resolve())
+        elif derived is not None:
+            rel = f"masks/{name}.txt"
+            write_text(out / rel, _mask_text(derived[ri]))
+            regions[name]["vertices"] = rel
+            written.append(out / rel)
+    write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames,
+                    meta={"fit": fit, "neutral_frame": neutral_frame})
+    written.append(out / "sliders.csv")
+    nrel = os.path.relpath(spec.neutral.resolve(), out.resolve())
+    rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
+    write_targets(out / "targets.yaml", regions, neutral=nrel, rig=rrel, sliders="sliders.csv",
+                  comment=f"Written by retarget auto-pose ({fit} fit, neutral frame {neutral_frame}).")
+    written.append(out / "targets.yaml")
+    return written
+
+
+__all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "run_auto_pose"]
