@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench lint clean sample
+.PHONY: demo real-demo test bench lint clean sample
 
 # Reinstall only when the package metadata changes.
 $(STAMP): pyproject.toml
@@ -19,6 +19,17 @@ demo: $(STAMP)
 	@echo "Outputs: build/sample/ (landmarks.npz, keys.json, weights.npz, weights.csv, targets/, frames/: frame_*.obj, weights.csv, animation.exr/.json, animation.glb)"
 	@echo "Preview: build/sample/preview.mp4"
 	@echo "Report:  build/sample/report.html"
+
+# Your video, your rig: the real clip sample_data/real/d3.mp4 onto the ICT FaceKit (both MIT), configs/real.yaml.
+ICT := build/ict-facekit/rig.yaml
+$(ICT): sample_data/ict/ict-facekit-rig.tar.xz sample_data/ict/rig.yaml
+	@mkdir -p build
+	tar -xJf sample_data/ict/ict-facekit-rig.tar.xz -C build
+	cp sample_data/ict/rig.yaml $@
+
+real-demo: $(STAMP) $(ICT)
+	$(BIN)/retarget run configs/real.yaml
+	@echo "Rig curves: build/real/frames/curves.csv (one column per ICT slider), curves.npz; glTF: build/real/frames/animation.glb"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

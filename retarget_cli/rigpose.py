@@ -51,6 +51,8 @@ DEFAULT_RIDGE = 0.001
 ACTIVE = 1e-3
 #: Two sliders whose landmark displacements have a cosine below this oppose each other (inferred exclusive pairs).
 OPPOSING_COSINE = -0.7
+#: Huber threshold of :func:`delta_pose`'s reweighting, in image pixels.
+ROBUST_PX = 2.0
 
 
 def rig_landmarks(rig, vertices) -> tuple[np.ndarray, np.ndarray]:
@@ -261,7 +263,7 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
 
 def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights=None, regions=None,
                sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE, exclusive=None,
-               region_scale: bool = True, rigid=None, fixed=None) -> dict:
+               region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
 
     The delta transfer of the module docstring: one scaled orthographic
@@ -294,6 +296,9 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     region_scale : bool
         Scale each region's displacements by its own camera scale (default)
         rather than the global one.
+    robust_iterations : int
+        Huber reweighting passes per region and frame (0: plain least squares),
+        so that a landmark the tracker lost does not pose the face.
     fixed : array_like of bool, shape (n,), optional
         Sliders that stay at 0 (for example gaze sliders, which 2D landmarks
         without pupils cannot observe).
@@ -369,6 +374,14 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
             m = ((Y[k, i] - rest_k[i]) / (sk * sr)).ravel()
             w = fit_sliders(Br, m, rig.lower, rig.upper, weights=cw, sparsity=sparsity, ridge=ridge,
                             exclusive=pairs, free=free)
+            for _ in range(robust_iterations):
+                # Huber reweighting per landmark: a point the tracker lost (tens of pixels off) must not pose the
+                # face. The threshold is ROBUST_PX pixels, or twice the median residual when that is larger.
+                e = np.linalg.norm((Br @ w - m).reshape(-1, 2), axis=1) * sk * sr
+                h = max(ROBUST_PX, 2.0 * float(np.median(e)))
+                cw = np.repeat(np.minimum(C[k, i], c0[i]) * np.minimum(1.0, h / np.maximum(e, 1e-12)), 2)
+                w = fit_sliders(Br, m, rig.lower, rig.upper, weights=cw, sparsity=sparsity, ridge=ridge,
+                                exclusive=pairs, free=free)
             W[k] += w
             res = (Br @ w - m) * sk * sr
             sq[k] += float(np.sum(cw * res**2))
