@@ -266,7 +266,8 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
                 _, s, _ = _frame_of(again)
                 c = np.exp(-np.linalg.norm(again - found, axis=1) / (tau * s))
             elif t == 0:
-                raise FaceLostError("frame 0: no face found by the detector", 0, np.zeros((0, 68, 2)),
+                raise FaceLostError("frame 0: no face found by the detector (annotate this frame by hand with --init, "
+                                    "or start at another frame)", 0, np.zeros((0, 68, 2)),
                                     np.zeros((0, 68)))
             else:
                 missing += 1
