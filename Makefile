@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed-stamp
 # Reinstall only when the package metadata changes.
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,report]'
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,report,detect]'
 	@touch $@
 
 demo: $(STAMP)

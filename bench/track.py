@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from retarget_cli.config import load_config
+from retarget_cli.errors import ConfigError
 from retarget_cli.io.atomic import load_npz
 from retarget_cli.io.obj import read_obj
 from retarget_cli.io.video import VideoReader
@@ -59,6 +60,13 @@ def methods():
         "lk (5 annotated frames)": lambda fr, tr: track_lk(fr, _annotated(tr, 5)),
         "lk downscale 0.5": lambda fr, tr: track_lk(fr, _annotated(tr, 1), downscale=0.5, window=11),
     }
+    try:  # the optional extra 'detect'
+        from retarget_cli.track.detect import Detector, track_detect
+
+        det = Detector()
+        out["detect (no annotation)"] = lambda fr, tr: track_detect(fr, detector=det)
+    except ConfigError as exc:
+        print(f"detect row skipped: {exc}", flush=True)
     try:
         from retarget_cli.track.eigenpoints import track_eigenpoints
     except ImportError:
@@ -119,8 +127,8 @@ def bench_take(d: Path, label: str, trackers=None, only: str = "") -> list[tuple
         if not name.startswith(only):
             continue
         t0 = time.perf_counter()
-        # as retarget track reads for lk: grayscale, converted in the decoding thread
-        with VideoReader(d / "face.mp4", gray=name.startswith("lk")) as r:
+        # as retarget track reads for lk and detect: grayscale, converted in the decoding thread
+        with VideoReader(d / "face.mp4", gray=name.startswith(("lk", "detect"))) as r:
             pts, _ = fn(r, truth)
         fps = n / (time.perf_counter() - t0)
         err = np.linalg.norm(pts - truth, axis=2).mean(1)

@@ -116,9 +116,10 @@ def _print_outputs(paths):
 
 @main.command()
 @click.argument("video", type=click.Path(dir_okay=False))
-@click.option("--init", "init", type=click.Path(dir_okay=False), required=True,
-              help="Annotation of the first tracked frame: iBUG .pts (frame from a name like face_00120.pts) "
-                   "or a frame,point,x,y CSV.")
+@click.option("--init", "init", type=click.Path(dir_okay=False), default="auto", show_default=True,
+              help="Annotation of the first tracked frame: iBUG .pts (frame from a name like face_00120.pts), "
+                   "a frame,point,x,y CSV, or auto: the pretrained detector annotates it and writes "
+                   "<output stem>.init_NNNNN.pts beside the output for review (needs the extra detect).")
 @click.option("--annotation", "annotations", multiple=True, type=click.Path(dir_okay=False),
               help="More annotated frames (.pts or CSV); each re-anchors the track. Repeatable.")
 @setting("track", "init_frame")
@@ -143,7 +144,8 @@ def _print_outputs(paths):
 @setting("track", "keep_partial")
 def track(video, init, annotations, output, rigid_points, **settings):
     """Track facial landmarks through VIDEO (a video file or an image-sequence pattern such as
-    'frames/%05d.png' or 'frames/*.exr'), from one or more annotated frames."""
+    'frames/%05d.png' or 'frames/*.exr'), from one or more annotated frames (by default the detector
+    annotates the first), or with --method detect by a pretrained detector on every frame."""
     from .stages import run_track
 
     rigid = None
@@ -190,6 +192,43 @@ def train_tracker(video, annotations, output, fps, rigid_points, stages, trees, 
                                      rigid_points=rigid, stages=stages, trees=trees, depth=depth,
                                      face_size=face_size, seed=seed,
                                      progress=progress))
+
+
+@main.command()
+@click.argument("video", type=click.Path(dir_okay=False))
+@click.option("--frames", "frames", required=True, metavar="LIST",
+              help="Frames to annotate (0-based), e.g. 0,120,240 or 0-300:60 (every 60th from 0 to 300).")
+@output_option(None, "Directory for the .pts files.")
+@click.option("--fps", type=click.FloatRange(min=0.01), default=None, help="Frame rate of an image sequence.")
+def annotate(video, frames, output, fps):
+    """Place the 68 landmarks on chosen frames of VIDEO with the pretrained detector (needs the extra detect).
+
+    Writes OUTPUT/<video stem>_<frame:05d>.pts (iBUG .pts, as `track --init/--annotation` and
+    `train-tracker` read them); check them by eye before training or re-anchoring on them."""
+    from .stages.detect import run_annotate
+
+    _print_outputs(run_annotate(video=video, frames=_parse_frames(frames), output=output, fps=fps))
+
+
+def _parse_frames(spec: str) -> list[int]:
+    """``0,120,240`` or ranges ``a-b`` (inclusive) with an optional step ``a-b:s``."""
+    out = []
+    for tok in spec.replace(" ", "").split(","):
+        if not tok:
+            continue
+        try:
+            if "-" in tok:
+                rng, _, st = tok.partition(":")
+                a, b = (int(v) for v in rng.split("-"))
+                out += list(range(a, b + 1, int(st) if st else 1))
+            else:
+                out.append(int(tok))
+        except ValueError:
+            raise click.BadParameter(f"expected frame numbers such as 0,120 or 0-300:60, got {tok!r}",
+                                     param_hint="--frames") from None
+    if not out:
+        raise click.BadParameter("give at least one frame", param_hint="--frames")
+    return out
 
 
 @main.command("import")

@@ -40,6 +40,9 @@ class Param:
     link : str, optional
         ``"stage.param"`` whose output feeds this input by default in
         ``retarget run``.
+    words : tuple of str
+        Values of an input that name no file (``track.init: auto``): passed
+        through as they are, neither resolved as paths nor hashed.
     """
 
     name: str
@@ -52,6 +55,7 @@ class Param:
     max: float | None = None
     nullable: bool = False
     link: str | None = None
+    words: tuple = ()
 
     @property
     def required(self) -> bool:

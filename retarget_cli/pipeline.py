@@ -80,8 +80,10 @@ STAGES: dict[str, Stage] = {
                 Param("video", "input", str,
                       help="Video file (mp4, mov, avi, mkv, m4v) or image-sequence pattern (printf or glob; "
                            "png, jpg, exr)."),
-                Param("init", "input", str,
-                      help="Annotation of the first tracked frame: iBUG .pts or frame,point,x,y CSV."),
+                Param("init", "input", str, None,
+                      "Annotation of the first tracked frame: iBUG .pts or frame,point,x,y CSV, or auto (the "
+                      "default): the pretrained detector annotates it and writes <output stem>.init_NNNNN.pts "
+                      "beside the output (needs the extra detect).", nullable=True, words=("auto",)),
                 Param("output", "output", str, "landmarks.npz", "Landmarks file (landmarks.npz contract)."),
                 Param("overlay", "output", str, None,
                       "Also write an mp4 with the landmarks (coloured by confidence) and the head frame.",
@@ -108,8 +110,9 @@ STAGES: dict[str, Stage] = {
                 Param("method", "setting", str, "lk",
                       "Tracker: lk (Lucas-Kanade, one or more annotated frames) or eigenpoints (the paper's "
                       "tracker, trained on the annotated frames; give 5 or more) or markers (painted dots on the "
-                      "landmarks) or facemark (OpenCV Facemark LBF with --model, see train-tracker).",
-                      choices=("lk", "eigenpoints", "markers", "facemark")),
+                      "landmarks) or facemark (OpenCV Facemark LBF with --model, see train-tracker) or detect "
+                      "(dlib's pretrained 68-point detector on every frame; needs the extra detect).",
+                      choices=("lk", "eigenpoints", "markers", "facemark", "detect")),
                 Param("model", "input", str, None,
                       "Facemark LBF model file for method facemark (written by 'retarget train-tracker').",
                       nullable=True),
@@ -321,7 +324,7 @@ def resolve(cfg: Config, name: str) -> dict:
         v = given.get(p.name, p.default)
         if p.kind == "input":
             if p.name in given and v is not None:
-                kw[p.name] = cfg.base_dir / v
+                kw[p.name] = v if v in p.words else cfg.base_dir / v
                 continue
             linked = False
             for link in (p.link or "").split("|") if p.link else ():
@@ -368,7 +371,7 @@ def _matches(path: Path, rec: dict) -> bool:
 
 
 def _inputs(stage: Stage, kw: dict) -> list[Path]:
-    files = [f for p in stage.params if p.kind == "input" and kw[p.name] is not None
+    files = [f for p in stage.params if p.kind == "input" and kw[p.name] is not None and kw[p.name] not in p.words
              for f in stage.expand_input(p.name, Path(kw[p.name]))]
     for f in files:
         if not f.exists():

@@ -56,13 +56,18 @@ def read_pts(path: str | os.PathLike) -> np.ndarray:
     return pts
 
 
-def write_pts(path: str | os.PathLike, points: np.ndarray) -> None:
-    """Atomically write 0-based pixel *points* (shape (L, 2)) as an iBUG ``.pts`` file."""
+def pts_text(points: np.ndarray) -> str:
+    """The iBUG ``.pts`` text of 0-based pixel *points* (shape (L, 2))."""
     points = np.asarray(points, dtype=np.float64) + PTS_ORIGIN
     lines = ["version: 1", f"n_points: {len(points)}", "{"]
     lines += [f"{x:.3f} {y:.3f}" for x, y in points]
     lines += ["}", ""]
-    write_text(path, "\n".join(lines))
+    return "\n".join(lines)
+
+
+def write_pts(path: str | os.PathLike, points: np.ndarray) -> None:
+    """Atomically write 0-based pixel *points* (shape (L, 2)) as an iBUG ``.pts`` file."""
+    write_text(path, pts_text(points))
 
 
 _FRAME_IN_NAME = re.compile(r"(\d+)$")

@@ -49,10 +49,15 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     *init* and *annotations* are ``.pts`` or ``frame,point,x,y`` CSV files; a
     ``.pts`` file's frame is the number ending its name (else *init_frame*).
     Frame numbers are 0-based positions in the source; the first tracked
-    frame (*start*) must be annotated. Writes the ``landmarks.npz`` contract
-    to *output* (plus ``frames``, the source frame numbers) and, if asked, an
-    *overlay* video. *model* is the Facemark model file of method
-    ``facemark`` (see :func:`run_train_tracker`).
+    frame (*start*) must be annotated. *init* ``None`` or ``"auto"``: the
+    pretrained detector annotates the first tracked frame (unless
+    *annotations* do), and the annotation it used is written beside *output*
+    as ``<output stem>.init_<frame:05d>.pts`` for review. Method ``detect``
+    places the landmarks on every frame with the detector (annotated frames
+    are kept as given). Writes the ``landmarks.npz`` contract to *output*
+    (plus ``frames``, the source frame numbers) and, if asked, an *overlay*
+    video. *model* is the Facemark model file of method ``facemark`` (see
+    :func:`run_train_tracker`).
     """
     from ..io.annotations import read_annotations
     from ..io.frames import FrameSource, TruncatedInputError
@@ -60,14 +65,27 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     from ..track.head import apply_similarity, estimate_head, invert_similarity
     from ..track.head import smooth_head as smooth_head_fn
     from ..track.lk import FaceLostError, check_inside, track_lk
+    from .detect import detect_frame, init_pts_path, is_auto, write_pts_once
 
-    init = _require(init, "annotation file")
+    auto = is_auto(init)
+    if not auto:
+        init = _require(init, "annotation file")
     extra = [Path(base_dir or ".") / a for a in (annotations or [])]
     for a in extra:
         _require(a, "annotation file")
-    if method not in ("lk", "eigenpoints", "markers", "facemark"):
-        raise ValueError(f"method: expected 'lk', 'eigenpoints', 'markers' or 'facemark', got {method!r}")
-    ann, src = read_annotations([init, *extra], frame=init_frame)
+    if method not in ("lk", "eigenpoints", "markers", "facemark", "detect"):
+        raise ValueError(f"method: expected 'lk', 'eigenpoints', 'markers', 'facemark' or 'detect', got {method!r}")
+    given = extra if auto else [init, *extra]
+    ann, src = read_annotations(given, frame=init_frame) if given else ({}, {})
+    need_auto = auto and start not in ann
+    detector = None
+    if need_auto or method == "detect":
+        from ..track.detect import Detector
+
+        detector = Detector()  # fails here, before any decoding, when the extra is not installed
+    if ann and method == "detect" and len(next(iter(ann.values()))) != Detector.n_points:
+        raise InputError(f"{src[next(iter(ann))]}: method detect places {Detector.n_points} points but the "
+                         f"annotation has {len(next(iter(ann.values())))}")
     fitter = None
     if method == "facemark":
         from ..io.facemark import load_facemark
@@ -76,19 +94,30 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
             raise InputError("method facemark needs a model file (--model, or track.model); "
                              "train one with 'retarget train-tracker'")
         fitter = load_facemark(model)
-        n_ann = len(next(iter(ann.values())))
+        n_ann = len(next(iter(ann.values()))) if ann else 68
         if fitter.n_points != n_ann:
             raise InputError(f"{model}: the Facemark model was trained for {fitter.n_points} points but "
                              f"{init} has {n_ann}")
     elif model:
         log.warning("model %s is used by method facemark only; ignored by %s", model, method)
-    # lk tracks grayscale frames: convert them in the decoding thread
-    with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=method == "lk") as source:
-        check_not_input(output, source.files() + [init, *extra])
+    # lk and detect track grayscale frames: convert them in the decoding thread
+    with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=method in ("lk", "detect")) as source:
+        check_not_input(output, source.files() + given)
         if overlay:
-            check_not_input(overlay, source.files() + [init, *extra])
+            check_not_input(overlay, source.files() + given)
+        init_out = init_pts_path(output, start) if need_auto else None
+        if init_out is not None:
+            check_not_input(init_out, source.files() + given + [output] + ([overlay] if overlay else []))
         W, H = source.frame_size
-        if start not in ann:
+        it = iter(source)
+        ahead = []
+        if need_auto and method != "detect":
+            ahead.append(next(it))  # an undecodable video raises TruncatedInputError (an InputError) here
+            ann[start] = detect_frame(ahead[0], detector=detector, where=f"{source.path}: frame {start}")
+            src[start] = init_out
+            write_pts_once(init_out, ann[start])
+            log.info("%s: frame %d annotated by the detector; wrote %s", source.path, start, init_out)
+        if start not in ann and method != "detect":
             raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
                              f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
         index = {}
@@ -107,7 +136,8 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
 
         def frames():
             try:
-                yield from source
+                yield from ahead
+                yield from it
             except TruncatedInputError as exc:
                 stopped.append(exc)
 
@@ -124,6 +154,11 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
                         log.warning("downscale applies to the lk tracker only; eigenpoints uses its own window")
                     points, conf = track_eigenpoints(frames(), index, rigid_points=rigid_points,
                                                      progress=lambda t: bar.update(1))
+                elif method == "detect":
+                    from ..track.detect import track_detect
+
+                    points, conf = track_detect(frames(), index, detector=detector, downscale=downscale,
+                                                progress=lambda t: bar.update(1))
                 elif method == "markers":
                     from ..track.markers import track_markers
 
@@ -148,7 +183,7 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
                 log.warning("%s; keeping the %d frames tracked before it (--keep-partial)", msg, exc.frame)
                 points, conf = exc.points, exc.confidence
             except ValueError as exc:
-                raise InputError(f"{init}: {exc}") from exc
+                raise InputError(f"{init_out or init or video}: {exc}") from exc
         if stopped:
             if not keep_partial:
                 raise InputError(f"{stopped[0]}; rerun with --keep-partial to keep the {len(points)} frames "
@@ -156,6 +191,8 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
             log.warning("%s; keeping the %d frames tracked (--keep-partial)", stopped[0], len(points))
         frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
         files = source.files()
+    if need_auto and method == "detect":
+        write_pts_once(init_out, points[0])
     head, stab = estimate_head(points, conf, rigid_points=rigid_points)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
@@ -167,14 +204,15 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
                        "smooth_head": smooth_head},
         "source": Path(video).name,
         "source_sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
-        "annotation": [Path(p).name for p in [init, *extra]],
+        "annotation": [Path(p).name for p in given + ([init_out] if init_out else [])],
         "annotated_frames": [int(f) for f in ann],
+        "init": "auto" if auto else Path(init).name,
     }
     if fitter is not None:
         meta["model"], meta["model_sha256"] = Path(model).name, sha256_file(model)
     save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
                                      frames=frame_numbers))
-    written = [Path(output)]
+    written = [Path(output)] + ([init_out] if init_out else [])
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
     if overlay:
         from ..io.overlay import write_overlay

@@ -1,0 +1,317 @@
+"""Per-frame pretrained landmark detection: dlib's HOG face detector and 68-point shape predictor.
+
+The 68 Multi-PIE landmarks are placed on every frame by dlib's ensemble of
+regression trees (Kazemi & Sullivan 2014) shipped in ``face_recognition_models``
+as ``shape_predictor_68_face_landmarks.dat``. Unlike the flow trackers, nothing
+anchors a frame to an annotated one, so eyelids close and lips open as the
+predictor sees them.
+
+The face box of each frame comes from the previous frame's landmarks: the
+HOG detector (Dalal & Triggs 2005, as in ``dlib.get_frontal_face_detector``)
+runs only on the first frame and when the landmarks look lost; its box is
+remembered relative to the eye corners and nose (an offset and a size in
+units of the eye-corner span, turned with the eye line), so the box handed
+to the predictor keeps the framing it was trained with.
+
+Coordinates: dlib's part ``(x, y)`` is the integer index of a pixel, whose
+centre is ``(x, y)`` in the 0-based pixel-centre convention of
+``landmarks.npz``, so they are used as they are (``.pts`` files add 1).
+
+dlib is imported lazily: without the optional extra ``detect`` the first
+call raises a one-line :class:`~retarget_cli.errors.ConfigError` saying which
+extra to install.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+
+import numpy as np
+
+from ..errors import ConfigError, ShapeError
+from .facemark import _from_scaled, _scaled, _to_scaled
+from .lk import FaceLostError
+
+log = logging.getLogger(__name__)
+
+#: What to install for this module.
+INSTALL_HINT = "pip install 'retarget[detect]' (the optional extra 'detect': dlib-bin and face_recognition_models)"
+
+#: Points whose centre and eye-corner span place the face box (eye corners and nose).
+BOX_POINTS = (27, 28, 29, 30, 31, 33, 35, 36, 39, 42, 45)
+
+#: Detector box relative to :data:`BOX_POINTS` when no detection calibrated it (an annotated first
+#: frame): offset of the box centre in eye-corner spans (x along the eye line, y down) and side.
+#: Mean over every 20th frame of the three shared clips (d3, d9, d12), rounded.
+DEFAULT_BOX = (0.0, 0.2, 2.35)
+
+
+class Detector:
+    """dlib's frontal face detector and 68-point shape predictor, loaded from installed packages.
+
+    Parameters
+    ----------
+    upsample : int
+        Times the frame is upsampled before face detection when no face is found at its size
+        (HOG finds faces of about 80 pixels and up).
+
+    Raises
+    ------
+    ConfigError
+        If dlib or the model package is not installed (names the extra to install).
+    """
+
+    n_points = 68
+
+    def __init__(self, upsample: int = 1):
+        try:
+            import dlib
+            import face_recognition_models
+        except ImportError as exc:
+            raise ConfigError(f"the landmark detector needs {exc.name or 'dlib'}: {INSTALL_HINT}") from None
+        self._dlib = dlib
+        self.upsample = int(upsample)
+        self.faces = dlib.get_frontal_face_detector()
+        self.predictor = dlib.shape_predictor(face_recognition_models.pose_predictor_model_location())
+
+    def detect(self, gray) -> np.ndarray:
+        """Face boxes ``(K, 4)`` as ``[left, top, width, height]`` in pixels, strongest first."""
+        gray = np.ascontiguousarray(gray)
+        for up in range(self.upsample + 1):
+            rects, scores, _ = self.faces.run(gray, up, 0.0)
+            if len(rects):
+                order = np.argsort(-np.asarray(scores), kind="stable")
+                return np.array([[rects[i].left(), rects[i].top(), rects[i].width(), rects[i].height()]
+                                 for i in order], np.float64)
+        return np.zeros((0, 4))
+
+    def landmarks(self, gray, box) -> np.ndarray:
+        """The 68 landmarks ``(68, 2)`` (0-based pixel centres) of the face in *box* ``[left, top, w, h]``."""
+        x, y, w, h = (int(round(v)) for v in box)
+        rect = self._dlib.rectangle(x, y, x + max(w, 1) - 1, y + max(h, 1) - 1)
+        shape = self.predictor(np.ascontiguousarray(gray), rect)
+        return np.array([[p.x, p.y] for p in shape.parts()], np.float64)
+
+
+def _gray(frame) -> np.ndarray:
+    import cv2
+
+    frame = np.asarray(frame)
+    if frame.ndim == 3:
+        frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    if frame.dtype != np.uint8:
+        raise ShapeError(f"frames: expected uint8 images, got {frame.dtype}")
+    return frame
+
+
+def choose_face(boxes, previous=None) -> int | None:
+    """Index of the face to follow among *boxes* ``(K, 4)``: the largest, or the one nearest *previous*.
+
+    Nearest means the smallest centre distance to the *previous* box ``[left, top, w, h]``;
+    None when *boxes* is empty.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    if not len(boxes):
+        return None
+    if previous is None:
+        return int(np.argmax(boxes[:, 2] * boxes[:, 3]))
+    p = np.asarray(previous, np.float64)
+    d = np.linalg.norm(boxes[:, :2] + boxes[:, 2:] / 2 - (p[:2] + p[2:] / 2), axis=1)
+    return int(np.argmin(d))
+
+
+def _frame_of(P) -> tuple[np.ndarray, float, np.ndarray]:
+    """Centre, eye-corner span and rotation (2, 2) (eye line to x) of the landmarks *P* (68, 2)."""
+    c = P[list(BOX_POINTS)].mean(0)
+    d = (P[42] + P[45]) / 2 - (P[36] + P[39]) / 2
+    s = float(np.hypot(*d))
+    if s < 1e-6:
+        return c, 1e-6, np.eye(2)
+    u = d / s
+    return c, s, np.array([[u[0], -u[1]], [u[1], u[0]]])
+
+
+def calibrate_box(points, box) -> tuple[float, float, float]:
+    """The detector *box* ``[left, top, w, h]`` relative to the landmarks *points* (68, 2).
+
+    Returns
+    -------
+    (ox, oy, side) : offset of the box centre along and across the eye line and the box side,
+        in eye-corner spans (see :func:`box_from_points`).
+    """
+    c, s, R = _frame_of(np.asarray(points, np.float64))
+    box = np.asarray(box, np.float64)
+    o = R.T @ (box[:2] + box[2:] / 2 - c) / s
+    return float(o[0]), float(o[1]), float(box[2:].mean() / s)
+
+
+def box_from_points(points, calibration=DEFAULT_BOX) -> np.ndarray:
+    """Square face box ``[left, top, w, h]`` for the landmarks *points* (68, 2), framed like a detection.
+
+    The inverse of :func:`calibrate_box`: centre ``c + s R (ox, oy)`` and side
+    ``side * s``, with ``c`` the mean of :data:`BOX_POINTS`, ``s`` the
+    eye-corner span and ``R`` the rotation of the eye line.
+    """
+    ox, oy, side = calibration
+    c, s, R = _frame_of(np.asarray(points, np.float64))
+    centre = c + s * (R @ np.array([ox, oy]))
+    w = side * s
+    return np.array([centre[0] - w / 2, centre[1] - w / 2, w, w])
+
+
+def detect_landmarks(gray, *, detector: Detector, previous=None):
+    """Find a face on one frame and place its 68 landmarks.
+
+    Parameters
+    ----------
+    gray : ndarray (H, W) or (H, W, 3), uint8
+    detector : Detector
+    previous : ndarray (4,), optional
+        Box ``[left, top, w, h]`` to stay near among several faces (default: the largest face).
+
+    Returns
+    -------
+    points : ndarray (68, 2) or None
+        None when no face is found.
+    box : ndarray (4,) or None
+        The detected face box.
+    """
+    g = _gray(gray)
+    boxes = detector.detect(g)
+    i = choose_face(boxes, previous)
+    if i is None:
+        return None, None
+    return detector.landmarks(g, boxes[i]), boxes[i]
+
+
+def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: Detector | None = None,
+                 downscale: float = 1.0, tau: float = 0.05, max_jump: float = 0.5, max_disagreement: float = 0.08,
+                 lost_frames: int = 25, progress=None):
+    """Landmarks on every frame by the pretrained detector, the face box following the previous frame.
+
+    Per frame: the predictor fits the box of the previous frame's landmarks
+    (:func:`box_from_points`, calibrated on the last detection), then fits
+    again in the box of that fit; the second fit is kept. The confidence of
+    point ``i`` is ``exp(-d_i / (tau * s))`` with ``d_i`` the distance between
+    the two fits and ``s`` the eye-corner span. The landmarks look lost when
+    the median disagreement exceeds *max_disagreement* of ``s``, or the box
+    moved by more than *max_jump* of its side or changed its size by more
+    than that fraction; the face detector then runs on the whole frame (the
+    face nearest the previous box), as on the first frame. A frame with no
+    face keeps the previous landmarks with confidence 0. Annotated frames
+    return their annotation with confidence 1 and re-place the box.
+
+    Parameters
+    ----------
+    frames : iterable of ndarray (H, W) or (H, W, 3), uint8
+    annotations : dict of int to ndarray (68, 2), optional
+        Annotated frames by index in *frames* (0-based pixel centres).
+    detector : Detector, optional
+        Default: a new :class:`Detector`.
+    downscale : float
+        Detect and fit on frames scaled by this factor (0 < downscale <= 1); coordinates stay at full resolution.
+    tau, max_jump, max_disagreement : float
+    lost_frames : int
+        Raise :class:`~retarget_cli.track.lk.FaceLostError` after this many frames in a row without a face.
+    progress : callable, optional
+        Called with the frame index after each frame.
+
+    Returns
+    -------
+    points : ndarray (T, 68, 2), float64
+    confidence : ndarray (T, 68), float64
+        In [0, 1]; 0 where no face was found.
+
+    Raises
+    ------
+    FaceLostError
+        No face on the first frame (``frame`` 0, nothing tracked) or for *lost_frames* frames in a row.
+    """
+    if not 0 < downscale <= 1:
+        raise ShapeError(f"downscale: expected a value in (0, 1], got {downscale}")
+    ann = {int(t): np.asarray(P, np.float64) for t, P in (annotations or {}).items()}
+    for t, P in ann.items():
+        if P.shape != (68, 2):
+            raise ShapeError(f"annotations: frame {t} has shape {P.shape}; the detector places (68, 2) points")
+    det = detector or Detector()
+    k = float(downscale)
+    pts, conf = [], []
+    calib, P_prev, box_prev, missing = DEFAULT_BOX, None, None, 0
+    for t, frame in enumerate(frames):
+        g = _scaled(_gray(frame), k)
+        P, c = None, None
+        if t in ann:
+            P, c = _to_scaled(ann[t], k), np.ones(68)
+        elif P_prev is not None and missing == 0:
+            box = box_from_points(P_prev, calib)
+            first = det.landmarks(g, box)
+            box1 = box_from_points(first, calib)
+            second = det.landmarks(g, box1)
+            _, s, _ = _frame_of(second)
+            d = np.linalg.norm(second - first, axis=1)
+            jump = np.linalg.norm((box1[:2] + box1[2:] / 2) - (box[:2] + box[2:] / 2)) / box[2]
+            grow = abs(np.log(box1[2] / box[2]))
+            if np.median(d) <= max_disagreement * s and jump <= max_jump and grow <= np.log1p(max_jump):
+                P, c = second, np.exp(-d / (tau * s))
+            else:
+                log.debug("frame %d: landmarks look lost (disagreement %.3f, jump %.2f); detecting the face",
+                          t, np.median(d) / s, jump)
+        if P is None:
+            found, fbox = detect_landmarks(g, detector=det, previous=box_prev)
+            if found is not None:
+                calib = calibrate_box(found, fbox)
+                P = found
+                again = det.landmarks(g, box_from_points(found, calib))
+                _, s, _ = _frame_of(again)
+                c = np.exp(-np.linalg.norm(again - found, axis=1) / (tau * s))
+            elif t == 0:
+                raise FaceLostError("frame 0: no face found by the detector (annotate this frame by hand with --init, "
+                                    "or start at another frame)", 0, np.zeros((0, 68, 2)),
+                                    np.zeros((0, 68)))
+            else:
+                missing += 1
+                if missing >= lost_frames:
+                    f0 = t - missing + 1
+                    raise FaceLostError(f"the face was lost from frame {f0}: no face found for {missing} frames "
+                                        f"in a row", f0, np.stack(pts[:f0]), np.stack(conf[:f0]))
+                pts.append(pts[-1])
+                conf.append(np.zeros(68))
+                if progress is not None:
+                    progress(t)
+                continue
+        missing = 0
+        P_prev, box_prev = P, box_from_points(P, calib)
+        pts.append(_from_scaled(P, k))
+        conf.append(c)
+        if progress is not None:
+            progress(t)
+    if not pts:
+        raise ShapeError("frames: the sequence is empty")
+    out = np.stack(pts)
+    for t in ann:  # annotated frames exactly as given
+        if t < len(out):
+            out[t] = ann[t]
+    return out, np.clip(np.stack(conf), 0, 1)
+
+
+def eye_opening(points) -> np.ndarray:
+    """Mean lid gap over eye width of both eyes, per frame: points (T, 68, 2) -> (T,).
+
+    Left eye: ``(|p37 - p41| + |p38 - p40|) / 2 / |p36 - p39|`` (0-based ids), right eye the same with 42-47.
+    """
+    P = np.asarray(points, np.float64)
+    n = np.linalg.norm
+
+    def one(a, b, c, d, e, f):
+        return (n(P[..., b, :] - P[..., f, :], axis=-1) + n(P[..., c, :] - P[..., e, :], axis=-1)) / 2 / \
+            n(P[..., a, :] - P[..., d, :], axis=-1)
+
+    return (one(36, 37, 38, 39, 40, 41) + one(42, 43, 44, 45, 46, 47)) / 2
+
+
+def mouth_opening(points) -> np.ndarray:
+    """Inner-lip gap over inner mouth width, per frame: ``|p62 - p66| / |p60 - p64|`` (0-based ids); (T, 68, 2) -> (T,)."""
+    P = np.asarray(points, np.float64)
+    return np.linalg.norm(P[..., 62, :] - P[..., 66, :], axis=-1) / np.linalg.norm(P[..., 60, :] - P[..., 64, :],
+                                                                                      axis=-1)
