@@ -3,6 +3,7 @@ PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
+ICT    := build/ict-facekit/rig.yaml
 
 .PHONY: demo real-demo test bench lint clean sample
 
@@ -12,16 +13,17 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,report,detect]'
 	@touch $@
 
-demo: $(STAMP)
+demo: $(STAMP) $(ICT)
 	$(BIN)/retarget run configs/sample.yaml
 	$(BIN)/retarget -q preview configs/sample.yaml -o build/sample/preview.mp4
 	$(BIN)/retarget -q report configs/sample.yaml -o build/sample/report.html
 	@echo "Outputs: build/sample/ (landmarks.npz, keys.json, weights.npz, weights.csv, targets/, frames/: frame_*.obj, weights.csv, animation.exr/.json, animation.glb)"
 	@echo "Preview: build/sample/preview.mp4"
 	@echo "Report:  build/sample/report.html"
+	$(BIN)/retarget run configs/real.yaml
+	@echo "Real clip onto the ICT FaceKit: build/real/frames/curves.csv (the rig's sliders per frame), curves.npz, animation.glb"
 
 # Your video, your rig: the real clip sample_data/real/d3.mp4 onto the ICT FaceKit (both MIT), configs/real.yaml.
-ICT := build/ict-facekit/rig.yaml
 $(ICT): sample_data/ict/ict-facekit-rig.tar.xz sample_data/ict/rig.yaml
 	@mkdir -p build
 	tar -xJf sample_data/ict/ict-facekit-rig.tar.xz -C build
