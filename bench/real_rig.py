@@ -25,8 +25,9 @@ Row ``tracker`` is the ceiling: the same measures on our tracked 68 points again
 
 Targets (issue 14): mean r >= 0.8 for the mouth, >= 0.7 for the eyes, every slider < 0.05 at the
 neutral frame 0. Prints a markdown table; caches landmarks, reference and per-variant curves under
-``build/real_rig`` and ``build/reference`` (``--fresh`` recomputes the curves). ``--png DIR``
-writes, per clip, frame 0, the actor's widest mouth and a blink: the video frame beside the
+``build/real_rig`` and ``build/reference``, keyed by the inputs and by a hash of the retarget_cli
+sources (``--fresh`` recomputes the curves). ``--png DIR``
+writes, per clip, frame 0, the actor's widest mouth and most closed eyes (by MediaPipe): the video frame beside the
 character of each variant. Without ``../shared/realdata`` it prints a skip line and exits 0.
 
 Run: ``python bench/real_rig.py [--videos d3,d9,d12] [--frames N] [--tracker lk] [--variants
@@ -172,7 +173,7 @@ def _absolutize(value, base: Path):
 
 
 def variant_curves(landmarks: Path, ctx: RigContext, work: Path, *, config: Path, video: Path, init: Path,
-                   tracker: str, **_) -> np.ndarray:
+                   tracker: str, frames=None, **_) -> np.ndarray:
     """The documented path from one config: ``retarget run`` then its ``curves.npz`` (curves, names, frames)."""
     import yaml
 
@@ -182,6 +183,8 @@ def variant_curves(landmarks: Path, ctx: RigContext, work: Path, *, config: Path
     cfg = {k: _absolutize(v, config.parent) if k != "output_dir" else v for k, v in raw.items()}
     cfg["output_dir"] = str(work / "run")
     cfg.setdefault("track", {}).update(video=str(video), init=str(init), method=tracker)
+    if frames is not None:
+        cfg["track"]["end"] = int(frames)
     (work / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     retarget("run", work / "config.yaml")
     found = sorted((work / "run").rglob("curves.npz"))
@@ -189,6 +192,16 @@ def variant_curves(landmarks: Path, ctx: RigContext, work: Path, *, config: Path
         raise Skip(f"{config.name}: the run wrote no curves.npz")
     with np.load(found[0]) as d:
         names, C = [str(n) for n in d["names"]], np.asarray(d["curves"], dtype=np.float64)
+        rows = np.asarray(d["frames"]) if "frames" in d else np.arange(len(C))
+    from retarget_cli.io.landmarks import load_landmarks
+
+    lm = load_landmarks(landmarks)
+    want = lm.frames if lm.frames is not None else np.arange(lm.n_frames)
+    pos = {int(f): i for i, f in enumerate(rows)}
+    missing = [int(f) for f in want if int(f) not in pos]
+    if missing:
+        raise RuntimeError(f"{found[0]}: no curves for frame {missing[0]} (it has frames {rows[0]}-{rows[-1]})")
+    C = C[[pos[int(f)] for f in want]]
     out = np.zeros((len(C), len(ctx.names)))
     for j, n in enumerate(names):
         if n not in ctx.rig.index:
@@ -215,7 +228,7 @@ def track(video: Path, init: Path, tracker: str, extra: list, frames: int | None
     from retarget_cli.io.landmarks import load_landmarks, save_landmarks
 
     tag = "-".join([tracker, *[a.lstrip("-").replace("=", "_").replace("/", "_") for a in extra]])
-    d = BUILD / f"{video.stem}-{sha256_file(video)[:12]}-{sha256_file(init)[:8]}"
+    d = BUILD / f"{video.stem}-{sha256_file(video)[:12]}-{sha256_file(init)[:8]}-{code_tag(bench=False)}"
     full = d / f"track-{tag}.npz"
     if not full.is_file():
         d.mkdir(parents=True, exist_ok=True)
@@ -236,6 +249,17 @@ def track(video: Path, init: Path, tracker: str, extra: list, frames: int | None
     return cut
 
 
+def code_tag(*, bench: bool = True) -> str:
+    """sha256[:10] of every retarget_cli source file (and this script): cached results follow the code."""
+    import hashlib
+
+    h = hashlib.sha256()
+    files = sorted((ROOT / "retarget_cli").rglob("*.py"))
+    for f in [Path(__file__).resolve(), *files] if bench else files:
+        h.update(str(f.relative_to(ROOT)).encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def neutral_max(curves) -> float:
     return float(np.max(curves[0]))
 
@@ -249,7 +273,7 @@ def run_clip(name: str, ctx: RigContext, args) -> dict:
 
     from retarget_cli.io.landmarks import load_landmarks
 
-    video, init = DATA / "videos" / f"{name}.mp4", DATA / "videos" / f"{name}_00000.pts"
+    video, init = args.data / "videos" / f"{name}.mp4", args.data / "videos" / f"{name}_00000.pts"
     ref = reference_landmarks(video, log=log)
     lm_path = track(video, init, args.tracker, args.track_arg, args.frames)
     lm = load_landmarks(lm_path)
@@ -264,17 +288,18 @@ def run_clip(name: str, ctx: RigContext, args) -> dict:
                               "neutral": float("nan"), "seconds": float("nan")}
     for v in args.variants:
         fn, _ = VARIANTS[v]
-        work = lm_path.parent / f"{lm_path.stem}-{v}"
-        cache = work / "curves.npz"
+        work = lm_path.parent / f"{lm_path.stem}-{v}" / f"k{args.keys}-{args.code}"
+        cache = work / "bench-curves.npz"
         t = time.perf_counter()
         if cache.is_file() and not args.fresh:
             with np.load(cache) as d:
                 C, secs = d["curves"], float(d["seconds"])
+            log(f"{name} {v}: cached curves ({cache.relative_to(ROOT)})")
         else:
             work.mkdir(parents=True, exist_ok=True)
             try:
                 C = fn(lm_path, ctx, work, keys=args.keys, config=args.config, video=video, init=init,
-                       tracker=args.tracker)
+                       tracker=args.tracker, frames=args.frames)
             except Skip as exc:
                 out["notes"].append(f"{name} {v}: skipped ({exc})")
                 continue
@@ -341,8 +366,8 @@ def verdict(results: list, variants: list) -> list:
 # --------------------------------------------------------------------------- pictures
 
 
-def write_pngs(results: list, ctx: RigContext, outdir: Path, size: int = 384) -> list:
-    """Per clip: frame 0, the actor's widest mouth, a blink: video frame | character per variant."""
+def write_pngs(results: list, ctx: RigContext, outdir: Path, data: Path, size: int = 384) -> list:
+    """Per clip: frame 0, the widest mouth, the most closed eyes (MediaPipe): video frame | character per variant."""
     import cv2
 
     from retarget_cli.render import Camera, MeshRenderer, View
@@ -358,8 +383,8 @@ def write_pngs(results: list, ctx: RigContext, outdir: Path, size: int = 384) ->
     for res in results:
         ref, src = res["ref"], res["src_frames"]
         eyes = 0.5 * (ref["eye_l"] + ref["eye_r"])
-        picks = {"neutral": 0, "widest-mouth": int(np.nanargmax(ref["mouth"])), "blink": int(np.nanargmin(eyes))}
-        cap = cv2.VideoCapture(str(DATA / "videos" / f"{res['clip']}.mp4"))
+        picks = {"neutral": 0, "widest-mouth": int(np.nanargmax(ref["mouth"])), "eyes-closed": int(np.nanargmin(eyes))}
+        cap = cv2.VideoCapture(str(data / "videos" / f"{res['clip']}.mp4"))
         for label, t in picks.items():
             cap.set(cv2.CAP_PROP_POS_FRAMES, int(src[t]))
             ok, frame = cap.read()
@@ -386,6 +411,7 @@ def write_pngs(results: list, ctx: RigContext, outdir: Path, size: int = 384) ->
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=DATA, help="The realdata folder (default ../shared/realdata).")
     ap.add_argument("--videos", default="d3,d9,d12", help="Clips of ../shared/realdata/videos (comma-separated).")
     ap.add_argument("--frames", type=int, default=None, help="Only the first N frames of each clip.")
     ap.add_argument("--tracker", default="lk", help="retarget track --method (lk, detect, ...).")
@@ -407,8 +433,8 @@ def main(argv=None) -> int:
         ap.error(f"--variants: unknown {bad[0]!r}; expected some of {', '.join(VARIANTS)}")
     args.config = args.config.resolve()
     clips = [c for c in args.videos.split(",") if c]
-    rig_tar = DATA / "ict-facekit" / "ict-facekit-rig.tar.xz"
-    missing = [p for p in [rig_tar, *[DATA / "videos" / f"{c}.mp4" for c in clips]] if not p.is_file()]
+    rig_tar = args.data / "ict-facekit" / "ict-facekit-rig.tar.xz"
+    missing = [p for p in [rig_tar, *[args.data / "videos" / f"{c}.mp4" for c in clips]] if not p.is_file()]
     if missing:
         print(f"SKIP bench/real_rig.py: {missing[0]} not found (needs ../shared/realdata)")
         return 0
@@ -419,6 +445,7 @@ def main(argv=None) -> int:
     except ReferenceUnavailable as exc:
         print(f"SKIP bench/real_rig.py: no MediaPipe reference ({exc})")
         return 0
+    args.code = code_tag()
     ctx = load_rig(rig_tar)
     results = [run_clip(c, ctx, args) for c in clips]
     print(f"Real footage onto the ICT rig ({ctx.rig.n_sliders} sliders), tracker {args.tracker}, actor measured "
@@ -433,7 +460,7 @@ def main(argv=None) -> int:
         args.json.write_text(json.dumps([{k: res[k] for k in ("clip", "frames", "found", "rows", "notes")}
                                          for res in results], indent=1))
     if args.png:
-        for p in write_pngs(results, ctx, args.png):
+        for p in write_pngs(results, ctx, args.png, args.data):
             log(f"wrote {p}")
     return 0
 
