@@ -157,6 +157,24 @@ def variant_direct(landmarks: Path, ctx: RigContext, work: Path, **_) -> np.ndar
                                weights=lm.confidence[t])["w"] for t in range(lm.n_frames)])
 
 
+def variant_delta_direct(landmarks: Path, ctx: RigContext, work: Path, **_) -> np.ndarray:
+    """The delta fit of ``auto-pose`` (same defaults) on every frame, no keys."""
+    from retarget_cli.io.landmarks import load_landmarks
+    from retarget_cli.io.stagefiles import read_rig
+    from retarget_cli.rigpose import delta_pose
+    from retarget_cli.stages import REGION_PRESETS_68
+    from retarget_cli.stages.auto_pose import CONTOUR_68, DEFAULT_EXCLUDE, RIGID_68, excluded_sliders
+
+    lm = load_landmarks(landmarks)
+    Y = lm.stabilized.astype(np.float64)
+    regions = {n: [p for p in REGION_PRESETS_68[n] if p not in CONTOUR_68] for n in ("brows-eyes", "mouth")}
+    spec = read_rig(BUILD / "ict-facekit" / "rig.yaml")
+    res = delta_pose(ctx.rig, ctx.vertices, Y[0], Y, weights=lm.confidence, neutral_weights=lm.confidence[0],
+                     regions=regions, exclusive=spec.exclusive, rigid=list(RIGID_68),
+                     fixed=excluded_sliders(ctx.rig.names, DEFAULT_EXCLUDE))
+    return res["w"]
+
+
 class Skip(Exception):
     """A variant that cannot run here (the reason is reported in the table's notes)."""
 
@@ -215,6 +233,7 @@ VARIANTS = {
     "curves": (variant_curves, "documented path: `retarget run` config, its curves.npz"),
     "absolute": (variant_absolute, "today: select face k, absolute auto-pose keys, decompose, Σ w·sliders"),
     "direct": (variant_direct, "per-frame absolute auto_pose, no keys"),
+    "delta-direct": (variant_delta_direct, "per-frame delta fit (auto-pose's), no keys"),
 }
 
 
