@@ -411,7 +411,12 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
                 if np.any(np.cumsum(mask)[line] + vals[neg] < 0):
                     return None
         # topology: element lines with whitespace normalised, as _parse_lines hashes them
-        if not any(x in eblock for x in (b"\t", b"\r", b"  ", b" \n")) and not eblock.endswith(b" "):
+        plain = b"\t" not in eblock and b"\r" not in eblock
+        if plain:
+            ob = np.frombuffer(eblock + b"\n", np.uint8)
+            sp = ob == 32
+            plain = not np.any(sp[:-1] & (sp[1:] | (ob[1:] == 10)))  # no double or trailing space
+        if plain:
             topo.update(eblock if eblock.endswith(b"\n") else eblock + b"\n")
         else:
             for i in el.tolist():
@@ -444,11 +449,14 @@ def count_vertices(path: str | os.PathLike) -> int:
 
 def count_vertices_bytes(data: bytes) -> int:
     """:func:`count_vertices` of an OBJ file's bytes."""
-    simple = (b"\n " not in data and b"\n\t" not in data and data[:1] not in (b" ", b"\t")
-              and data.count(b"\r") == data.count(b"\r\n"))
-    if simple:
-        return data.count(b"\nv ") + data.count(b"\nv\t") + (data[:2] in (b"v ", b"v\t"))
-    return sum(map(_is_v_line, data.splitlines()))
+    buf = np.frombuffer(data + b"\n\n", np.uint8)
+    starts = np.concatenate(([0], np.flatnonzero(buf[:len(data)] == 10) + 1))
+    c0 = buf[starts]
+    lone_cr = b"\r" in data and np.any(buf[np.flatnonzero(buf[:len(data)] == 13) + 1] != 10)
+    if lone_cr or np.any((c0 == 32) | (c0 == 9)):
+        return sum(map(_is_v_line, data.splitlines()))
+    c1 = buf[starts + 1]
+    return int(np.count_nonzero((c0 == 118) & ((c1 == 32) | (c1 == 9))))
 
 
 def read_obj(path: str | os.PathLike) -> ObjMesh:

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.atomic import check_not_input, sha256_file, write_text
+from ..io.vertexmap import read_vertex_map  # noqa: F401  (re-exported; run_auto_pose uses it)
 
 log = logging.getLogger(__name__)
 
@@ -896,41 +897,6 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
         written += _write_frames(Path(objs), r, W, frames, progress)
     log.info("applied %d edits to %d frames", len(todo), len(W))
     return written
-
-
-def read_vertex_map(path, n_landmarks: int, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Landmark-to-vertex map: one vertex id per line (line i = landmark i), or
-    ``landmark vertex`` pairs (a subset); ``#`` starts a comment.
-
-    Returns
-    -------
-    landmarks : ndarray of int, shape (L,)
-    vertices : ndarray of int, shape (L,)
-    """
-    path = _require(path, "landmark-vertex map")
-    rows = []
-    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-        tok = line.split("#", 1)[0].replace(",", " ").split()
-        if not tok:
-            continue
-        if len(tok) > 2 or not all(t.lstrip("-").isdigit() for t in tok):
-            raise InputError(f"{path}:{i}: expected 'vertex' or 'landmark vertex' (integers), got {line.strip()!r}")
-        rows.append([int(t) for t in tok])
-    if not rows or len({len(r) for r in rows}) != 1:
-        raise InputError(f"{path}: expected one vertex id per landmark, or 'landmark vertex' pairs on every line")
-    arr = np.array(rows, dtype=np.int64)
-    lm, vx = (np.arange(len(arr)), arr[:, 0]) if arr.shape[1] == 1 else (arr[:, 0], arr[:, 1])
-    if arr.shape[1] == 1 and len(arr) != n_landmarks:
-        raise InputError(f"{path}: lists {len(arr)} vertices but the landmarks file has {n_landmarks} landmarks")
-    bad = lm[(lm < 0) | (lm >= n_landmarks)]
-    if bad.size:
-        raise InputError(f"{path}: landmark {int(bad[0])} does not exist ({n_landmarks} landmarks)")
-    badv = vx[(vx < 0) | (vx >= n_vertices)]
-    if badv.size:
-        raise InputError(f"{path}: vertex {int(badv[0])} is outside the mesh ({n_vertices} vertices, ids 0-{n_vertices - 1})")
-    if len(set(lm.tolist())) != len(lm):
-        raise InputError(f"{path}: a landmark is mapped twice")
-    return lm, vx
 
 
 def run_auto_pose(*, keys, landmarks, rig, landmark_vertices, output, masks=None, alpha=0.001, mu=0.0001,
