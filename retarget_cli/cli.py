@@ -55,6 +55,22 @@ def output_option(default=None, help="Output file.", required=True):
                         help=help, show_default=default is not None)
 
 
+def no_cache_option(f):
+    return click.option("--no-cache", is_flag=True,
+                        help="Read the rig's OBJs every time instead of keeping them parsed in a .retarget-cache "
+                             "folder in the output's folder.")(f)
+
+
+def _cache_dir(output, no_cache: bool, *, output_is_dir: bool = False):
+    """The rig cache of a single command: ``.retarget-cache`` in the folder the output goes to."""
+    from pathlib import Path
+
+    if no_cache:
+        return None
+    folder = Path(output) if output_is_dir else Path(output).parent
+    return folder / ".retarget-cache"
+
+
 @contextlib.contextmanager
 def progress(length, label):
     """A click progress bar on stderr (hidden when stderr is not a terminal or with -q)."""
@@ -325,11 +341,13 @@ def decompose(landmarks, keys, output, csv, summary, **settings):
 @click.option("--mask", "masks", multiple=True, metavar="REGION=FILE",
               help="Vertex mask of a region (needed with several regions). Repeatable.")
 @output_option("targets", "Directory for the key OBJs and targets.yaml.", required=False)
-def pose_keys(keys, rig, poses, masks, output):
+@no_cache_option
+def pose_keys(keys, rig, poses, masks, output, no_cache):
     """Pose RIG at every key frame's known slider values (automatic target keys)."""
     from .stages import run_pose
 
-    _print_outputs(run_pose(keys=keys, rig=rig, poses=poses, output=output, masks=_parse_masks(masks)))
+    _print_outputs(run_pose(keys=keys, rig=rig, poses=poses, output=output, masks=_parse_masks(masks),
+                            cache_dir=_cache_dir(output, no_cache, output_is_dir=True)))
 
 
 def _parse_masks(masks) -> dict:
@@ -385,7 +403,8 @@ def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivo
               help="rig.yaml (default: the 'rig:' named in EDITS).")
 @click.option("--objs", type=click.Path(file_okay=False), default=None,
               help="Also write the posed OBJ sequence (frame_00000.obj, ...) into this directory.")
-def edit(animation, edits, output, rig, objs):
+@no_cache_option
+def edit(animation, edits, output, rig, objs, no_cache):
     """Apply the pins and attenuations of EDITS to the rig weights in ANIMATION (CSV or NPZ).
 
     Pins are direct manipulation (Lewis & Anjyo 2010, eq. 3); attenuations are
@@ -393,7 +412,8 @@ def edit(animation, edits, output, rig, objs):
     """
     from .stages import run_edit
 
-    _print_outputs(run_edit(animation=animation, edits=edits, rig=rig, output=output, objs=objs, progress=progress))
+    _print_outputs(run_edit(animation=animation, edits=edits, rig=rig, output=output, objs=objs, progress=progress,
+                            cache_dir=_cache_dir(output, no_cache)))
 
 
 @main.command("auto-pose")
@@ -431,7 +451,8 @@ def auto_pose(keys, landmarks, rig, landmark_vertices, masks, alpha, mu, output)
               show_default=True, help="mm/lbfgsb: iteration cap per frame.")
 @click.option("--metrics", type=click.Path(dir_okay=False), default=None,
               help="Also write per-frame metrics with wall times as CSV.")
-def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics):
+@no_cache_option
+def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics, no_cache):
     """Slider weights in [0, 1] of RIG (with corrective shapes) that reproduce MESHES.
 
     MESHES is a directory of frame_*.obj, a glob such as 'scans/*.obj', or an
@@ -440,7 +461,8 @@ def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics):
     from .stages import run_solve_rig
 
     written, s = run_solve_rig(rig=rig, meshes=meshes, output=output, solver=solver, alpha=alpha, tol=tol,
-                               max_iter=max_iter, metrics=metrics, progress=progress)
+                               max_iter=max_iter, metrics=metrics, progress=progress,
+                               cache_dir=_cache_dir(output, no_cache))
     click.echo(f"{s['frames']} frames, {s['vertices']} vertices, {s['shapes']} shapes, "
                f"{s['correctives']} correctives; solver {solver}, alpha {alpha:g}")
     click.echo(f"mean rmse {s['rmse']:.6g}  cardinality {s['cardinality']:.2f}  objective {s['objective']:.6g}  "
@@ -455,13 +477,16 @@ def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics):
 @click.option("--until", "stop", metavar="STAGE", help="Last stage to consider.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE",
               help="Override a config value (YAML syntax), e.g. --set select.k=8. Repeatable.")
-def run(config, force, start, stop, overrides):
+@click.option("--no-cache", is_flag=True,
+              help="Read rigs' OBJs every time instead of keeping them parsed in <output_dir>/.retarget/cache.")
+def run(config, force, start, stop, overrides, no_cache):
     """Run the pipeline described by CONFIG, skipping stages that are up to date."""
     from .config import load_config
     from .pipeline import run_pipeline, stage_params
 
     cfg = load_config(config, stage_params(), overrides)
-    for name, status, outs in run_pipeline(cfg, force=force, start=start, stop=stop, progress=progress):
+    for name, status, outs in run_pipeline(cfg, force=force, start=start, stop=stop, progress=progress,
+                                           cache=not no_cache):
         if log.getEffectiveLevel() <= logging.WARNING:
             click.echo(f"{name}: {status}", err=True)
         for p in outs:
