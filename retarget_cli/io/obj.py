@@ -277,6 +277,8 @@ def _check_refs(path, lineno, line, head, counts, max_pos) -> None:
 #: Bytes that :meth:`bytes.split` treats as whitespace (a head is followed by one of them).
 _WS = np.zeros(256, bool)
 _WS[[9, 10, 11, 12, 13, 32]] = True
+
+
 #: Heads and slashes of element lines become separators for ``numpy.fromstring``.
 _ELEM_SEP = bytes.maketrans(b"flp/", b"    ")
 
@@ -363,7 +365,7 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
             return None  # some byte other than the heads is not an index, '/', '-' or whitespace
         lens = ends[el] - starts[el]
         lstart = np.cumsum(lens) - lens
-        eb = np.frombuffer(eblock + b" ", np.uint8).copy()
+        eb = np.frombuffer(eblock + b"   ", np.uint8).copy()
         eb[lstart] = 32  # heads become separators
         ws = eb < 45
         tok = ~ws
@@ -383,19 +385,18 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
             if not (pstart[mpos].all() and np.all(eb[mpos + 1] >= 48)):
                 return None  # '-' not the sign of an index
         if b"/" in eblock:
-            slash = eb == 47
-            if np.any(slash & tok):
-                return None  # empty vertex slot
-            cs = np.cumsum(slash, dtype=np.int32)
-            tcs = cs[tok]
-            tok_of_part = np.cumsum(tok, dtype=np.int32)[ps] - 1
-            kind = cs[ps] - tcs[tok_of_part]
-            tend = ~ws
-            tend[:-1] &= ws[1:]
-            if np.any(cs[tend] - tcs > 2):
-                return None  # more than v/vt/vn
+            if b"///" in eblock or b" /" in eblock or b"\t/" in eblock:
+                return None  # an empty vertex slot, or more than v/vt/vn
+            # slot of each index: its place among the token's indices, plus one after an empty vt ("v//vn")
+            j = np.arange(ps.size)
+            kind = j - np.maximum.accumulate(np.where(ws[ps - 1], j, 0))
+            kind += (eb[ps - 1] == 47) & (eb[ps - 2] == 47)
+            after = eb[pe + 1] == 47
+            if (kind.max() > 2 or np.any(after & (kind == 2))
+                    or np.any(after & (kind == 1) & (eb[pe + 2] == 47))):
+                return None  # a fourth slot
         else:
-            kind = np.zeros(ps.size, np.int32)
+            kind = np.zeros(ps.size, np.int64)
         value = np.fromstring(eblock.translate(_ELEM_SEP), dtype=np.int64, sep=" ")
         if value.size != ps.size or np.any(value == 0):
             return None

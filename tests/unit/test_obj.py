@@ -229,6 +229,13 @@ VARIANTS = {
     "zero ref": PLAIN.replace(b"f 1 2 3 4", b"f 0 2 3 4"),
     "empty face": PLAIN.replace(b"f 1 2 3 4", b"f"),
     "four slots": PLAIN.replace(b"f 1 2 3 4", b"f 1/1/1/1 2 3"),
+    "trailing slash after vn": PLAIN.replace(b"f 1 2 3 4", b"f 1/1/1/ 2 3"),
+    "empty slots after vt": PLAIN.replace(b"f 1 2 3 4", b"f 1/1// 2 3"),
+    "triple slash": PLAIN.replace(b"f 1 2 3 4", b"f 1///1 2 3"),
+    "empty trailing vn": PLAIN.replace(b"f 1 2 3 4", b"f 1/1/ 2/2/ 3/3/"),
+    "negative slots": PLAIN + b"f -1/-1/-1 -2/-2/-1 -3/-3/-1\n",
+    "negative vt out of range": PLAIN + b"f -1/-4/-1 -2/-2/-1 -3/-3/-1\n",
+    "long index": PLAIN.replace(b"f 1 2 3 4", b"f 1 2 3 123456789012345678901"),
     "leading slash": PLAIN.replace(b"f 1 2 3 4", b"f /1 2 3"),
     "bad minus": PLAIN.replace(b"f 1 2 3 4", b"f 1-2 2 3"),
     "short v": PLAIN.replace(b"v 1 1 0", b"v 1 1"),
@@ -252,7 +259,8 @@ def test_fast_reader_matches_the_reference(tmp_path, name):
         assert str(got.value) == str(exc)
         return
     fast, mesh = _parse_fast(p, VARIANTS[name]), read_obj(p)
-    if name in ("plain", "crlf", "no final newline", "double space in f", "tab in f", "f last without newline"):
+    if name in ("plain", "crlf", "no final newline", "double space in f", "tab in f", "f last without newline",
+                "empty trailing vn", "negative slots"):
         assert fast is not None, "the fast path should handle this layout"
     for m in (mesh, fast) if fast is not None else (mesh,):
         assert m.vertices.tobytes() == ref.vertices.tobytes()
