@@ -55,6 +55,22 @@ def output_option(default=None, help="Output file.", required=True):
                         help=help, show_default=default is not None)
 
 
+def no_cache_option(f):
+    return click.option("--no-cache", is_flag=True,
+                        help="Read the rig's OBJs every time instead of keeping them parsed in a .retarget-cache "
+                             "folder in the output's folder.")(f)
+
+
+def _cache_dir(output, no_cache: bool, *, output_is_dir: bool = False):
+    """The rig cache of a single command: ``.retarget-cache`` in the folder the output goes to."""
+    from pathlib import Path
+
+    if no_cache:
+        return None
+    folder = Path(output) if output_is_dir else Path(output).parent
+    return folder / ".retarget-cache"
+
+
 @contextlib.contextmanager
 def progress(length, label):
     """A click progress bar on stderr (hidden when stderr is not a terminal or with -q)."""
@@ -364,11 +380,13 @@ def decompose(landmarks, keys, output, csv, summary, **settings):
 @click.option("--mask", "masks", multiple=True, metavar="REGION=FILE",
               help="Vertex mask of a region (needed with several regions). Repeatable.")
 @output_option("targets", "Directory for the key OBJs and targets.yaml.", required=False)
-def pose_keys(keys, rig, poses, masks, output):
+@no_cache_option
+def pose_keys(keys, rig, poses, masks, output, no_cache):
     """Pose RIG at every key frame's known slider values (automatic target keys)."""
     from .stages import run_pose
 
-    _print_outputs(run_pose(keys=keys, rig=rig, poses=poses, output=output, masks=_parse_masks(masks)))
+    _print_outputs(run_pose(keys=keys, rig=rig, poses=poses, output=output, masks=_parse_masks(masks),
+                            cache_dir=_cache_dir(output, no_cache, output_is_dir=True)))
 
 
 def _parse_masks(masks) -> dict:
@@ -397,7 +415,8 @@ def _parse_masks(masks) -> dict:
 @click.option("--pivot", default=None, metavar="X,Y,Z", help=_param("apply", "pivot").help)
 @setting("apply", "vat")
 @setting("apply", "drive")
-def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivot, vat, drive):
+@no_cache_option
+def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivot, vat, drive, no_cache):
     """Drive the character in TARGETS with WEIGHTS; write an OBJ sequence, rig curves and other exports.
 
     With a TARGETS written by auto-pose (it names the rig), every frame's rig
@@ -414,7 +433,8 @@ def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivo
             raise click.BadParameter(f"expected X,Y,Z, got {pivot!r}", param_hint="--pivot") from None
     fmts = [f.strip() for f in formats.split(",") if f.strip()]
     written = run_apply(weights=weights, targets=targets, output=output, landmarks=landmarks, formats=fmts,
-                        head_motion=head_motion, scale=scale, pivot=pivot, vat=vat, drive=drive, progress=progress)
+                        head_motion=head_motion, scale=scale, pivot=pivot, vat=vat, drive=drive, progress=progress,
+                        cache_dir=_cache_dir(output, no_cache, output_is_dir=True))
     n = sum(p.suffix == ".obj" for p in written)
     click.echo(f"{output} ({n} frames)")
     for p in written:
@@ -430,7 +450,8 @@ def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivo
               help="rig.yaml (default: the 'rig:' named in EDITS).")
 @click.option("--objs", type=click.Path(file_okay=False), default=None,
               help="Also write the posed OBJ sequence (frame_00000.obj, ...) into this directory.")
-def edit(animation, edits, output, rig, objs):
+@no_cache_option
+def edit(animation, edits, output, rig, objs, no_cache):
     """Apply the pins and attenuations of EDITS to the rig weights in ANIMATION (CSV or NPZ).
 
     Pins are direct manipulation (Lewis & Anjyo 2010, eq. 3); attenuations are
@@ -438,7 +459,8 @@ def edit(animation, edits, output, rig, objs):
     """
     from .stages import run_edit
 
-    _print_outputs(run_edit(animation=animation, edits=edits, rig=rig, output=output, objs=objs, progress=progress))
+    _print_outputs(run_edit(animation=animation, edits=edits, rig=rig, output=output, objs=objs, progress=progress,
+                            cache_dir=_cache_dir(output, no_cache)))
 
 
 @main.command("auto-pose")
@@ -458,8 +480,9 @@ def edit(animation, edits, output, rig, objs):
 @setting("auto_pose", "alpha")
 @setting("auto_pose", "mu")
 @output_option("targets", "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml.", required=False)
+@no_cache_option
 def auto_pose(keys, landmarks, rig, landmark_vertices, masks, fit, neutral_frame, sparsity, ridge, exclude, alpha,
-              mu, output):
+              mu, output, no_cache):
     """Pose RIG at every key frame of KEYS from its LANDMARKS: the rig as the artist.
 
     The default delta fit reproduces each key frame's landmark displacement
@@ -472,7 +495,7 @@ def auto_pose(keys, landmarks, rig, landmark_vertices, masks, fit, neutral_frame
                                  output=output, masks=_parse_masks(masks), fit=fit, neutral_frame=neutral_frame,
                                  sparsity=sparsity, ridge=ridge,
                                  exclude=list(exclude) if exclude else list(_param("auto_pose", "exclude").default),
-                                 alpha=alpha, mu=mu))
+                                 alpha=alpha, mu=mu, cache_dir=_cache_dir(output, no_cache, output_is_dir=True)))
 
 
 @main.command("solve-rig")
@@ -490,7 +513,8 @@ def auto_pose(keys, landmarks, rig, landmark_vertices, masks, fit, neutral_frame
               show_default=True, help="mm/lbfgsb: iteration cap per frame.")
 @click.option("--metrics", type=click.Path(dir_okay=False), default=None,
               help="Also write per-frame metrics with wall times as CSV.")
-def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics):
+@no_cache_option
+def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics, no_cache):
     """Slider weights in [0, 1] of RIG (with corrective shapes) that reproduce MESHES.
 
     MESHES is a directory of frame_*.obj, a glob such as 'scans/*.obj', or an
@@ -499,7 +523,8 @@ def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics):
     from .stages import run_solve_rig
 
     written, s = run_solve_rig(rig=rig, meshes=meshes, output=output, solver=solver, alpha=alpha, tol=tol,
-                               max_iter=max_iter, metrics=metrics, progress=progress)
+                               max_iter=max_iter, metrics=metrics, progress=progress,
+                               cache_dir=_cache_dir(output, no_cache))
     click.echo(f"{s['frames']} frames, {s['vertices']} vertices, {s['shapes']} shapes, "
                f"{s['correctives']} correctives; solver {solver}, alpha {alpha:g}")
     click.echo(f"mean rmse {s['rmse']:.6g}  cardinality {s['cardinality']:.2f}  objective {s['objective']:.6g}  "
@@ -514,13 +539,16 @@ def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics):
 @click.option("--until", "stop", metavar="STAGE", help="Last stage to consider.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE",
               help="Override a config value (YAML syntax), e.g. --set select.k=8. Repeatable.")
-def run(config, force, start, stop, overrides):
+@click.option("--no-cache", is_flag=True,
+              help="Read rigs' OBJs every time instead of keeping them parsed in <output_dir>/.retarget/cache.")
+def run(config, force, start, stop, overrides, no_cache):
     """Run the pipeline described by CONFIG, skipping stages that are up to date."""
     from .config import load_config
     from .pipeline import run_pipeline, stage_params
 
     cfg = load_config(config, stage_params(), overrides)
-    for name, status, outs in run_pipeline(cfg, force=force, start=start, stop=stop, progress=progress):
+    for name, status, outs in run_pipeline(cfg, force=force, start=start, stop=stop, progress=progress,
+                                           cache=not no_cache):
         if log.getEffectiveLevel() <= logging.WARNING:
             click.echo(f"{name}: {status}", err=True)
         for p in outs:

@@ -40,6 +40,8 @@ class Stage:
     uses_progress: bool = False
     uses_seed: bool = False
     uses_base_dir: bool = False
+    #: The runner takes ``cache_dir`` (the run's ``<output_dir>/.retarget/cache``, for parsed rigs).
+    uses_cache: bool = False
 
     def param(self, name: str) -> Param:
         return next(p for p in self.params if p.name == name)
@@ -207,6 +209,7 @@ STAGES: dict[str, Stage] = {
             stages.run_pose,
             extra_inputs=_pose_files,
             uses_base_dir=True,
+            uses_cache=True,
         ),
         Stage(
             "auto_pose",
@@ -248,6 +251,7 @@ STAGES: dict[str, Stage] = {
             stages.run_auto_pose,
             extra_inputs=_pose_files,
             uses_base_dir=True,
+            uses_cache=True,
         ),
         Stage(
             "apply",
@@ -281,6 +285,7 @@ STAGES: dict[str, Stage] = {
             stages.run_apply,
             extra_inputs=_targets_files,
             uses_progress=True,
+            uses_cache=True,
         ),
     ]
 }
@@ -416,17 +421,26 @@ def check_up_to_date(cfg: Config, name: str, kw: dict) -> tuple[bool, str]:
     return True, "up to date"
 
 
-def run_stage(cfg: Config, name: str, kw: dict, progress=None) -> list[Path]:
+def cache_dir(cfg: Config) -> Path:
+    """Where a run keeps parsed rigs (:mod:`retarget_cli.io.rigcache`): ``<output_dir>/.retarget/cache``."""
+    return cfg.output_dir / ".retarget" / "cache"
+
+
+def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = True) -> list[Path]:
     """Run one stage and write its manifest after its outputs.
 
     The manifest also records the stage's wall-clock run time (``seconds``,
-    for reports; not part of the up-to-date check).
+    for reports; not part of the up-to-date check). Stages that load a rig
+    get :func:`cache_dir` unless *cache* is False (the cache is not a setting
+    and not an output).
     """
     stage = STAGES[name]
     inputs = _inputs(stage, kw)
     call = dict(kw)
     if stage.uses_progress and progress is not None:
         call["progress"] = progress
+    if stage.uses_cache:
+        call["cache_dir"] = cache_dir(cfg) if cache else None
     t0 = time.perf_counter()
     outputs = stage.runner(**call)
     seconds = round(time.perf_counter() - t0, 3)
@@ -458,10 +472,13 @@ def select_stages(cfg: Config, start: str | None = None, stop: str | None = None
     return names[i:j]
 
 
-def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, progress=None) -> list[tuple]:
+def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, progress=None,
+                 cache: bool = True) -> list[tuple]:
     """Run the config's stages in order, skipping those that are up to date.
 
     Every stage's arguments are resolved (and so checked) before any runs.
+    *cache* False: stages that load a rig parse its OBJs instead of using
+    :func:`cache_dir`.
 
     Returns
     -------
@@ -481,6 +498,6 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
             report.append((n, "skipped", declared))
             continue
         log.info("%s: running (%s)", n, why)
-        run_stage(cfg, n, kw, progress)
+        run_stage(cfg, n, kw, progress, cache=cache)
         report.append((n, "ran", declared))
     return report

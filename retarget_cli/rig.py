@@ -125,6 +125,8 @@ class BlendshapeRig:
         self.D = sp.csr_array(Dd) if self.sparse else Dd
         self.template = template
         self.correctives = correctives
+        self.spec = None  # the parsed rig.yaml, set by load()
+        self.landmarks = None  # rig.yaml's landmarks, checked, set by load()
         self.library = {}
         for expr, vec in (library or {}).items():
             self.library[str(expr)] = {self._slider(s, f"library {expr!r}"): float(v) for s, v in vec.items()}
@@ -263,36 +265,66 @@ class BlendshapeRig:
     # ------------------------------------------------------------------ files
 
     @classmethod
-    def load(cls, path: str | os.PathLike, *, storage: str = "auto") -> BlendshapeRig:
+    def load(cls, path: str | os.PathLike, *, storage: str = "auto", cache_dir=None) -> BlendshapeRig:
         """Load a rig from ``rig.yaml`` (see :func:`retarget_cli.io.stagefiles.read_rig`).
 
         Whole-face shapes (``shapes_are: absolute``) become deltas
-        ``d_k = b_k - f0`` (Lewis et al. 2005, §3).
+        ``d_k = b_k - f0`` (Lewis et al. 2005, §3). Every OBJ's vertex count
+        is checked against the neutral's before any OBJ is parsed, and so are
+        the ``landmarks:`` vertex ids.
+
+        Parameters
+        ----------
+        path : path-like
+            The ``rig.yaml``.
+        storage : {"auto", "dense", "sparse"}
+            See :class:`BlendshapeRig`.
+        cache_dir : path-like, optional
+            Keep the parsed OBJs in ``cache_dir/rig-<key>.npz``, keyed by the
+            sha256 of ``rig.yaml`` and every file it references
+            (:mod:`retarget_cli.io.rigcache`); a later load of the same files
+            reads that instead of the OBJs. None: no cache.
 
         Raises
         ------
         InputError
-            For a malformed ``rig.yaml``, a missing OBJ, or shapes that do not
-            share the neutral's topology (naming both files).
+            For a malformed ``rig.yaml``, a missing OBJ, a shape whose vertex
+            count differs from the neutral's (naming the ``shapes.<name>``
+            entry and both counts), a landmark vertex outside the neutral, or
+            shapes that do not share the neutral's topology (naming both files).
         """
-        from .io.obj import check_same_topology, read_obj
+        from .io.rigcache import load_rig_meshes
         from .io.stagefiles import read_rig
+        from .io.vertexmap import check_landmark_list, read_vertex_map
 
         spec = read_rig(path)
-        for p in spec.files():
+        extra = [spec.landmarks] if isinstance(spec.landmarks, Path) else []
+        for p in [*spec.files(), *extra]:
             if not Path(p).is_file():
                 raise InputError(f"{path}: {p} not found")
-        neutral = read_obj(spec.neutral)
-        shapes = [read_obj(p) for p in spec.shapes.values()]
-        check_same_topology([neutral, *shapes])
-        D = np.stack([s.vertices for s in shapes])
-        if spec.shapes_are == "absolute":
-            D = D - neutral.vertices[None]
+        landmarks = []
+
+        def check(n_vertices):
+            if isinstance(spec.landmarks, Path):
+                landmarks.append(read_vertex_map(spec.landmarks, None, n_vertices))
+            elif spec.landmarks is not None:
+                landmarks.append(check_landmark_list(str(path), spec.landmarks, n_vertices, spec.neutral.name))
+
+        entries = [("neutral", spec.neutral), *((f"shapes.{k}", p) for k, p in spec.shapes.items())]
+        template, V = load_rig_meshes(path, entries, extra_files=extra, cache_dir=cache_dir, check=check)
+        neutral = template.vertices
+        D = V[1:] - neutral[None] if spec.shapes_are == "absolute" else V[1:]
         names = list(spec.shapes)
         lower = np.array([spec.ranges[n][0] for n in names])
         upper = np.array([spec.ranges[n][1] for n in names])
-        return cls(neutral.vertices, D, names, lower=lower, upper=upper, library=spec.library, storage=storage,
-                   template=neutral, correctives=spec.correctives)
+        rig = cls(neutral, D, names, lower=lower, upper=upper, library=spec.library, storage=storage,
+                  template=template, correctives=spec.correctives)
+        #: The parsed ``rig.yaml`` (:class:`~retarget_cli.io.stagefiles.Rig`).
+        rig.spec = spec
+        #: ``landmarks:`` checked against the neutral: vertex ids (L,), or (landmark ids, vertex ids)
+        #: from a map file (:func:`~retarget_cli.io.vertexmap.read_vertex_map`); None when not given.
+        rig.landmarks = landmarks[0] if landmarks else None
+        return rig
 
 
 __all__ = ["AXES", "BlendshapeRig", "SPARSE_BELOW", "parse_axes"]

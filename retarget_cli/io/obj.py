@@ -274,6 +274,192 @@ def _check_refs(path, lineno, line, head, counts, max_pos) -> None:
                 max_pos[kind] = (idx, lineno)
 
 
+#: Bytes that :meth:`bytes.split` treats as whitespace (a head is followed by one of them).
+_WS = np.zeros(256, bool)
+_WS[[9, 10, 11, 12, 13, 32]] = True
+
+
+#: Heads and slashes of element lines become separators for ``numpy.fromstring``.
+_ELEM_SEP = bytes.maketrans(b"flp/", b"    ")
+
+
+def _blocks(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of consecutive True entries of a boolean array, as (start, stop) pairs."""
+    edges = np.diff(np.concatenate(([0], mask.view(np.int8), [0])))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
+def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
+    """Vectorised :func:`read_obj` for the common layout, or None to use :func:`_parse_lines`.
+
+    Applies when every ``v`` line is exactly ``v x y z`` plus a line ending
+    (single spaces, LF or CRLF), no line starts with whitespace, there is no
+    lone CR, and element lines hold only integers, ``/``, ``-`` and
+    whitespace. It builds the same :class:`ObjMesh` as :func:`_parse_lines`
+    (coordinates converted by the same call, tails, segments, topology hash)
+    and checks the same indices; on anything it cannot vouch for, including
+    every error, it returns None so that the reference parser decides (and
+    names the line).
+    """
+    n = len(data)
+    if n == 0:
+        return None
+    buf = np.frombuffer(data + b"\n\n\n", np.uint8)  # padding: look-ahead past the last line
+    body = buf[:n]
+    nl = np.flatnonzero(body == 10)
+    cr = np.flatnonzero(body == 13)
+    if cr.size and np.any(buf[cr + 1] != 10):
+        return None  # a lone CR ends a line for bytes.splitlines
+    starts = np.concatenate(([0], nl + 1))
+    ends = np.concatenate((nl + 1, [n]))
+    if starts[-1] == n:
+        starts, ends = starts[:-1], ends[:-1]
+    c0, c1, c2 = buf[starts], buf[starts + 1], buf[starts + 2]
+    c1 = np.where(starts + 1 < ends, c1, 10)
+    c2 = np.where(starts + 2 < ends, c2, 10)
+    if np.any((c0 == 32) | (c0 == 9) | (c0 == 11) | (c0 == 12)):
+        return None
+    is_v = (c0 == 118) & ((c1 == 32) | (c1 == 9))
+    is_vt = (c0 == 118) & (c1 == 116) & _WS[c2]
+    is_vn = (c0 == 118) & (c1 == 110) & _WS[c2]
+    is_el = ((c0 == 102) | (c0 == 108) | (c0 == 112)) & _WS[c1]
+    nv = int(is_v.sum())
+    if nv == 0:
+        return None
+    # ---- v lines: "v x y z" + LF or CRLF, converted exactly like the reference parser.
+    runs_l = _blocks(is_v)
+    spans = [(int(starts[a]), int(ends[b - 1])) for a, b in runs_l]
+    if buf[spans[-1][1] - 1] != 10:
+        return None  # the last v line has no line ending
+    vblock = b"".join(data[a:b] for a, b in spans) if len(spans) > 1 else data[spans[0][0]:spans[0][1]]
+    n_cr = vblock.count(b"\r")
+    if (vblock.count(b" ") != 3 * nv or n_cr not in (0, nv)
+            or any(c in vblock for c in (b"\t", b"#", b"\x0b", b"\x0c"))):
+        return None
+    tokens = vblock.split()
+    if len(tokens) != 4 * nv or tokens[0::4].count(b"v") != nv:
+        return None
+    del tokens[0::4]
+    try:
+        vertices = np.array(tokens, dtype=np.float64).reshape(-1, 3)
+    except ValueError:
+        return None
+    if not np.all(np.isfinite(vertices)):
+        return None
+    tail = b"\r\n" if n_cr else b"\n"
+    tails = [tail] * nv
+    runs, segments, prev, cum = [], [], 0, 0
+    for (a, b), (s, e) in zip(runs_l, spans):
+        segments.append(data[prev:s])
+        runs.append((cum, cum + b - a))
+        cum += b - a
+        prev = e
+    segments.append(data[prev:])
+    # ---- element lines: indices checked against the v/vt/vn lines, as _check_refs does.
+    counts = {"v": nv, "vt": int(is_vt.sum()), "vn": int(is_vn.sum())}
+    el = np.flatnonzero(is_el)
+    topo = hashlib.sha256()
+    if el.size:
+        eblock = b"".join(data[int(starts[i]):int(ends[j - 1])] for i, j in _blocks(is_el))
+        if len(eblock.translate(None, b"0123456789/- \t\r\n")) != el.size:
+            return None  # some byte other than the heads is not an index, '/', '-' or whitespace
+        lens = ends[el] - starts[el]
+        lstart = np.cumsum(lens) - lens
+        eb = np.frombuffer(eblock + b"   ", np.uint8).copy()
+        eb[lstart] = 32  # heads become separators
+        ws = eb < 45
+        tok = ~ws
+        tok[1:] &= ws[:-1]
+        if not np.logical_or.reduceat(tok, lstart).all():
+            return None  # an element line without indices
+        part = (eb >= 48) | (eb == 45)
+        pstart = part.copy()
+        pstart[1:] &= ~part[:-1]
+        pend = part.copy()
+        pend[:-1] &= ~part[1:]
+        ps, pe = np.flatnonzero(pstart), np.flatnonzero(pend)
+        if ps.size == 0 or (pe - ps).max() > 14:
+            return None
+        if b"-" in eblock:
+            mpos = np.flatnonzero(eb == 45)
+            if not (pstart[mpos].all() and np.all(eb[mpos + 1] >= 48)):
+                return None  # '-' not the sign of an index
+        if b"/" in eblock:
+            if b"///" in eblock or b" /" in eblock or b"\t/" in eblock:
+                return None  # an empty vertex slot, or more than v/vt/vn
+            # slot of each index: its place among the token's indices, plus one after an empty vt ("v//vn")
+            j = np.arange(ps.size)
+            kind = j - np.maximum.accumulate(np.where(ws[ps - 1], j, 0))
+            kind += (eb[ps - 1] == 47) & (eb[ps - 2] == 47)
+            after = eb[pe + 1] == 47
+            if (kind.max() > 2 or np.any(after & (kind == 2))
+                    or np.any(after & (kind == 1) & (eb[pe + 2] == 47))):
+                return None  # a fourth slot
+        else:
+            kind = np.zeros(ps.size, np.int64)
+        value = np.fromstring(eblock.translate(_ELEM_SEP), dtype=np.int64, sep=" ")
+        if value.size != ps.size or np.any(value == 0):
+            return None
+        for k, (name, mask) in enumerate((("v", is_v), ("vt", is_vt), ("vn", is_vn))):
+            vals = value[kind == k]
+            if vals.size == 0:
+                continue
+            if vals.max() > counts[name]:
+                return None
+            neg = vals < 0
+            if neg.any():
+                line = el[np.searchsorted(lstart, ps[kind == k][neg], side="right") - 1]
+                if np.any(np.cumsum(mask)[line] + vals[neg] < 0):
+                    return None
+        # topology: element lines with whitespace normalised, as _parse_lines hashes them
+        plain = b"\t" not in eblock and b"\r" not in eblock
+        if plain:
+            ob = np.frombuffer(eblock + b"\n", np.uint8)
+            sp = ob == 32
+            plain = not np.any(sp[:-1] & (sp[1:] | (ob[1:] == 10)))  # no double or trailing space
+        if plain:
+            topo.update(eblock if eblock.endswith(b"\n") else eblock + b"\n")
+        else:
+            for i in el.tolist():
+                topo.update(b" ".join(data[int(starts[i]):int(ends[i])].split()) + b"\n")
+    n_faces = int(np.count_nonzero(c0[el] == 102))
+    return ObjMesh(path, vertices, segments, runs, tails, topo.hexdigest(), n_faces)
+
+
+def count_vertices(path: str | os.PathLike) -> int:
+    """Number of ``v`` lines of an OBJ file, without parsing it.
+
+    The count equals ``read_obj(path).n_vertices`` for any file :func:`read_obj`
+    accepts; it is meant for checking many meshes against each other before
+    parsing any.
+
+    Raises
+    ------
+    InputError
+        If the file is missing or unreadable.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: OBJ file not found") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read OBJ ({exc.strerror})") from exc
+    return count_vertices_bytes(data)
+
+
+def count_vertices_bytes(data: bytes) -> int:
+    """:func:`count_vertices` of an OBJ file's bytes."""
+    buf = np.frombuffer(data + b"\n\n", np.uint8)
+    starts = np.concatenate(([0], np.flatnonzero(buf[:len(data)] == 10) + 1))
+    c0 = buf[starts]
+    lone_cr = b"\r" in data and np.any(buf[np.flatnonzero(buf[:len(data)] == 13) + 1] != 10)
+    if lone_cr or np.any((c0 == 32) | (c0 == 9)):
+        return sum(map(_is_v_line, data.splitlines()))
+    c1 = buf[starts + 1]
+    return int(np.count_nonzero((c0 == 118) & ((c1 == 32) | (c1 == 9))))
+
+
 def read_obj(path: str | os.PathLike) -> ObjMesh:
     """Read an OBJ file.
 
@@ -308,6 +494,16 @@ def read_obj(path: str | os.PathLike) -> ObjMesh:
         raise InputError(f"{path}: OBJ file not found") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read OBJ ({exc.strerror})") from exc
+    mesh = _parse_fast(path, data)
+    return mesh if mesh is not None else _parse_lines(path, data)
+
+
+def _parse_lines(path: Path, data: bytes) -> ObjMesh:
+    """Reference parser of :func:`read_obj`: one Python pass over the lines.
+
+    Handles every file :func:`read_obj` accepts and raises its errors (with
+    line numbers); :func:`_parse_fast` defers to it for anything unusual.
+    """
     lines = data.splitlines(keepends=True)
     segments: list[bytes] = []
     runs: list[tuple[int, int]] = []

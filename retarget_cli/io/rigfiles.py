@@ -28,7 +28,7 @@ import numpy as np
 from .. import __version__
 from ..errors import InputError
 from .atomic import load_npz, savez, write_text
-from .obj import check_same_topology, read_obj
+from .obj import read_obj
 from .stagefiles import Rig, read_rig
 
 _FRAME_NUM = re.compile(r"(\d+)")
@@ -80,8 +80,55 @@ def parse_correctives(rig: Rig) -> list[tuple[int, int, Path]]:
     return out
 
 
-def read_quadratic_rig(path: str | os.PathLike):
+def _quadratic_spec(path):
+    """``rig.yaml`` checked for solve-rig: (spec, correctives, mesh entries, every file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: rig file not found")
+    spec = read_rig(path)
+    if tuple(float(x) for x in spec.range) != (0.0, 1.0):
+        raise InputError(f"{path}: solve-rig supports range [0, 1] (Racković et al. eq. 8), got {list(spec.range)}")
+    if not spec.shapes:
+        raise InputError(f"{path}: 'shapes' is empty")
+    corr = parse_correctives(spec)
+    entries = [("neutral", spec.neutral), *((f"shapes.{k}", p) for k, p in spec.shapes.items()),
+               *((f"correctives[{k}]", p) for k, (_, _, p) in enumerate(corr))]
+    for label, p in entries:
+        if not Path(p).is_file():
+            raise InputError(f"{p}: OBJ file not found (the {label} of {path})")
+    return spec, corr, entries, [path, *(p for _, p in entries)]
+
+
+def check_quadratic_rig(path: str | os.PathLike) -> tuple[list[Path], int]:
+    """Check a solve-rig ``rig.yaml`` and its OBJs' vertex counts without parsing the OBJs.
+
+    Returns
+    -------
+    files : list of Path
+        Every file of the rig (as :func:`read_quadratic_rig` returns them).
+    n_vertices : int
+
+    Raises
+    ------
+    InputError
+        As :func:`read_quadratic_rig`, for everything but the OBJs' contents;
+        a mesh whose vertex count differs from the neutral's is named by its
+        ``rig.yaml`` entry (``shapes.smile``, ``correctives[0]``).
+    """
+    from .rigcache import check_vertex_counts
+
+    _, _, entries, files = _quadratic_spec(path)
+    return files, check_vertex_counts(path, entries)
+
+
+def read_quadratic_rig(path: str | os.PathLike, *, cache_dir=None):
     """Read ``rig.yaml`` with its OBJs into a :class:`~retarget_cli.inverse_rig.QuadraticRig`.
+
+    Parameters
+    ----------
+    path : path-like
+    cache_dir : path-like, optional
+        Keep the parsed OBJs there (see :mod:`retarget_cli.io.rigcache`).
 
     Returns
     -------
@@ -92,28 +139,19 @@ def read_quadratic_rig(path: str | os.PathLike):
     Raises
     ------
     InputError
-        Bad YAML, missing files, meshes of another topology, a ``range``
-        other than [0, 1], or bad corrective entries (:func:`parse_correctives`).
+        Bad YAML, missing files, meshes of another vertex count or topology,
+        a ``range`` other than [0, 1], or bad corrective entries
+        (:func:`parse_correctives`).
     """
     from ..inverse_rig import QuadraticRig
+    from .rigcache import load_rig_meshes
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: rig file not found")
-    spec = read_rig(path)
-    if tuple(float(x) for x in spec.range) != (0.0, 1.0):
-        raise InputError(f"{path}: solve-rig supports range [0, 1] (Racković et al. eq. 8), got {list(spec.range)}")
-    if not spec.shapes:
-        raise InputError(f"{path}: 'shapes' is empty")
-    corr = parse_correctives(spec)
-    neutral = read_obj(spec.neutral)
-    shapes = [read_obj(p) for p in spec.shapes.values()]
-    cmeshes = [read_obj(p) for _, _, p in corr]
-    check_same_topology([neutral, *shapes, *cmeshes])
-    V0 = neutral.vertices
-    rig = QuadraticRig(V0, np.stack([s.vertices - V0 for s in shapes]), [(i, j) for i, j, _ in corr],
-                       np.stack([c.vertices - V0 for c in cmeshes]) if cmeshes else None, names=list(spec.shapes))
-    return rig, [path, spec.neutral, *spec.shapes.values(), *(p for _, _, p in corr)]
+    spec, corr, entries, files = _quadratic_spec(path)
+    _, V = load_rig_meshes(path, entries, cache_dir=cache_dir)
+    V0, n = V[0], len(spec.shapes)
+    rig = QuadraticRig(V0, V[1:n + 1] - V0, [(i, j) for i, j, _ in corr],
+                       V[n + 1:] - V0 if corr else None, names=list(spec.shapes))
+    return rig, files
 
 
 def _natural_key(p: Path):
@@ -214,5 +252,5 @@ def write_metrics_csv(path, result, sources) -> None:
     write_text(path, metrics_csv(result, sources))
 
 
-__all__ = ["metrics_csv", "parse_correctives", "read_meshes", "read_quadratic_rig", "save_inverse_weights",
+__all__ = ["check_quadratic_rig", "metrics_csv", "parse_correctives", "read_meshes", "read_quadratic_rig", "save_inverse_weights",
            "write_metrics_csv"]

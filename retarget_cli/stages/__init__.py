@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.atomic import check_not_input, sha256_file, write_text
+from ..io.vertexmap import read_vertex_map  # noqa: F401  (re-exported; run_auto_pose uses it)
 
 log = logging.getLogger(__name__)
 
@@ -641,37 +642,50 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
 # --------------------------------------------------------------------------- pose-keys
 
 
-def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None) -> list[Path]:
+def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=None) -> list[Path]:
     """Pose the rig at each key frame's known slider values; write target OBJs and ``targets.yaml``.
 
     *masks* maps region names to vertex-mask files (relative to *base_dir*),
     copied into ``targets.yaml`` so ``apply`` can blend the regions.
+    Every argument is checked before the rig's OBJs are read; *cache_dir*
+    keeps the parsed rig (:meth:`~retarget_cli.rig.BlendshapeRig.load`).
 
     This is the automatic "artist" for takes whose slider values are known
     (synthetic takes, or a performance recorded on a rig).
     """
     from ..io.atomic import load_npz
     from ..io.obj import write_obj
-    from ..io.stagefiles import read_keys
+    from ..io.stagefiles import read_keys, read_rig
     from ..rig import BlendshapeRig
 
     keys, rig_path, poses = _require(keys, "keys file"), _require(rig, "rig file"), _require(poses, "poses file")
-    kf, rig = read_keys(keys), BlendshapeRig.load(rig_path)
+    kf, spec = read_keys(keys), read_rig(rig_path)
     data = load_npz(poses)
     if "curves" not in data or "names" not in data:
         raise InputError(f"{poses}: expected 'curves' (T, E) and 'names' (E,)")
     curves, names = data["curves"], [str(n) for n in data["names"]]
-    missing = [n for n in names if n not in rig.index]
+    if curves.ndim != 2 or curves.shape[1] != len(names):
+        raise InputError(f"{poses}: 'curves' must have shape (T, {len(names)}) for its {len(names)} names, "
+                         f"got {curves.shape}")
+    missing = [n for n in names if n not in spec.shapes]
     if missing:
         raise InputError(f"{poses}: slider {missing[0]!r} is not a shape of {rig_path}")
-    cols = [rig.index[n] for n in names]
+    for reg in kf.regions.values():
+        for f in reg["frames"]:
+            if f >= len(curves):
+                raise InputError(f"{keys}: key frame {f} is outside {poses} ({len(curves)} frames)")
+    mask_files = _check_masks(kf, keys, masks, base_dir)
     out = Path(output)
+    planned = [out / f"{name}/key_{f:05d}.obj" for name, reg in kf.regions.items() for f in reg["frames"]]
+    inputs = [keys, rig_path, poses, *spec.files(), *mask_files.values()]
+    for o in [*planned, out / "targets.yaml"]:
+        check_not_input(o, inputs)
+    rig = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
+    cols = [rig.index[n] for n in names]
     written, regions = [], {}
     for name, reg in kf.regions.items():
         regions[name] = {"keys": {}}
         for f in reg["frames"]:
-            if f >= len(curves):
-                raise InputError(f"{keys}: key frame {f} is outside {poses} ({len(curves)} frames)")
             rel = f"{name}/key_{f:05d}.obj"
             w = np.zeros(rig.n_sliders)
             w[cols] = curves[f]
@@ -682,10 +696,9 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None) -> list[Pat
     return written
 
 
-def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path, command) -> Path:
-    """Add the region masks to *regions* and write ``out/targets.yaml`` (neutral = the rig's)."""
-    from ..io.stagefiles import read_rig, write_targets
-
+def _check_masks(kf, keys, masks, base_dir) -> dict:
+    """Region masks named in *masks* (relative to *base_dir*): regions of *keys*, one per region when
+    there are several, files that exist. Returns region name to mask path."""
     masks = masks or {}
     unknown = sorted(set(masks) - set(kf.regions))
     if unknown:
@@ -694,9 +707,14 @@ def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path,
         absent = [r for r in kf.regions if r not in masks]
         if absent:
             raise InputError(f"masks: region {absent[0]!r} needs a vertex mask when {keys} has several regions")
-    for name, mask in masks.items():
-        mask = Path(base_dir or ".") / mask
-        _require(mask, "region mask")
+    return {name: _require(Path(base_dir or ".") / mask, "region mask") for name, mask in masks.items()}
+
+
+def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path, command) -> Path:
+    """Add the region masks to *regions* and write ``out/targets.yaml`` (neutral = the rig's)."""
+    from ..io.stagefiles import read_rig, write_targets
+
+    for name, mask in _check_masks(kf, keys, masks, base_dir).items():
         regions[name]["vertices"] = os.path.relpath(mask.resolve(), out.resolve())
     nrel = os.path.relpath(read_rig(rig_path).neutral.resolve(), out.resolve())
     write_targets(out / "targets.yaml", regions, neutral=nrel, comment=f"Written by retarget {command}.")
@@ -739,15 +757,21 @@ def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path
     return written
 
 
-def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_progress) -> list[Path]:
+def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_progress, cache_dir=None) -> list[Path]:
     """Apply ``edits.yaml`` (pins and attenuations over frame ranges) to rig weights over time.
 
     The rig is *rig* or else the ``rig:`` named in ``edits.yaml``. Writes the
     edited weights to *output* (CSV or NPZ, by extension) and, with *objs*,
-    the posed OBJ sequence (``frame_%05d.obj``, by frame number).
+    the posed OBJ sequence (``frame_%05d.obj``, by frame number). The
+    animation and the edits are checked (against ``rig.yaml`` and the
+    neutral's vertex count) before the rig's OBJs are read; *cache_dir* keeps
+    the parsed rig (:meth:`~retarget_cli.rig.BlendshapeRig.load`).
     """
+    from ..config import closest
     from ..edit import apply_edits
     from ..io.editfiles import edits_rig, read_animation, read_edits, write_animation
+    from ..io.obj import count_vertices
+    from ..io.stagefiles import read_rig
     from ..rig import BlendshapeRig
 
     animation, edits = _require(animation, "animation"), _require(edits, "edits file")
@@ -755,20 +779,21 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
     if rig is None:
         raise InputError(f"{edits}: no rig given; add 'rig: path/to/rig.yaml' to the file or pass --rig")
     rig_path = _require(rig, "rig file")
-    check_not_input(output, [animation, edits, rig_path])
-    r = BlendshapeRig.load(rig_path)
+    spec = read_rig(rig_path)
+    check_not_input(output, [animation, edits, rig_path, *spec.files()])
     names, W_in, frames, times = read_animation(animation)
-    unknown = [n for n in names if n not in r.index]
+    unknown = [n for n in names if n not in spec.shapes]
     if unknown:
-        from ..config import closest
-
-        hint = closest(unknown[0], r.names)
+        hint = closest(unknown[0], list(spec.shapes))
         raise InputError(f"{animation}: slider {unknown[0]!r} is not a shape of {rig_path}"
                          + (f"; did you mean {hint!r}?" if hint else ""))
+    _require(spec.neutral, "neutral OBJ of the rig")
+    todo = read_edits(edits, n_vertices=count_vertices(spec.neutral), frames=frames,
+                      expressions=[str(e) for e in spec.library])
+    r = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
     order = names + [n for n in r.names if n not in names]
     W = np.zeros((len(W_in), r.n_sliders))
     W[:, [r.index[n] for n in names]] = W_in
-    todo = read_edits(edits, n_vertices=r.n_vertices, frames=frames, expressions=list(r.library))
     try:
         W = apply_edits(r, W, frames, todo)
     except ValueError as exc:
@@ -782,47 +807,18 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
     return written
 
 
-def read_vertex_map(path, n_landmarks: int, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Landmark-to-vertex map: one vertex id per line (line i = landmark i), or
-    ``landmark vertex`` pairs (a subset); ``#`` starts a comment.
-
-    Returns
-    -------
-    landmarks : ndarray of int, shape (L,)
-    vertices : ndarray of int, shape (L,)
-    """
-    path = _require(path, "landmark-vertex map")
-    rows = []
-    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-        tok = line.split("#", 1)[0].replace(",", " ").split()
-        if not tok:
-            continue
-        if len(tok) > 2 or not all(t.lstrip("-").isdigit() for t in tok):
-            raise InputError(f"{path}:{i}: expected 'vertex' or 'landmark vertex' (integers), got {line.strip()!r}")
-        rows.append([int(t) for t in tok])
-    if not rows or len({len(r) for r in rows}) != 1:
-        raise InputError(f"{path}: expected one vertex id per landmark, or 'landmark vertex' pairs on every line")
-    arr = np.array(rows, dtype=np.int64)
-    lm, vx = (np.arange(len(arr)), arr[:, 0]) if arr.shape[1] == 1 else (arr[:, 0], arr[:, 1])
-    if arr.shape[1] == 1 and len(arr) != n_landmarks:
-        raise InputError(f"{path}: lists {len(arr)} vertices but the landmarks file has {n_landmarks} landmarks")
-    bad = lm[(lm < 0) | (lm >= n_landmarks)]
-    if bad.size:
-        raise InputError(f"{path}: landmark {int(bad[0])} does not exist ({n_landmarks} landmarks)")
-    badv = vx[(vx < 0) | (vx >= n_vertices)]
-    if badv.size:
-        raise InputError(f"{path}: vertex {int(badv[0])} is outside the mesh ({n_vertices} vertices, ids 0-{n_vertices - 1})")
-    if len(set(lm.tolist())) != len(lm):
-        raise InputError(f"{path}: a landmark is mapped twice")
-    return lm, vx
 
 
 # --------------------------------------------------------------------------- solve-rig (inverse rig)
 
 
 def run_solve_rig(*, rig, meshes, output, solver, alpha, tol, max_iter, metrics=None,
-                  progress=_no_progress) -> tuple[list[Path], dict]:
+                  progress=_no_progress, cache_dir=None) -> tuple[list[Path], dict]:
     """Fit slider weights of a rig with correctives to a mesh sequence (Racković et al. 2023, eq. 8).
+
+    The output paths, ``rig.yaml``, the rig's vertex counts and the meshes
+    to fit are checked before the rig's OBJs are parsed; *cache_dir* keeps
+    the parsed rig (:func:`~retarget_cli.io.rigfiles.read_quadratic_rig`).
 
     Returns
     -------
@@ -831,14 +827,21 @@ def run_solve_rig(*, rig, meshes, output, solver, alpha, tol, max_iter, metrics=
         Means over frames of rmse, cardinality, objective, iterations and seconds, plus sizes.
     """
     from ..inverse_rig import CARDINALITY_THRESHOLD, solve
-    from ..io.rigfiles import read_meshes, read_quadratic_rig, save_inverse_weights, write_metrics_csv
+    from ..io.rigfiles import (
+        check_quadratic_rig,
+        read_meshes,
+        read_quadratic_rig,
+        save_inverse_weights,
+        write_metrics_csv,
+    )
 
-    qrig, rig_files = read_quadratic_rig(rig)
+    rig_files, n_vertices = check_quadratic_rig(rig)
     inputs = [*rig_files, meshes]
     check_not_input(output, inputs)
     if metrics is not None:
         check_not_input(metrics, inputs + [output])
-    X, sources = read_meshes(meshes, qrig.n_vertices)
+    X, sources = read_meshes(meshes, n_vertices)
+    qrig, _ = read_quadratic_rig(rig, cache_dir=cache_dir)
     log.info("solve-rig: %d frames, %d vertices, %d shapes, %d correctives, solver %s",
              len(X), qrig.n_vertices, qrig.n_shapes, qrig.n_pairs, solver)
     with progress(len(X), "solve-rig") as bar:

@@ -158,7 +158,7 @@ def _rig_driver(regions, tg, targets, cache_dir):
     from ..rig import BlendshapeRig
     from ..rigpose import rig_curves
 
-    rig = BlendshapeRig.load(tg.rig, **({"cache_dir": cache_dir} if cache_dir is not None else {}))
+    rig = BlendshapeRig.load(tg.rig, cache_dir=cache_dir)
     S = rig_key_sliders(regions, tg, targets, rig)
     curves = rig_curves([W for _, (W, _, _) in sorted(regions.items())], S, rig.lower, rig.upper)
 

@@ -20,7 +20,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_text
-from . import _require, read_vertex_map
+from ..io.vertexmap import read_vertex_map
+from . import _require
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +130,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         raise InputError(f"masks: region {unknown[0]!r} is not a region of {keys} ({', '.join(kf.regions)})")
     mask_files = {name: _require(Path(base_dir or ".") / m, "region mask") for name, m in masks.items()}
 
-    r = BlendshapeRig.load(rig_path, **({"cache_dir": cache_dir} if cache_dir is not None else {}))
+    r = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, L, r.n_vertices, rig_path)
     fixed = excluded_sliders(r.names, exclude)
     if skip_points is None:

@@ -103,7 +103,8 @@ def test_bad_corrective_entries_are_named(tmp_path, entries, msg):
 def test_corrective_with_another_vertex_count_is_rejected(tmp_path):
     rig_yaml, verts, quads = write_rig(tmp_path)
     (tmp_path / "correctives" / "smile_jaw_open.obj").write_bytes(format_obj(verts[:-1], quads[:-6]))
-    with pytest.raises(InputError, match="smile_jaw_open.obj: has 48 vertices"):
+    with pytest.raises(InputError, match=r"rig.yaml: correctives\[0\] \(smile_jaw_open.obj\): 48 vertices, "
+                                         r"the neutral neutral.obj has 49"):
         read_quadratic_rig(rig_yaml)
 
 

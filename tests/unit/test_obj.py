@@ -203,3 +203,131 @@ def test_fast_writer_matches_printf_exactly(tmp_path):
     v[5] = [3e12, -1e10, 1e9]
     want = "".join("v %.6f %.6f %.6f\n" % tuple(r) for r in v).encode() + b"f 1 2 3\n"  # noqa: UP031
     assert m.to_bytes(v) == want
+
+
+# The vectorised reader (_parse_fast) against the line-by-line reference (_parse_lines).
+PLAIN = (b"mtllib m.mtl\nv 0 0 0\nv 1.5 -2e-3 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvn 0 0 1\n"
+         b"usemtl skin\nf 1/1/1 2/2/1 3/3/1\nf 1//1 3//1 4//1\nf 1 2 3 4\nv 2 0 0\nf -4/1 -2/2 -1/3\nl 1 2\np 5\n")
+VARIANTS = {
+    "plain": PLAIN,
+    "crlf": PLAIN.replace(b"\n", b"\r\n"),
+    "no final newline": PLAIN.rstrip(b"\n"),
+    "tabs in v": PLAIN.replace(b"v 1 1 0", b"v\t1 1 0"),
+    "colours": PLAIN.replace(b"v 1 1 0", b"v 1 1 0 0.5 0.5 0.5"),
+    "comment after v": PLAIN.replace(b"v 1 1 0", b"v 1 1 0 # tip"),
+    "indented v": PLAIN.replace(b"v 1 1 0", b"  v 1 1 0"),
+    "trailing space": PLAIN.replace(b"v 1 1 0", b"v 1 1 0 "),
+    "lone cr": PLAIN.replace(b"vt 0 0\n", b"vt 0 0\r"),
+    "double space in f": PLAIN.replace(b"f 1 2 3 4", b"f 1  2 3 4"),
+    "tab in f": PLAIN.replace(b"f 1 2 3 4", b"f\t1 2 3 4"),
+    "comment after f": PLAIN.replace(b"f 1 2 3 4", b"f 1 2 3 4 # quad"),
+    "f last without newline": PLAIN + b"f 1 2 3",
+    "v last without newline": PLAIN + b"v 3 3 3",
+    "bad vertex ref": PLAIN.replace(b"f 1 2 3 4", b"f 1 2 3 9"),
+    "bad negative ref": PLAIN.replace(b"f -4/1", b"f -9/1"),
+    "bad texture ref": PLAIN.replace(b"f 1/1/1", b"f 1/7/1"),
+    "zero ref": PLAIN.replace(b"f 1 2 3 4", b"f 0 2 3 4"),
+    "empty face": PLAIN.replace(b"f 1 2 3 4", b"f"),
+    "four slots": PLAIN.replace(b"f 1 2 3 4", b"f 1/1/1/1 2 3"),
+    "trailing slash after vn": PLAIN.replace(b"f 1 2 3 4", b"f 1/1/1/ 2 3"),
+    "empty slots after vt": PLAIN.replace(b"f 1 2 3 4", b"f 1/1// 2 3"),
+    "triple slash": PLAIN.replace(b"f 1 2 3 4", b"f 1///1 2 3"),
+    "empty trailing vn": PLAIN.replace(b"f 1 2 3 4", b"f 1/1/ 2/2/ 3/3/"),
+    "negative slots": PLAIN + b"f -1/-1/-1 -2/-2/-1 -3/-3/-1\n",
+    "negative vt out of range": PLAIN + b"f -1/-4/-1 -2/-2/-1 -3/-3/-1\n",
+    "long index": PLAIN.replace(b"f 1 2 3 4", b"f 1 2 3 123456789012345678901"),
+    "leading slash": PLAIN.replace(b"f 1 2 3 4", b"f /1 2 3"),
+    "bad minus": PLAIN.replace(b"f 1 2 3 4", b"f 1-2 2 3"),
+    "short v": PLAIN.replace(b"v 1 1 0", b"v 1 1"),
+    "not a number": PLAIN.replace(b"v 1 1 0", b"v 1 x 0"),
+    "not finite": PLAIN.replace(b"v 1 1 0", b"v 1 nan 0"),
+    "no v": b"f 1 2 3\n",
+}
+
+
+@pytest.mark.parametrize("name", sorted(VARIANTS))
+def test_fast_reader_matches_the_reference(tmp_path, name):
+    from retarget_cli.io.obj import _parse_fast, _parse_lines, count_vertices
+
+    p = tmp_path / "m.obj"
+    p.write_bytes(VARIANTS[name])
+    try:
+        ref = _parse_lines(p, VARIANTS[name])
+    except InputError as exc:
+        with pytest.raises(InputError) as got:
+            read_obj(p)
+        assert str(got.value) == str(exc)
+        return
+    fast, mesh = _parse_fast(p, VARIANTS[name]), read_obj(p)
+    if name in ("plain", "crlf", "no final newline", "double space in f", "tab in f", "f last without newline",
+                "empty trailing vn", "negative slots"):
+        assert fast is not None, "the fast path should handle this layout"
+    for m in (mesh, fast) if fast is not None else (mesh,):
+        assert m.vertices.tobytes() == ref.vertices.tobytes()
+        assert (m.segments, m.runs, m.tails, m.topology, m.n_faces) == (
+            ref.segments, ref.runs, ref.tails, ref.topology, ref.n_faces)
+        assert m.to_bytes(m.vertices + 1) == ref.to_bytes(ref.vertices + 1)
+    assert count_vertices(p) == ref.n_vertices
+
+
+def _random_obj(rng) -> bytes:
+    """An OBJ file that is usually valid and in the fast reader's layout, with rare oddities and errors."""
+    def pick(common, rare, p_rare=0.01):
+        return rare[rng.integers(len(rare))] if rng.random() < p_rare else common[rng.integers(len(common))]
+
+    def sep():
+        return pick([b" "], [b"  ", b"\t"])
+
+    def v_line():
+        n = 3 if rng.random() > 0.02 else int(rng.integers(2, 7))
+        nums = b"".join(sep() + pick([b"0", b"1.5", b"-2e-3", b"7", b"0.000001"], [b"x", b"nan", b"1e999"])
+                        for _ in range(n))
+        return pick([b"v"], [b" v", b"v\t"]) + nums + pick([b""], [b" ", b" # c"])
+
+    def ref():
+        return pick([b"1", b"2", b"3", b"-1", b"-2"], [b"0", b"9", b"-9", b"1-", b"12345678901234567"], 0.005)
+
+    def slot():
+        forms = [lambda: ref(), lambda: ref() + b"/" + ref(), lambda: ref() + b"/" + ref() + b"/" + ref(),
+                 lambda: ref() + b"//" + ref(), lambda: ref() + b"/"]
+        if rng.random() < 0.01:
+            return [b"1///1", b"/1", b"1/1/1/", b"1/1//1"][rng.integers(4)]
+        return forms[rng.integers(len(forms))]()
+
+    def f_line():
+        n = int(rng.integers(1, 5)) if rng.random() > 0.01 else 0
+        return (pick([b"f", b"l", b"p"], [b"f\t"]) + b"".join(sep() + slot() for _ in range(n))
+                + pick([b""], [b" ", b" # q"]))
+
+    others = [b"vt 0 0", b"vn 0 0 1", b"# note", b"", b"g a", b"usemtl m", b"vp 1", b"v"]
+    lines = [v_line() for _ in range(int(rng.integers(3, 7)))] + [b"vt 0 0"] * 3 + [b"vn 0 0 1"] * 3
+    for _ in range(int(rng.integers(0, 14))):
+        r = rng.random()
+        lines.append(v_line() if r < 0.3 else f_line() if r < 0.85 else others[rng.integers(len(others))])
+    eol = b"\r\n" if rng.random() < 0.2 else b"\n"
+    return eol.join(lines) + (eol if rng.random() < 0.9 else b"")
+
+
+def test_fast_reader_agrees_with_the_reference_on_generated_files(tmp_path):
+    from retarget_cli.io.obj import _parse_fast, _parse_lines
+
+    rng = np.random.default_rng(7)
+    p = tmp_path / "g.obj"
+    n_fast = n_errors = 0
+    for _ in range(600):
+        data = _random_obj(rng)
+        p.write_bytes(data)
+        try:
+            ref = _parse_lines(p, data)
+        except InputError as exc:
+            n_errors += 1
+            with pytest.raises(InputError) as got:
+                read_obj(p)
+            assert str(got.value) == str(exc), data
+            continue
+        n_fast += _parse_fast(p, data) is not None
+        m = read_obj(p)
+        assert m.vertices.tobytes() == ref.vertices.tobytes(), data
+        assert (m.segments, m.runs, m.tails, m.topology, m.n_faces) == (
+            ref.segments, ref.runs, ref.tails, ref.topology, ref.n_faces), data
+    assert n_fast >= 100 and n_errors >= 20, (n_fast, n_errors)  # both paths exercised
