@@ -180,7 +180,8 @@ def test_vertex_map_reads_both_forms(tmp_path):
 def test_ict_rig_cached_load_matches_cold(ict_rig_dir, tmp_path):
     rig_yaml = ict_rig_dir / "rig.yaml"
     cold = BlendshapeRig.load(rig_yaml, cache_dir=tmp_path / "cache")
-    assert cold.n_vertices == 26719 and cold.n_sliders == 57 and len(cold.landmarks) == 68
+    assert cold.n_vertices == 26719 and cold.n_sliders == 57 and cold.landmarks[1].shape == (68,)
+    assert cold.landmarks[0].tolist() == list(range(68))
     hit = BlendshapeRig.load(rig_yaml, cache_dir=tmp_path / "cache")
     _same_rig(cold, hit)
     ref = objmod._parse_lines(rig_yaml.parent / "jawOpen.obj", (rig_yaml.parent / "jawOpen.obj").read_bytes())
