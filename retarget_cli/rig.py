@@ -126,7 +126,7 @@ class BlendshapeRig:
         self.template = template
         self.correctives = correctives
         self.spec = None  # the parsed rig.yaml, set by load()
-        self.landmarks = None  # rig.yaml's landmarks, checked, set by load()
+        self.landmarks = None  # rig.yaml's landmarks, checked: (landmark ids, vertex ids), set by load()
         self.library = {}
         for expr, vec in (library or {}).items():
             self.library[str(expr)] = {self._slider(s, f"library {expr!r}"): float(v) for s, v in vec.items()}
@@ -308,7 +308,8 @@ class BlendshapeRig:
             if isinstance(spec.landmarks, Path):
                 landmarks.append(read_vertex_map(spec.landmarks, None, n_vertices))
             elif spec.landmarks is not None:
-                landmarks.append(check_landmark_list(str(path), spec.landmarks, n_vertices, spec.neutral.name))
+                ids = check_landmark_list(str(path), spec.landmarks, n_vertices, spec.neutral.name)
+                landmarks.append((np.arange(len(ids)), ids))
 
         entries = [("neutral", spec.neutral), *((f"shapes.{k}", p) for k, p in spec.shapes.items())]
         template, V = load_rig_meshes(path, entries, extra_files=extra, cache_dir=cache_dir, check=check)
@@ -321,8 +322,8 @@ class BlendshapeRig:
                   template=template, correctives=spec.correctives)
         #: The parsed ``rig.yaml`` (:class:`~retarget_cli.io.stagefiles.Rig`).
         rig.spec = spec
-        #: ``landmarks:`` checked against the neutral: vertex ids (L,), or (landmark ids, vertex ids)
-        #: from a map file (:func:`~retarget_cli.io.vertexmap.read_vertex_map`); None when not given.
+        #: ``landmarks:`` checked against the neutral, as (landmark ids (L,), vertex ids (L,)) like
+        #: :func:`~retarget_cli.io.vertexmap.read_vertex_map`; None when rig.yaml has none.
         rig.landmarks = landmarks[0] if landmarks else None
         return rig
 

@@ -780,8 +780,15 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
         raise InputError(f"{edits}: no rig given; add 'rig: path/to/rig.yaml' to the file or pass --rig")
     rig_path = _require(rig, "rig file")
     spec = read_rig(rig_path)
-    check_not_input(output, [animation, edits, rig_path, *spec.files()])
+    inputs = [animation, edits, rig_path, *spec.files()]
+    check_not_input(output, inputs)
     names, W_in, frames, times = read_animation(animation)
+    if objs:
+        objs_dir = Path(objs).resolve()
+        clash = [p for p in inputs if Path(p).resolve().parent == objs_dir and FRAME_RE.match(Path(p).name)]
+        if clash:
+            raise InputError(f"{objs}: writing the frames there would overwrite or remove the input {clash[0]}; "
+                             "choose another --objs folder")
     unknown = [n for n in names if n not in spec.shapes]
     if unknown:
         hint = closest(unknown[0], list(spec.shapes))

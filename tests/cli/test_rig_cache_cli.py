@@ -113,3 +113,15 @@ def test_run_caches_the_rig_under_the_run_folder(take):
     assert not (take / "runout" / "targets" / ".retarget-cache").exists()
     res = run("run", take / "pose.yaml", "--force", "--no-cache")
     assert res.exit_code == 0, res.output
+
+
+def test_edit_objs_folder_must_not_hold_input_frames(take, no_parse):
+    (take / "frames").mkdir()
+    (take / "frames" / "frame_00000.obj").write_bytes((take / "target" / "neutral.obj").read_bytes())
+    (take / "rig2.yaml").write_text((take / "rig.yaml").read_text().replace("target/neutral.obj",
+                                                                             "frames/frame_00000.obj"))
+    (take / "edits.yaml").write_text("rig: rig2.yaml\nedits:\n  - attenuate:\n      frames: [1, 5]\n      select:\n"
+                                     "        - {vertices: [0], axes: y}\n")
+    res = CliRunner().invoke(main, ["edit", str(take / "truth.npz"), str(take / "edits.yaml"),
+                                    "-o", str(take / "e.csv"), "--objs", str(take / "frames")])
+    assert res.exit_code == 1 and "would overwrite or remove the input" in res.output

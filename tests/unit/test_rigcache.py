@@ -180,7 +180,8 @@ def test_vertex_map_reads_both_forms(tmp_path):
 def test_ict_rig_cached_load_matches_cold(ict_rig_dir, tmp_path):
     rig_yaml = ict_rig_dir / "rig.yaml"
     cold = BlendshapeRig.load(rig_yaml, cache_dir=tmp_path / "cache")
-    assert cold.n_vertices == 26719 and cold.n_sliders == 57 and len(cold.landmarks) == 68
+    assert cold.n_vertices == 26719 and cold.n_sliders == 57 and cold.landmarks[1].shape == (68,)
+    assert cold.landmarks[0].tolist() == list(range(68))
     hit = BlendshapeRig.load(rig_yaml, cache_dir=tmp_path / "cache")
     _same_rig(cold, hit)
     ref = objmod._parse_lines(rig_yaml.parent / "jawOpen.obj", (rig_yaml.parent / "jawOpen.obj").read_bytes())
@@ -191,3 +192,31 @@ def test_ict_rig_cached_load_matches_cold(ict_rig_dir, tmp_path):
     ref = objmod._parse_lines(neutral, neutral.read_bytes())
     pose = hit.evaluate(np.full(hit.n_sliders, 0.3))
     assert hit.template.to_bytes(pose) == ref.to_bytes(pose)
+
+
+def test_solve_rig_reader_uses_the_cache_with_correctives(tmp_path, monkeypatch):
+    from retarget_cli.io.obj import format_obj
+    from retarget_cli.io.rigfiles import read_quadratic_rig
+    from retarget_cli.synth import overlapping_rig
+
+    r = overlapping_rig(n_shapes=3, grid=(5, 5))
+    d = tmp_path / "rig"
+    d.mkdir()
+    (d / "neutral.obj").write_bytes(format_obj(r["vertices"], r["faces"]))
+    for name, delta in zip(r["names"], r["deltas"]):
+        (d / f"{name}.obj").write_bytes(format_obj(r["vertices"] + delta, r["faces"]))
+    (d / "c.obj").write_bytes(format_obj(r["vertices"] + 0.1 * r["deltas"][0] * r["deltas"][1], r["faces"]))
+    a, b = r["names"][:2]
+    rig_yaml = d / "rig.yaml"
+    rig_yaml.write_text("neutral: neutral.obj\nshapes:\n" + "".join(f"  {n}: {n}.obj\n" for n in r["names"])
+                        + f"correctives:\n  - {{shapes: [{a}, {b}], obj: c.obj}}\n")
+    cold, files = read_quadratic_rig(rig_yaml)
+    first, _ = read_quadratic_rig(rig_yaml, cache_dir=tmp_path / "cache")
+    monkeypatch.setattr(rigcache, "read_obj", lambda p: pytest.fail(f"{p} parsed although cached"))
+    hit, files2 = read_quadratic_rig(rig_yaml, cache_dir=tmp_path / "cache")
+    assert files == files2 and len(_cache_files(tmp_path / "cache")) == 1
+    for r in (first, hit):
+        assert r.names == cold.names and r.pairs.tolist() == cold.pairs.tolist() and len(cold.pairs) > 0
+        assert r.b0.tobytes() == cold.b0.tobytes() and r.B.tobytes() == cold.B.tobytes()
+        w = np.linspace(0.2, 0.8, len(cold.names))
+        assert r.evaluate(w).tobytes() == cold.evaluate(w).tobytes()
