@@ -143,5 +143,5 @@ def test_rig_landmarks_out_of_range_is_a_clear_error(real_run, ict_rig_dir, tmp_
     bad.write_text(text)
     out = real_run / "out"
     res = invoke("auto-pose", out / "keys.json", out / "landmarks.npz", bad, "-o", tmp_path / "t")
-    assert res.exit_code == 1 and "landmarks[0]: vertex 99999 is outside the mesh" in res.output
+    assert res.exit_code == 1 and "landmarks[0] = 99999 is not a vertex" in res.output
     assert "Traceback" not in res.output
