@@ -109,6 +109,13 @@ class Param:
         return value
 
 
+def yaml_problem(exc) -> str:
+    """A YAML parser error as one line: its problem and where (``line L, column C``)."""
+    mark = getattr(exc, "problem_mark", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return " ".join(str(getattr(exc, "problem", None) or exc).split()) + where
+
+
 def closest(name: str, candidates) -> str | None:
     """The candidate most similar to *name*, or None when nothing is close."""
     hits = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.5)
@@ -196,7 +203,7 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark else str(path)
-        raise ConfigError(f"{where}: invalid YAML ({getattr(exc, 'problem', exc)})") from exc
+        raise ConfigError(f"{where}: invalid YAML ({yaml_problem(exc)})") from exc
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):

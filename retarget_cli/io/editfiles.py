@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..config import closest, unknown_key_error
+from ..config import closest, unknown_key_error, yaml_problem
 from ..errors import ConfigError, InputError
 from .atomic import load_npz, savez, write_text
 
@@ -168,7 +168,7 @@ def _load_edits_yaml(path: Path):
     except FileNotFoundError:
         raise InputError(f"{path}: edits file not found") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML ({exc})") from exc
+        raise ConfigError(f"{path}: invalid YAML ({yaml_problem(exc)})") from exc
     _keys(data, ("rig", "edits"), str(path))
     if "rig" in data and not isinstance(data["rig"], str):
         raise ConfigError(f"{path}: rig: expected the path of a rig.yaml, got {data['rig']!r}")

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..config import yaml_problem
 from ..errors import InputError
 from .atomic import dumps_json, load_npz, savez, write_json, write_text
 
@@ -193,7 +194,7 @@ def _load_yaml(path: Path, what: str):
     except FileNotFoundError:
         raise InputError(f"{path}: {what} file not found") from None
     except yaml.YAMLError as exc:
-        raise InputError(f"{path}: invalid YAML ({exc})") from exc
+        raise InputError(f"{path}: invalid YAML ({yaml_problem(exc)})") from exc
 
 
 def read_targets(path: str | os.PathLike) -> Targets:

@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import pytest
 from click.testing import CliRunner
 
@@ -48,3 +50,28 @@ def test_usage_errors_exit_2(tmp_path):
     assert result.exit_code == 2
     result = CliRunner().invoke(main, ["synth", str(tmp_path), "--size", "big"])
     assert result.exit_code == 2 and "--size" in result.stderr
+
+
+def test_invalid_yaml_is_one_line_naming_file_and_position(tmp_path):
+    from click.testing import CliRunner
+
+    from retarget_cli.cli import main
+    from retarget_cli.errors import InputError
+    from retarget_cli.io.stagefiles import read_targets
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("version: 1\nn_points: 68\n{\n1 2\n")
+    (tmp_path / "anim.csv").write_text("frame,smile\n0,0.1\n")
+    for args in (["run", str(bad)], ["edit", str(tmp_path / "anim.csv"), str(bad), "--rig",
+                                     str(Path(__file__).resolve().parents[2] / "sample_data" / "rig.yaml"),
+                                     "-o", str(tmp_path / "o.csv")]):
+        res = CliRunner().invoke(main, args)
+        lines = [ln for ln in res.output.splitlines() if ln.strip()]
+        assert res.exit_code == 1, res.output
+        assert len(lines) == 1 and "invalid YAML" in lines[0] and "line 4" in lines[0], res.output
+    try:
+        read_targets(bad)
+    except InputError as exc:
+        assert "\n" not in str(exc) and "bad.yaml: invalid YAML" in str(exc)
+    else:
+        raise AssertionError("read_targets accepted invalid YAML")
