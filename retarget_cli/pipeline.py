@@ -109,12 +109,16 @@ STAGES: dict[str, Stage] = {
                       min=0, max=301),
                 Param("keep_partial", "setting", bool, False,
                       "On a truncated video or a lost face, keep what was tracked up to then."),
-                Param("method", "setting", str, "lk",
-                      "Tracker: lk (Lucas-Kanade, one or more annotated frames) or eigenpoints (the paper's "
-                      "tracker, trained on the annotated frames; give 5 or more) or markers (painted dots on the "
-                      "landmarks) or facemark (OpenCV Facemark LBF with --model, see train-tracker) or detect "
-                      "(dlib's pretrained 68-point detector on every frame; needs the extra detect).",
-                      choices=("lk", "eigenpoints", "markers", "facemark", "detect")),
+                Param("method", "setting", str, "auto",
+                      "Tracker: detect (dlib's pretrained 68-point detector on every frame joined with optical "
+                      "flow; needs the extra detect) or lk (Lucas-Kanade, one or more annotated frames) or "
+                      "eigenpoints (the paper's tracker, trained on the annotated frames; give 5 or more) or "
+                      "markers (painted dots on the landmarks) or facemark (OpenCV Facemark LBF with --model, see "
+                      "train-tracker); auto: detect where the extra is installed, else lk.",
+                      choices=("auto", "detect", "lk", "eigenpoints", "markers", "facemark")),
+                Param("fuse", "setting", bool, True,
+                      "Method detect: join the detections with optical flow (a Kalman filter along the flow and "
+                      "a smoother over the take); false keeps each frame's detection as it is."),
                 Param("model", "input", str, None,
                       "Facemark LBF model file for method facemark (written by 'retarget train-tracker').",
                       nullable=True),

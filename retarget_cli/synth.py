@@ -1284,6 +1284,7 @@ seed: 0
 track:
   video: face.mp4
   init: face_00000.pts
+  method: lk         # the flow tracker from the annotation: on these rendered faces it beats the detector
 select:
   method: greedy
   k: 12

@@ -41,9 +41,9 @@ def _require(path, what: str) -> Path:
 # --------------------------------------------------------------------------- track
 
 
-def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_threshold=1.0, anchor=True,
+def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
               rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
-              fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, base_dir=None,
+              fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, base_dir=None,
               progress=_no_progress) -> list[Path]:
     """Track landmarks through *video* (a video file or an image-sequence pattern).
 
@@ -54,8 +54,9 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     pretrained detector annotates the first tracked frame (unless
     *annotations* do), and the annotation it used is written beside *output*
     as ``<output stem>.init_<frame:05d>.pts`` for review. Method ``detect``
-    places the landmarks on every frame with the detector (annotated frames
-    are kept as given). Writes the ``landmarks.npz`` contract to *output*
+    places the landmarks on every frame with the detector joined with optical
+    flow (*fuse*; annotated frames are kept as given); ``auto`` is ``detect``
+    where its extra is installed, else ``lk``. Writes the ``landmarks.npz`` contract to *output*
     (plus ``frames``, the source frame numbers) and, if asked, an *overlay*
     video. *model* is the Facemark model file of method ``facemark`` (see
     :func:`run_train_tracker`).
@@ -74,8 +75,15 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
     extra = [Path(base_dir or ".") / a for a in (annotations or [])]
     for a in extra:
         _require(a, "annotation file")
-    if method not in ("lk", "eigenpoints", "markers", "facemark", "detect"):
-        raise ValueError(f"method: expected 'lk', 'eigenpoints', 'markers', 'facemark' or 'detect', got {method!r}")
+    if method not in ("auto", "lk", "eigenpoints", "markers", "facemark", "detect"):
+        raise ValueError(f"method: expected 'auto', 'detect', 'lk', 'eigenpoints', 'markers' or 'facemark', "
+                         f"got {method!r}")
+    if method == "auto":
+        from ..track.detect import detector_installed
+
+        method = "detect" if detector_installed() else "lk"
+        log.info("method auto: tracking with %s%s", method,
+                 "" if method == "detect" else " (install the extra 'detect' for the pretrained detector)")
     given = extra if auto else [init, *extra]
     ann, src = read_annotations(given, frame=init_frame) if given else ({}, {})
     need_auto = auto and start not in ann
@@ -159,7 +167,7 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
                     from ..track.detect import track_detect
 
                     points, conf = track_detect(frames(), index, detector=detector, downscale=downscale,
-                                                progress=lambda t: bar.update(1))
+                                                fuse=fuse, progress=lambda t: bar.update(1))
                 elif method == "markers":
                     from ..track.markers import track_markers
 
@@ -202,7 +210,7 @@ def run_track(*, video, init, output, method="lk", window=21, levels=3, fb_thres
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
                        "downscale": downscale, "start": start, "end": end, "step": step,
-                       "smooth_head": smooth_head},
+                       "smooth_head": smooth_head, **({"fuse": fuse} if method == "detect" else {})},
         "source": Path(video).name,
         "source_sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
         "annotation": [Path(p).name for p in given + ([init_out] if init_out else [])],

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -45,6 +46,13 @@ BOX_POINTS = (27, 28, 29, 30, 31, 33, 35, 36, 39, 42, 45)
 #: frame): offset of the box centre in eye-corner spans (x along the eye line, y down) and side.
 #: Mean over every 20th frame of the three shared clips (d3, d9, d12), rounded.
 DEFAULT_BOX = (0.0, 0.2, 2.35)
+
+
+def detector_installed() -> bool:
+    """Whether the optional extra ``detect`` (dlib and its model package) can be imported."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in ("dlib", "face_recognition_models"))
 
 
 class Detector:
@@ -185,9 +193,176 @@ def detect_landmarks(gray, *, detector: Detector, previous=None):
     return detector.landmarks(g, boxes[i]), boxes[i]
 
 
+@dataclass(frozen=True)
+class FusionSettings:
+    """Noise model of :class:`FlowFusion`, lengths in eye-corner spans ``s`` of the face.
+
+    Attributes
+    ----------
+    sigma_detection : float
+        Standard deviation of a detected point at confidence 1; a point of confidence ``c`` has
+        variance ``(sigma_detection s)**2 / c``.
+    sigma_motion : float
+        Standard deviation per frame of the motion that optical flow does not explain.
+    flow_gain : float
+        The flow's forward-backward error ``e`` (pixels) adds ``(flow_gain e)**2`` to the motion variance.
+    gate : float
+        Innovation gate in standard deviations: a detection farther than this from the flow's
+        prediction is a change of shape the flow missed (a blink, a lip closure), and the
+        prediction's variance is raised to the innovation's so the detection is followed.
+    lid_lip_motion : float
+        *sigma_motion* of the eye and inner-lip points (:data:`LID_LIP_POINTS`), which lean on
+        the detections: flow there follows the skin under a closing lid, not its edge.
+    """
+
+    sigma_detection: float = 0.012
+    sigma_motion: float = 0.01
+    flow_gain: float = 1.0
+    gate: float = 3.0
+    lid_lip_motion: float = 0.1
+
+
+#: The eyes' and inner lips' points (0-based Multi-PIE ids 36-47, 60-67): lids close over the eye and
+#: lips over the mouth, where optical flow follows the skin's texture rather than the edge, so these
+#: points lean on the detections (blinks keep the detector's amplitude; the corners move with the lids
+#: so the measured openings stay consistent). Chosen on the shared clips: see bench/track_real.py.
+LID_LIP_POINTS = tuple(range(36, 48)) + tuple(range(60, 68))
+
+
+#: Variance standing for "no information" (finite so that gains stay defined).
+_NO_INFORMATION = 1e12
+
+
+class FlowFusion:
+    """Per-point Kalman filter and Rauch-Tung-Striebel smoother joining detections and optical flow.
+
+    Each landmark ``x_t`` (2,) follows the frame-to-frame motion that pyramidal
+    Lucas-Kanade flow measures between consecutive frames, ``u_t``, plus white
+    noise: ``x_t = x_{t-1} + u_t + w_t``, ``w_t ~ N(0, q_t I)``; the detector
+    measures it, ``D_t = x_t + v_t``, ``v_t ~ N(0, r_t I)``. Per frame
+    (:meth:`step`), the forward pass predicts ``x^-_t = x_{t-1} + u_t``,
+    ``P^-_t = P_{t-1} + q_t``, and updates with the gain
+    ``K = P^-_t / (P^-_t + r_t)``: ``x_t = x^-_t + K (D_t - x^-_t)``,
+    ``P_t = (1 - K) P^-_t``. :meth:`smooth` runs the Rauch-Tung-Striebel
+    backward pass of this model (transition identity):
+    ``x^s_t = x_t + G_t (x^s_{t+1} - x^-_{t+1})``, ``G_t = P_t / P^-_{t+1}``.
+
+    The detector's per-frame jitter is averaged away along the flow, the
+    flow's drift is pulled back to the detections, and where a detection
+    leaves the prediction by more than ``gate`` standard deviations (the flow
+    lost an eyelid or a lip) the prediction's variance is raised to the
+    innovation's, so the gain is close to 1 and the smoother does not blur
+    across the event: eyelids close and lips part as the detector sees them.
+    A point whose flow fails (forward-backward error infinite) moves with the
+    median flow of the others and takes the detection as it is.
+
+    Parameters
+    ----------
+    settings : FusionSettings, optional
+    window, levels : int
+        Lucas-Kanade window side and pyramid levels.
+    """
+
+    def __init__(self, settings: FusionSettings | None = None, *, window: int = 21, levels: int = 3):
+        import cv2
+
+        self.settings = settings or FusionSettings()
+        self.window, self.levels = int(window), int(levels)
+        self._lk = dict(winSize=(self.window, self.window), maxLevel=self.levels,
+                        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+        self._g = None
+        self._x = None
+        self._P = None
+        self._xf, self._Pf, self._xp, self._Pp = [], [], [], []
+
+    def _flow(self, g) -> tuple[np.ndarray, np.ndarray]:
+        """Flow of the current estimate from the previous frame to *g*.
+
+        Returns the displacement (L, 2) and the motion variance ``q`` (L,). Both frames are cropped
+        to the points' box (:class:`~retarget_cli.track.lk._Box`), so the cost does not grow with
+        the video's resolution.
+        """
+        from .lk import _Box
+
+        x = self._x
+        box = _Box(x, (g.shape[1], g.shape[0]), self.window, self.levels)
+        moved, fb = box.flow(box.crop(self._g), box.crop(g), x.astype(np.float32).reshape(-1, 1, 2), self._lk)
+        ok = np.isfinite(fb)
+        u = moved.reshape(-1, 2).astype(np.float64) - x
+        if not ok.any():
+            return np.zeros_like(x), np.full(len(x), _NO_INFORMATION)
+        u[~ok] = np.median(u[ok], axis=0)
+        _, span, _ = _frame_of(x)
+        sigma = np.full(len(x), self.settings.sigma_motion)
+        if len(x) == 68:
+            sigma[list(LID_LIP_POINTS)] = self.settings.lid_lip_motion
+        q = (sigma * span) ** 2 + (self.settings.flow_gain * np.where(ok, fb, 0.0)) ** 2
+        return u, np.where(ok, q, _NO_INFORMATION)
+
+    def step(self, g, detection, confidence, *, exact: bool = False, reset: bool = False) -> np.ndarray:
+        """Filter one frame.
+
+        Parameters
+        ----------
+        g : ndarray (H, W), uint8
+            The frame the detection was made on.
+        detection : ndarray (L, 2) or None
+            Detected points; None when the frame has no face (the flow's prediction is kept).
+        confidence : ndarray (L,) or None
+            Per-point confidence in (0, 1] of *detection*.
+        exact : bool
+            The detection is an annotation: taken as it is.
+        reset : bool
+            The face was found afresh: forget the track (no flow from the previous frame).
+
+        Returns
+        -------
+        ndarray (L, 2)
+            The forward (causal) estimate of this frame.
+        """
+        st = self.settings
+        if self._x is None or reset:
+            if detection is None:
+                raise ShapeError("fusion: the first frame of a track needs a detection")
+            xp = np.asarray(detection, np.float64).copy()
+            Pp = np.full(len(xp), _NO_INFORMATION)
+        else:
+            u, q = self._flow(g)
+            xp, Pp = self._x + u, np.minimum(self._P + q, _NO_INFORMATION)
+        if detection is None:
+            x, P = xp, Pp
+        else:
+            D = np.asarray(detection, np.float64)
+            _, span, _ = _frame_of(D)
+            c = np.clip(np.asarray(confidence, np.float64), 1e-3, 1.0)
+            r = np.full(len(D), 1e-12) if exact else (st.sigma_detection * span) ** 2 / c
+            v = D - xp
+            m = 0.5 * (v * v).sum(axis=1)  # per-axis squared innovation
+            jump = m > st.gate ** 2 * (Pp + r)
+            Pp = np.where(jump, np.maximum(Pp, m), Pp)
+            K = Pp / (Pp + r)
+            x, P = xp + K[:, None] * v, (1.0 - K) * Pp
+        self._g, self._x, self._P = g, x, P
+        self._xf.append(x)
+        self._Pf.append(P)
+        self._xp.append(xp)
+        self._Pp.append(Pp)
+        return x
+
+    def smooth(self) -> np.ndarray:
+        """Rauch-Tung-Striebel estimates of every frame so far, shape (T, L, 2)."""
+        xf, Pf = np.stack(self._xf), np.stack(self._Pf)
+        xp, Pp = np.stack(self._xp), np.stack(self._Pp)
+        xs = xf.copy()
+        for t in range(len(xf) - 2, -1, -1):
+            G = Pf[t] / Pp[t + 1]
+            xs[t] = xf[t] + G[:, None] * (xs[t + 1] - xp[t + 1])
+        return xs
+
+
 def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: Detector | None = None,
                  downscale: float = 1.0, tau: float = 0.05, max_jump: float = 0.5, max_disagreement: float = 0.08,
-                 lost_frames: int = 25, progress=None):
+                 lost_frames: int = 25, fuse: bool = True, fusion: FusionSettings | None = None, progress=None):
     """Landmarks on every frame by the pretrained detector, the face box following the previous frame.
 
     Per frame: the predictor fits the box of the previous frame's landmarks
@@ -199,8 +374,10 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
     moved by more than *max_jump* of its side or changed its size by more
     than that fraction; the face detector then runs on the whole frame (the
     face nearest the previous box), as on the first frame. A frame with no
-    face keeps the previous landmarks with confidence 0. Annotated frames
-    return their annotation with confidence 1 and re-place the box.
+    face keeps the previous landmarks (moved by the flow when *fuse*) with
+    confidence 0. Annotated frames return their annotation with confidence 1
+    and re-place the box. The confidences are the detector's, with or without
+    fusion.
 
     Parameters
     ----------
@@ -214,6 +391,12 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
     tau, max_jump, max_disagreement : float
     lost_frames : int
         Raise :class:`~retarget_cli.track.lk.FaceLostError` after this many frames in a row without a face.
+    fuse : bool
+        Join the detections with optical flow (:class:`FlowFusion`: a Kalman filter along the
+        flow and a Rauch-Tung-Striebel smoother over the take). False: the detections as they are,
+        each frame on its own.
+    fusion : FusionSettings, optional
+        Noise model of the fusion.
     progress : callable, optional
         Called with the frame index after each frame.
 
@@ -236,13 +419,14 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
             raise ShapeError(f"annotations: frame {t} has shape {P.shape}; the detector places (68, 2) points")
     det = detector or Detector()
     k = float(downscale)
+    fuser = FlowFusion(fusion) if fuse else None
     pts, conf = [], []
     calib, P_prev, box_prev, missing = DEFAULT_BOX, None, None, 0
     for t, frame in enumerate(frames):
         g = _scaled(_gray(frame), k)
-        P, c = None, None
+        P, c, fresh = None, None, False
         if t in ann:
-            P, c = _to_scaled(ann[t], k), np.ones(68)
+            P, c, fresh = _to_scaled(ann[t], k), np.ones(68), True
         elif P_prev is not None and missing == 0:
             box = box_from_points(P_prev, calib)
             first = det.landmarks(g, box)
@@ -261,7 +445,7 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
             found, fbox = detect_landmarks(g, detector=det, previous=box_prev)
             if found is not None:
                 calib = calibrate_box(found, fbox)
-                P = found
+                P, fresh = found, True
                 again = det.landmarks(g, box_from_points(found, calib))
                 _, s, _ = _frame_of(again)
                 c = np.exp(-np.linalg.norm(again - found, axis=1) / (tau * s))
@@ -275,13 +459,16 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
                     f0 = t - missing + 1
                     raise FaceLostError(f"the face was lost from frame {f0}: no face found for {missing} frames "
                                         f"in a row", f0, np.stack(pts[:f0]), np.stack(conf[:f0]))
-                pts.append(pts[-1])
+                held = pts[-1] if fuser is None else _from_scaled(fuser.step(g, None, None, exact=False), k)
+                pts.append(held)
                 conf.append(np.zeros(68))
                 if progress is not None:
                     progress(t)
                 continue
         missing = 0
         P_prev, box_prev = P, box_from_points(P, calib)
+        if fuser is not None:
+            P = fuser.step(g, P, c, exact=t in ann, reset=fresh and t not in ann)
         pts.append(_from_scaled(P, k))
         conf.append(c)
         if progress is not None:
@@ -289,6 +476,8 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
     if not pts:
         raise ShapeError("frames: the sequence is empty")
     out = np.stack(pts)
+    if fuser is not None:
+        out = _from_scaled(fuser.smooth(), k)
     for t in ann:  # annotated frames exactly as given
         if t < len(out):
             out[t] = ann[t]

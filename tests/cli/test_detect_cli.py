@@ -84,7 +84,8 @@ def test_track_detect_closes_the_eyes_on_the_blink(real_clip, tmp_path):
     assert e[53:56].max() > 0.9 * open_eyes  # and they open again (from 56 on she looks down)
     # lk, anchored to the open eyes of frame 0, does not follow the blink as far
     lk = tmp_path / "lk.npz"
-    assert run("track", real_clip / "d3.avi", "--init", real_clip / "d3_00000.pts", "-o", lk).exit_code == 0
+    assert run("track", real_clip / "d3.avi", "--method", "lk", "--init", real_clip / "d3_00000.pts",
+               "-o", lk).exit_code == 0
     e_lk = eye_opening(load_landmarks(lk).points)
     assert e[BLINK].min() / open_eyes < e_lk[BLINK].min() / np.median(e_lk[:40])
 

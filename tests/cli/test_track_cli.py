@@ -26,7 +26,7 @@ def error(npz, truth, frames):
 
 def test_track_video_range_step_and_overlay(small_take, truth, tmp_path):
     out, ov = tmp_path / "lm.npz", tmp_path / "overlay.mp4"
-    r = run("track", small_take / "face.mp4", "--init", small_take / "face_00000.pts", "-o", out,
+    r = run("track", "--method", "lk", small_take / "face.mp4", "--init", small_take / "face_00000.pts", "-o", out,
             "--end", 30, "--step", 2, "--overlay", ov)
     assert r.exit_code == 0, r.output
     lm = load_npz(out)
@@ -54,11 +54,11 @@ def test_track_image_sequence_png_and_exr_with_csv_annotation(small_take, truth,
     csv = tmp_path / "ann.csv"
     write_csv_landmarks(csv, truth["points"][:1])
     out = tmp_path / "png.npz"
-    r = run("track", str(seq / "f_%04d.png"), "--init", csv, "-o", out)
+    r = run("track", "--method", "lk", str(seq / "f_%04d.png"), "--init", csv, "-o", out)
     assert r.exit_code == 0, r.output
     assert error(out, truth, slice(0, 12)) < 0.8
     out2 = tmp_path / "exr.npz"
-    r = run("track", str(seq / "e_*.exr"), "--init", csv, "-o", out2, "--fps", 24)
+    r = run("track", "--method", "lk", str(seq / "e_*.exr"), "--init", csv, "-o", out2, "--fps", 24)
     assert r.exit_code == 0, r.output
     assert load_npz(out2)["fps"] == 24
     assert error(out2, truth, slice(0, 12)) < 1.0
@@ -74,7 +74,7 @@ def test_track_several_pts_reanchor(small_take, truth, tmp_path):
 
 
 def test_track_start_must_be_annotated(small_take, tmp_path):
-    r = run("track", small_take / "face.mp4", "--init", small_take / "face_00000.pts", "--start", 5,
+    r = run("track", "--method", "lk", small_take / "face.mp4", "--init", small_take / "face_00000.pts", "--start", 5,
             "-o", tmp_path / "x.npz")
     assert r.exit_code == 1 and "first tracked frame (5) must be annotated" in r.output
 
@@ -118,7 +118,7 @@ def test_lost_face_is_reported(small_take, tmp_path):
         if i >= 8:
             frame = np.full_like(frame, 128)  # the face leaves the picture
         cv2.imwrite(str(seq / f"{i:03d}.png"), frame)
-    r = run("track", str(seq / "*.png"), "--init", small_take / "face_00000.pts", "-o", tmp_path / "x.npz")
+    r = run("track", "--method", "lk", str(seq / "*.png"), "--init", small_take / "face_00000.pts", "-o", tmp_path / "x.npz")
     assert r.exit_code == 1 and "the face was lost from frame" in r.output
 
 

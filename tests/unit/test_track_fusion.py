@@ -1,0 +1,116 @@
+"""Detection + optical flow fusion (track.detect.FlowFusion) and the default tracker on a synthetic blink."""
+
+import importlib.util
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from retarget_cli.track.detect import FlowFusion, FusionSettings, eye_opening
+
+SAMPLE = Path(__file__).resolve().parents[2] / "sample_data"
+HAS_DLIB = importlib.util.find_spec("dlib") is not None and importlib.util.find_spec("face_recognition_models") \
+    is not None
+needs_dlib = pytest.mark.skipif(not HAS_DLIB, reason="needs the optional extra 'detect' (dlib-bin, "
+                                                    "face_recognition_models): pip install -e '.[detect]'")
+
+
+def _face_points(rng):
+    """68 points of a face-like layout in a 200x200 frame: eye corners 36, 39, 42, 45 set for the span."""
+    P = rng.uniform(60, 140, (68, 2))
+    P[36], P[39], P[42], P[45] = (70, 90), (90, 90), (110, 90), (130, 90)
+    return P
+
+
+def _textured(seed=0, size=200):
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (size, size)).astype(np.float32), (0, 0), 2.0)
+    return cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+
+
+def _shift(img, dx):
+    M = np.float32([[1, 0, dx], [0, 1, 0]])
+    return cv2.warpAffine(img, M, (img.shape[1], img.shape[0]), borderMode=cv2.BORDER_REFLECT)
+
+
+def test_fusion_averages_detection_jitter_along_the_flow():
+    """A textured frame moving 1 px/frame: detections with 2 px jitter (0.05 of the 40 px eye-corner span,
+    the noise the settings declare) come out much steadier."""
+    rng = np.random.default_rng(1)
+    base, P0 = _textured(), _face_points(rng)
+    T = 40
+    truth = np.stack([P0 + [t * 1.0, 0] for t in range(T)])
+    det = truth + rng.normal(0, 2.0, truth.shape)
+    fuser = FlowFusion(FusionSettings(sigma_detection=0.05, lid_lip_motion=0.01))
+    fwd = np.stack([fuser.step(_shift(base, t * 1.0), det[t], np.ones(68)) for t in range(T)])
+    smooth = fuser.smooth()
+    err = lambda X: np.sqrt(((X[5:] - truth[5:]) ** 2).sum(-1).mean())  # noqa: E731
+    assert err(fwd) < 0.6 * err(det), (err(fwd), err(det))
+    assert err(smooth) < 0.8 * err(fwd), (err(smooth), err(fwd))
+
+
+def test_fusion_follows_a_change_of_shape_the_flow_misses():
+    """Static frames (flow 0) but the detection jumps 8 px for 3 frames: the track reaches >= 90 % of it."""
+    rng = np.random.default_rng(2)
+    img, P0 = _textured(3), _face_points(rng)
+    det = np.repeat(P0[None], 30, axis=0)
+    det[12:15, 37:42, 1] += 8.0  # an eyelid closing for 3 frames
+    fuser = FlowFusion()
+    for t in range(30):
+        fuser.step(img, det[t], np.ones(68))
+    out = fuser.smooth()
+    assert (out[12:15, 37:42, 1] - P0[37:42, 1] >= 0.9 * 8.0).all(), out[12:15, 37:42, 1] - P0[37:42, 1]
+    # and steady points are not dragged along
+    assert np.abs(out[:, 48:] - P0[48:]).max() < 0.1
+
+
+def test_fusion_without_a_detection_follows_the_flow():
+    img, P0 = _textured(4), _face_points(np.random.default_rng(3))
+    fuser = FlowFusion()
+    fuser.step(img, P0, np.ones(68))
+    x = fuser.step(_shift(img, 3.0), None, None)
+    assert np.abs(np.median(x - P0, axis=0) - [3.0, 0.0]).max() < 0.3
+
+
+def test_annotated_frames_are_taken_exactly_and_reset_forgets_the_track():
+    img, P0 = _textured(5), _face_points(np.random.default_rng(4))
+    fuser = FlowFusion(FusionSettings(sigma_detection=0.05))
+    fuser.step(img, P0, np.ones(68))
+    exact = P0 + 0.7
+    np.testing.assert_allclose(fuser.step(img, exact, np.ones(68), exact=True), exact, atol=1e-9)
+    far = P0 + 40.0
+    np.testing.assert_array_equal(fuser.step(img, far, np.ones(68), reset=True), far)
+
+
+@needs_dlib
+def test_default_tracker_follows_a_synthetic_blink_that_lk_misses(tmp_path):
+    """sample_data's take blinks at frame 70 (truth eye opening 0.02 of the eye width against 0.31 open).
+
+    The default method (detect, fused with flow) closes the eyes about half way there (dlib's predictor
+    on this rendered face reaches 0.11 at best, fused 0.12-0.14); lk, anchored to the open eyes of the
+    annotation, hardly moves. The issue's target (90 % of the true closure) is not reached yet.
+    """
+    from retarget_cli.io.landmarks import load_landmarks
+    from retarget_cli.pipeline import stage_params
+    from retarget_cli.stages import run_track
+
+    assert {p.name: p.default for p in stage_params()["track"]}["method"] == "auto"
+    with np.load(SAMPLE / "truth_landmarks.npz") as d:
+        truth = eye_opening(d["points"][40:100])
+    blink = slice(27, 34)  # frames 67-73
+    true_closure = np.median(truth) - truth[blink].min()
+    assert true_closure > 0.25
+
+    def closure(**kw):
+        out = tmp_path / f"{kw.get('method', 'default')}.npz"
+        run_track(video=str(SAMPLE / "face.mp4"), output=str(out), start=40, end=100, **kw)
+        lm = load_landmarks(out)
+        e = eye_opening(lm.points)
+        return (np.median(e) - e[blink].min()) / true_closure, lm.meta["tracker"]
+
+    fused, tracker = closure(init="auto")
+    assert tracker == "detect"
+    lk, _ = closure(init=str(tmp_path / "default.init_00040.pts"), method="lk")
+    assert fused >= 0.45, fused
+    assert lk < 0.1, lk
