@@ -20,7 +20,8 @@ Then ``retarget run`` on the default take gives the retargeted OBJ sequence's
 mean vertex error relative to the mean ground-truth expression displacement.
 
 Run: ``python bench/track.py [--frames 600] [--size 320x320] [--seed 0] [--no-pipeline]
-[--only lk] [--takes default,stressed]``.
+[--only lk] [--takes default,stressed] [--production-sizes 1280x720,1920x1080]``. The production
+sizes are default takes at 720p and 1080p tracked by the default method (``detect``) only.
 """
 
 from __future__ import annotations
@@ -64,7 +65,8 @@ def methods():
         from retarget_cli.track.detect import Detector, track_detect
 
         det = Detector()
-        out["detect (no annotation)"] = lambda fr, tr: track_detect(fr, detector=det)
+        out["detect (no annotation; fused with flow: the default)"] = lambda fr, tr: track_detect(fr, detector=det)
+        out["detect raw (fuse=False)"] = lambda fr, tr: track_detect(fr, detector=det, fuse=False)
     except ConfigError as exc:
         print(f"detect row skipped: {exc}", flush=True)
     try:
@@ -171,6 +173,9 @@ def main() -> None:
                     help="Run only the trackers whose row name starts with PREFIX (e.g. 'lk').")
     ap.add_argument("--takes", default="default,stressed,painted dots",
                     help="Comma-separated takes to generate and measure.")
+    ap.add_argument("--production-sizes", default="1280x720,1920x1080",
+                    help="Default takes at these sizes ('' none), tracked by the default method only.")
+    ap.add_argument("--production-frames", type=int, default=150)
     args = ap.parse_args()
     known = ("default", "stressed", "painted dots")
     takes = [t.strip() for t in args.takes.split(",")]
@@ -188,6 +193,12 @@ def main() -> None:
             d = Path(tmp) / label
             write_take(d, n_frames=args.frames, size=(w, h), seed=args.seed, **opts)
             rows += bench_take(d, label, marker_methods() if opts is DOTS else None, args.only)
+        default = {k: v for k, v in methods().items() if "the default" in k}
+        for size in filter(None, args.production_sizes.split(",")):
+            pw, ph = (int(v) for v in size.split("x"))
+            d = Path(tmp) / f"default-{size}"
+            write_take(d, n_frames=args.production_frames, size=(pw, ph), seed=args.seed)
+            rows += bench_take(d, f"default {size} ({args.production_frames} frames)", default or {})
         if not args.no_pipeline:
             rel = pipeline_error(Path(tmp) / "default")
     print(f"synthetic takes: {args.frames} frames at {w}x{h}, seed {args.seed}; stressed = {STRESS}")
