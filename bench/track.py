@@ -193,12 +193,21 @@ def main() -> None:
             d = Path(tmp) / label
             write_take(d, n_frames=args.frames, size=(w, h), seed=args.seed, **opts)
             rows += bench_take(d, label, marker_methods() if opts is DOTS else None, args.only)
-        default = {k: v for k, v in methods().items() if "the default" in k}
+        # HOG does not find the rendered face in these wide frames: start from the true frame-0 annotation
+        default = {}
+        try:
+            from retarget_cli.track.detect import Detector, track_detect
+
+            det = Detector()
+            default["detect (frame 0 annotated; fused with flow: the default)"] = \
+                lambda fr, tr: track_detect(fr, {0: tr[0]}, detector=det)
+        except ConfigError as exc:
+            print(f"production rows skipped: {exc}", flush=True)
         for size in filter(None, args.production_sizes.split(",")):
             pw, ph = (int(v) for v in size.split("x"))
             d = Path(tmp) / f"default-{size}"
             write_take(d, n_frames=args.production_frames, size=(pw, ph), seed=args.seed)
-            rows += bench_take(d, f"default {size} ({args.production_frames} frames)", default or {})
+            rows += bench_take(d, f"default {size} ({args.production_frames} frames)", default)
         if not args.no_pipeline:
             rel = pipeline_error(Path(tmp) / "default")
     print(f"synthetic takes: {args.frames} frames at {w}x{h}, seed {args.seed}; stressed = {STRESS}")
