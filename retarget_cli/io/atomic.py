@@ -112,8 +112,7 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
             info.external_attr = 0o644 << 16
             member = io.BytesIO()
             np.lib.format.write_array(member, arr, allow_pickle=False)
-            # level 1: several times faster than zlib's default (6) on float arrays, which barely compress more
-            zf.writestr(info, member.getvalue(), compresslevel=1 if compress else None)
+            zf.writestr(info, member.getvalue())
     write_bytes(path, buf.getvalue())
 
 
