@@ -331,15 +331,20 @@ def _corrective_spectra(C, pairs, m: int):
         cols = np.frombuffer(key, dtype=C.indices.dtype)
         shapes, local = np.unique(pairs[cols].ravel(), return_inverse=True)
         local = local.reshape(-1, 2)
-        rows = np.asarray(rows)
-        vals = np.stack([C.data[C.indptr[i]:C.indptr[i + 1]] for i in rows])  # (R, len(cols))
-        M = np.zeros((len(rows), len(shapes), len(shapes)))
-        M[:, local[:, 0], local[:, 1]] = 0.5 * vals
-        M[:, local[:, 1], local[:, 0]] = 0.5 * vals
-        ev = np.linalg.eigvalsh(M)
         pad = len(shapes) < m  # D^(i) has further zero eigenvalues
-        lam_min[rows] = np.minimum(ev[:, 0], 0.0) if pad else ev[:, 0]
-        lam_max[rows] = np.maximum(ev[:, -1], 0.0) if pad else ev[:, -1]
+        # a block of rows at a time: with dense correctives one layout covers every coordinate,
+        # and (3N, s, s) at once would not fit in memory (about 2**25 bytes per block)
+        step = max(1, 2**22 // (len(shapes) ** 2))
+        all_rows = np.asarray(rows)
+        for r0 in range(0, len(all_rows), step):
+            rows = all_rows[r0:r0 + step]
+            vals = np.stack([C.data[C.indptr[i]:C.indptr[i + 1]] for i in rows])  # (R, len(cols))
+            M = np.zeros((len(rows), len(shapes), len(shapes)))
+            M[:, local[:, 0], local[:, 1]] = 0.5 * vals
+            M[:, local[:, 1], local[:, 0]] = 0.5 * vals
+            ev = np.linalg.eigvalsh(M)
+            lam_min[rows] = np.minimum(ev[:, 0], 0.0) if pad else ev[:, 0]
+            lam_max[rows] = np.maximum(ev[:, -1], 0.0) if pad else ev[:, -1]
     sigma = np.maximum(np.abs(lam_min), np.abs(lam_max))  # D^(i) is symmetric
     return lam_min, lam_max, sigma
 
