@@ -68,11 +68,11 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
     T, K = Q.shape
     ws = _workspace(K)
     for t in range(T):
-        done[t] = _frame(H, Q[t], lo, hi, X0[t], False, Hinv, hscale, max_iter, X[t], *ws)
+        done[t] = _frame(H, Q[t], lo, hi, X0[t], False, False, Hinv, hscale, max_iter, X[t], *ws)
 
 
 @njit(cache=True, nogil=True)
-def pdas_frames_weighted(Htri, pairs, Q, lo, hi, max_iter, X, done):  # pragma: no cover - compiled
+def pdas_frames_weighted(Htri, Q, lo, hi, max_iter, X, done):  # pragma: no cover - compiled
     """:func:`pdas_frames` with a Hessian per frame, each given by its upper triangle.
 
     Parameters
@@ -80,8 +80,6 @@ def pdas_frames_weighted(Htri, pairs, Q, lo, hi, max_iter, X, done):  # pragma: 
     Htri : ndarray, shape (T, K(K+1)/2)
         Row ``t`` holds ``H_t[i, j]`` for ``i ≤ j``, in the order of
         ``numpy.triu_indices(K)``.
-    pairs : ndarray of int, shape (K, K)
-        ``pairs[i, j]``: the column of ``H[i, j]`` (= ``H[j, i]``) in *Htri*.
     Q, lo, hi, max_iter, X, done
         As for :func:`pdas_frames`.
 
@@ -89,21 +87,28 @@ def pdas_frames_weighted(Htri, pairs, Q, lo, hi, max_iter, X, done):  # pragma: 
     -----
     Each frame's Hessian is unpacked, regularised as the shared one is
     (``1e-14·max(diag H_t)`` added to its diagonal) and solved by the same
-    iteration, started from the unconstrained minimiser: in the first
-    iteration every variable is free.
+    iteration. The first frame starts from the unconstrained minimiser (in
+    its first iteration every variable is free); each later frame from the
+    active set of the frame before it (frames of a take change little from
+    one to the next), which only changes how many iterations it takes.
     """
     T, K = Q.shape
     ws = _workspace(K)
     H = np.empty((K, K))
     for t in range(T):
         hscale = 1e-300
+        k = 0
+        for i in range(K):  # the rows of Htri are in numpy.triu_indices order
+            hscale = max(hscale, abs(Htri[t, k]))
+            for j in range(i, K):
+                H[i, j] = H[j, i] = Htri[t, k]
+                k += 1
         for i in range(K):
-            hscale = max(hscale, abs(Htri[t, pairs[i, i]]))
-        for i in range(K):
-            for j in range(K):
-                H[i, j] = Htri[t, pairs[i, j]]
             H[i, i] += 1e-14 * hscale
-        done[t] = _frame(H, Q[t], lo, hi, Q[t], True, None, hscale, max_iter, X[t], *ws)
+        if t and done[t - 1]:  # consecutive frames of a take: the last active set is a close guess
+            done[t] = _frame(H, Q[t], lo, hi, X[t - 1], False, True, None, hscale, max_iter, X[t], *ws)
+        else:
+            done[t] = _frame(H, Q[t], lo, hi, Q[t], True, False, None, hscale, max_iter, X[t], *ws)
 
 
 @njit(cache=True, nogil=True)
@@ -115,12 +120,13 @@ def _workspace(K):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _frame(H, q, lo, hi, x0, start_free, Hinv, hscale, max_iter, out,
+def _frame(H, q, lo, hi, x0, start_free, warm, Hinv, hscale, max_iter, out,
            status, F, prevF, N, L, dinv, b, x, bad, grad, Z):  # pragma: no cover - compiled
     """One frame of :func:`pdas_frames`; True (and the solution in *out*) once its KKT conditions hold.
 
     The first active set is that of *x0* (the unconstrained minimiser), or
-    every variable free when *start_free*. *status* (-1 at the lower bound,
+    every variable free when *start_free*, or with *warm* that of the
+    previous solution *x0* (its variables at a bound start bound). *status* (-1 at the lower bound,
     +1 at the upper, 0 free), *F* (free variables, ascending), *prevF* (the
     free set whose factor *L* holds), *N* (bound variables with a nonzero
     value), *dinv* (reciprocals of L's diagonal) and the rest are scratch.
@@ -131,6 +137,8 @@ def _frame(H, q, lo, hi, x0, start_free, Hinv, hscale, max_iter, out,
         qs = max(qs, abs(q[i]))
         if start_free:
             status[i] = 0
+        elif warm:  # x0 is a previous solution: variables at a bound start bound
+            status[i] = -1 if x0[i] <= lo[i] else (1 if x0[i] >= hi[i] else 0)
         elif x0[i] < lo[i]:
             status[i] = -1
         elif x0[i] > hi[i]:

@@ -596,7 +596,7 @@ def box_qp_weighted(Htri, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: 
             from ._qp_kernel import pdas_frames_weighted
 
             done = np.empty(T, dtype=bool)
-            pdas_frames_weighted(Htri, pairs, Q, lo, hi, max_iter, X, done)
+            pdas_frames_weighted(Htri, Q, lo, hi, max_iter, X, done)
             rows = np.flatnonzero(~done)
             if rows.size:
                 log.debug("box_qp_weighted: %d of %d frames left by the compiled kernel", rows.size, T)
