@@ -16,6 +16,23 @@ including frame 0.
 Run: ``python bench/decompose.py [--frames T] [--keys 10,22,40] [--scipy-frames N]``.
 The scipy loop is timed on the first N frames (default all) and scaled.
 
+Real tracking gives every landmark its own confidence in every frame, so each
+frame has its own Hessian ``B C_t Bᵀ``. Two more rows measure that case, with
+confidences drawn in [0.7, 1] for every point of every frame (both coordinates
+of a point share it, as ``track`` writes them), K = 22:
+
+* in-process (``--weighted-frames``, default 5,000):
+  ``nnls_batched(..., confidence=C)`` (numpy iteration and compiled kernel,
+  each forced, and the default choice by size) against ``scipy.optimize.nnls``
+  per frame on the rows scaled by ``√c``, formed before the timing;
+* whole process (``--process-frames``, default 50,000): ``retarget decompose``
+  on a ``landmarks.npz`` + ``keys.json`` against a ``python`` process that
+  loads the same file and runs the same scipy loop, writing its weights.
+
+Both check the objective ``Σ_d c_{t,d} r_{t,d}²`` against scipy's (same
+relative gap as above, floor ``1e-10·Σ c s²``). ``--quick`` runs the weighted
+rows only.
+
 ``--accuracy`` instead measures the end-to-end retargeting error of each
 decomposition setting on synthetic takes (``retarget synth`` then
 ``retarget run``, error as in ``tests/e2e``: mean vertex error over mean true
@@ -113,6 +130,103 @@ def accuracy(settings) -> None:
         print(f"{s:<58}" + "".join(f"{e:>14.1f}%" for e in errs))
 
 
+def confidences(T: int, L: int, seed: int = 1) -> np.ndarray:
+    """(T, 2L) row weights: one confidence in [0.7, 1] per point and frame, shared by its x and y."""
+    return np.random.default_rng(seed).uniform(0.7, 1.0, (T, L)).repeat(2, axis=1)
+
+
+def weighted_gap(X, B, C, W, ref_f) -> float:
+    f = np.sum(C * (X - W @ B) ** 2, axis=1)
+    return float(np.max((f - ref_f) / np.maximum(ref_f, 1e-10 * np.sum(C * X**2, axis=1))))
+
+
+def weighted_row(T: int, repeat: int, K: int = 22) -> float:
+    """In-process weighted NNLS against the scipy loop; returns the worst objective gap."""
+    from scipy.optimize import nnls
+
+    from retarget_cli.decompose import _KERNEL_MIN_WORK_WEIGHTED, nnls_batched
+    from retarget_cli.select import select_keys
+
+    X = take(T)
+    B = X[select_keys(X, K, include=(0,))]
+    C = confidences(T, X.shape[1] // 2)
+    rw = np.sqrt(C)
+    A = [np.ascontiguousarray(B.T * r[:, None]) for r in rw]  # the peer's weighted rows, formed untimed
+    b = X * rw
+    nnls_batched(X[:100], B, confidence=C[:100], compiled=True)  # load the kernel outside the timing
+    ts, ref = best_of(lambda: np.array([nnls(A[t], b[t])[0] for t in range(T)]), repeat)
+    ref_f = np.sum(C * (X - ref @ B) ** 2, axis=1)
+    print(f"Weighted NNLS, confidences in [0.7, 1] on every point: T = {T}, K = {K}, D = {X.shape[1]}; "
+          f"best of {repeat}")
+    print(f"{'path':<34}{'frames/s':>12}{'vs scipy':>10}{'max rel. objective gap':>25}")
+    print(f"{'scipy.optimize.nnls per frame':<34}{T / ts:>12,.0f}{1:>9.1f}x{0:>25.2e}")
+    worst = 0.0
+    default = "compiled" if T * K >= _KERNEL_MIN_WORK_WEIGHTED else "numpy"
+    for name, comp in (("retarget, numpy iteration", False), ("retarget, compiled kernel", True),
+                       (f"retarget, default ({default})", None)):
+        t, W = best_of(lambda comp=comp: nnls_batched(X, B, confidence=C, compiled=comp), repeat)
+        gap = weighted_gap(X, B, C, W, ref_f)
+        worst = max(worst, gap)
+        print(f"{name:<34}{T / t:>12,.0f}{ts / t:>9.1f}x{gap:>25.2e}")
+    print(f"(the default uses the compiled kernel from T*K >= {_KERNEL_MIN_WORK_WEIGHTED:,}: a fresh process "
+          f"spends about half a second loading it)")
+    return worst
+
+
+PEER = """
+import sys, numpy as np
+from scipy.optimize import nnls
+d = np.load(sys.argv[1]); frames = [int(f) for f in sys.argv[3].split(",")]
+X = d["stabilized"].astype(np.float64).reshape(len(d["stabilized"]), -1)
+rw = np.sqrt(np.repeat(d["confidence"].astype(np.float64), 2, axis=1))
+BT = X[frames].T
+W = np.array([nnls(BT * r[:, None], x * r)[0] for x, r in zip(X, rw)])
+np.savez(sys.argv[2], W=W)
+"""
+
+
+def process_row(T: int, repeat: int, K: int = 22) -> float:
+    """Whole-process ``retarget decompose`` against a scipy-loop process; returns the objective gap."""
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    from retarget_cli.io.landmarks import Landmarks, save_landmarks
+    from retarget_cli.io.stagefiles import load_weights, write_keys
+    from retarget_cli.select import select_keys
+
+    X = take(T)
+    L = X.shape[1] // 2
+    frames = [int(f) for f in select_keys(X, K, include=(0,))]
+    C = confidences(T, L)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        pts = X.reshape(T, L, 2).astype(np.float32)
+        head = np.tile(np.array([[1.0, 0, 0], [0, 1.0, 0]], dtype=np.float32), (T, 1, 1))
+        save_landmarks(tmp / "landmarks.npz", Landmarks(points=pts, confidence=C[:, ::2].astype(np.float32),
+                                                        head=head, stabilized=pts))
+        write_keys(tmp / "keys.json", tmp / "landmarks.npz",
+                   {"face": {"points": list(range(L)), "method": "bench", "frames": frames, "error": 0.0}})
+        exe = Path(sys.executable).with_name("retarget")
+        ours = [str(exe), "-q", "decompose", str(tmp / "landmarks.npz"), str(tmp / "keys.json"),
+                "-o", str(tmp / "out" / "weights.npz"), "--no-summary"]
+        peer = [sys.executable, "-c", PEER, str(tmp / "landmarks.npz"), str(tmp / "peer.npz"),
+                ",".join(map(str, frames))]
+        run = lambda cmd: subprocess.run(cmd, check=True, capture_output=True)  # noqa: E731
+        t_ours, _ = best_of(lambda: run(ours), repeat)
+        t_peer, _ = best_of(lambda: run(peer), repeat)
+        W = load_weights(tmp / "out" / "weights.npz")[0]["face"][0]
+        ref = np.load(tmp / "peer.npz")["W"]
+    Xf = pts.reshape(T, -1).astype(np.float64)
+    B, Cf = Xf[frames], np.repeat(C[:, ::2].astype(np.float32).astype(np.float64), 2, axis=1)
+    gap = weighted_gap(Xf, B, Cf, W, np.sum(Cf * (Xf - ref @ B) ** 2, axis=1))
+    print(f"\nWhole process, {T:,} frames, K = {K}, confidences in [0.7, 1]: `retarget decompose` {t_ours:.2f} s, "
+          f"scipy nnls loop process {t_peer:.2f} s: {t_peer / t_ours:.1f}x; max rel. objective gap {gap:.2e} "
+          f"(best of {repeat})")
+    return gap
+
+
 def main() -> None:
     from scipy.optimize import nnls
 
@@ -125,10 +239,19 @@ def main() -> None:
     ap.add_argument("--scipy-frames", type=int, default=None)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--accuracy", action="store_true", help="End-to-end error of each decompose setting instead.")
+    ap.add_argument("--weighted-frames", type=int, default=5000)
+    ap.add_argument("--process-frames", type=int, default=50_000)
+    ap.add_argument("--quick", action="store_true", help="Only the two weighted rows.")
     args = ap.parse_args()
     if args.accuracy:
         accuracy(SETTINGS)
         return
+    wgap = max(weighted_row(args.weighted_frames, args.repeat), process_row(args.process_frames, min(args.repeat, 2)))
+    if wgap > 1e-8:
+        raise SystemExit(f"weighted batched NNLS objective differs from scipy's by {wgap:.2e} (relative)")
+    if args.quick:
+        return
+    print()
     T = args.frames
     X = take(T)
     n_ref = min(args.scipy_frames or T, T)

@@ -66,118 +66,175 @@ def pdas_frames(H, Q, lo, hi, X0, hscale, max_iter, X, done, Hinv=None):  # prag
     one is exchanged until the count improves.
     """
     T, K = Q.shape
-    status = np.empty(K, np.int8)  # -1 at lower bound, +1 at upper, 0 free
-    F = np.empty(K, np.int64)  # free variables, ascending
-    prevF = np.empty(K, np.int64)  # the free set whose factor L holds
-    N = np.empty(K, np.int64)  # bound variables with a nonzero value
-    L = np.empty((K, K))
-    dinv = np.empty(K)  # reciprocals of L's diagonal
-    b = np.empty(K)
-    x = np.empty(K)
-    bad = np.empty(K, np.bool_)
-    grad = np.empty(K)
-    Z = np.empty(K, np.int64)
+    ws = _workspace(K)
     for t in range(T):
-        done[t] = False
-        qs = 0.0
+        done[t] = _frame(H, Q[t], lo, hi, X0[t], False, False, Hinv, hscale, max_iter, X[t], *ws)
+
+
+@njit(cache=True, nogil=True)
+def pdas_frames_weighted(Htri, Q, lo, hi, max_iter, X, done):  # pragma: no cover - compiled
+    """:func:`pdas_frames` with a Hessian per frame, each given by its upper triangle.
+
+    Parameters
+    ----------
+    Htri : ndarray, shape (T, K(K+1)/2)
+        Row ``t`` holds ``H_t[i, j]`` for ``i ≤ j``, in the order of
+        ``numpy.triu_indices(K)``.
+    Q, lo, hi, max_iter, X, done
+        As for :func:`pdas_frames`.
+
+    Notes
+    -----
+    Each frame's Hessian is unpacked, regularised as the shared one is
+    (``1e-14·max(diag H_t)`` added to its diagonal) and solved by the same
+    iteration. The first frame starts from the unconstrained minimiser (in
+    its first iteration every variable is free); each later frame from the
+    active set of the frame before it (frames of a take change little from
+    one to the next), which only changes how many iterations it takes.
+    """
+    T, K = Q.shape
+    ws = _workspace(K)
+    H = np.empty((K, K))
+    for t in range(T):
+        hscale = 1e-300
+        k = 0
+        for i in range(K):  # the rows of Htri are in numpy.triu_indices order
+            hscale = max(hscale, abs(Htri[t, k]))
+            for j in range(i, K):
+                H[i, j] = H[j, i] = Htri[t, k]
+                k += 1
         for i in range(K):
-            qs = max(qs, abs(Q[t, i]))
-            if X0[t, i] < lo[i]:
-                status[i] = -1
-            elif X0[t, i] > hi[i]:
-                status[i] = 1
+            H[i, i] += 1e-14 * hscale
+        if t and done[t - 1]:  # consecutive frames of a take: the last active set is a close guess
+            done[t] = _frame(H, Q[t], lo, hi, X[t - 1], False, True, None, hscale, max_iter, X[t], *ws)
+        else:
+            done[t] = _frame(H, Q[t], lo, hi, Q[t], True, False, None, hscale, max_iter, X[t], *ws)
+
+
+@njit(cache=True, nogil=True)
+def _workspace(K):  # pragma: no cover - compiled
+    """Scratch arrays of :func:`_frame`, allocated once per call."""
+    return (np.empty(K, np.int8), np.empty(K, np.int64), np.empty(K, np.int64), np.empty(K, np.int64),
+            np.empty((K, K)), np.empty(K), np.empty(K), np.empty(K), np.empty(K, np.bool_), np.empty(K),
+            np.empty(K, np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _frame(H, q, lo, hi, x0, start_free, warm, Hinv, hscale, max_iter, out,
+           status, F, prevF, N, L, dinv, b, x, bad, grad, Z):  # pragma: no cover - compiled
+    """One frame of :func:`pdas_frames`; True (and the solution in *out*) once its KKT conditions hold.
+
+    The first active set is that of *x0* (the unconstrained minimiser), or
+    every variable free when *start_free*, or with *warm* that of the
+    previous solution *x0* (its variables at a bound start bound). *status* (-1 at the lower bound,
+    +1 at the upper, 0 free), *F* (free variables, ascending), *prevF* (the
+    free set whose factor *L* holds), *N* (bound variables with a nonzero
+    value), *dinv* (reciprocals of L's diagonal) and the rest are scratch.
+    """
+    K = len(q)
+    qs = 0.0
+    for i in range(K):
+        qs = max(qs, abs(q[i]))
+        if start_free:
+            status[i] = 0
+        elif warm:  # x0 is a previous solution: variables at a bound start bound
+            status[i] = -1 if x0[i] <= lo[i] else (1 if x0[i] >= hi[i] else 0)
+        elif x0[i] < lo[i]:
+            status[i] = -1
+        elif x0[i] > hi[i]:
+            status[i] = 1
+        else:
+            status[i] = 0
+    best = K + 2
+    tries = 3
+    pm = 0  # rows of L valid for prevF[:pm]
+    for it in range(max_iter):
+        m = 0
+        nn = 0
+        for i in range(K):
+            if status[i] == 0:
+                F[m] = i
+                m += 1
+                x[i] = 0.0
             else:
-                status[i] = 0
-        best = K + 2
-        tries = 3
-        pm = 0  # rows of L valid for prevF[:pm]
-        for it in range(max_iter):
-            m = 0
-            nn = 0
-            for i in range(K):
-                if status[i] == 0:
-                    F[m] = i
-                    m += 1
-                    x[i] = 0.0
-                else:
-                    x[i] = lo[i] if status[i] == -1 else hi[i]
-                    if x[i] != 0.0:
-                        N[nn] = i
-                        nn += 1
-            schur = False
-            if it == 0 and Hinv is not None and K - m < m:
-                schur = _schur_point(Hinv, X0[t], status, x, Z, L, dinv, b)
-                pm = 0
-            if not schur:
-                # reduced system H_FF x_F = q_F − H_FB x_B, by Cholesky; the rows of
-                # the factor for a prefix of F unchanged since the last iteration are kept
-                for a in range(m):
-                    s = Q[t, F[a]]
-                    for c in range(nn):
-                        s -= H[F[a], N[c]] * x[N[c]]
-                    b[a] = s
-                r = 0
-                while r < min(m, pm) and F[r] == prevF[r]:
-                    r += 1
-                if not _factor(H, F, r, m, L, dinv):
-                    break  # numerically singular: the caller finishes this frame
-                for a in range(m):
-                    prevF[a] = F[a]
-                pm = m
-                _solve(L, dinv, m, b)
-                for a in range(m):
-                    x[F[a]] = b[a]
-            xm = 0.0
-            for i in range(K):
-                xm = max(xm, abs(x[i]))
-            tolx = 1e-10 * (1.0 + xm)
-            tolg = 1e-11 * (qs + hscale * (1.0 + xm))
-            # KKT check: count the infeasible variables, remember the last one
-            ninf = 0
-            last = -1
-            # a Schur point is accurate to about cond(H)·eps only: there, values
-            # within 1e-8 of a bound are taken to be at it (a wrong guess is
-            # undone by the multiplier check of the next, direct, iteration)
-            tolf = -1e-8 * (1.0 + xm) if schur else tolx
-            # gradient Hx − q, as a sum of rows of H (H is symmetric) over the
-            # nonzero entries of x: contiguous loops the compiler vectorises
-            for i in range(K):
-                grad[i] = -Q[t, i]
+                x[i] = lo[i] if status[i] == -1 else hi[i]
+                if x[i] != 0.0:
+                    N[nn] = i
+                    nn += 1
+        schur = False
+        if it == 0 and Hinv is not None and K - m < m:
+            schur = _schur_point(Hinv, x0, status, x, Z, L, dinv, b)
+            pm = 0
+        if not schur:
+            # reduced system H_FF x_F = q_F − H_FB x_B, by Cholesky; the rows of
+            # the factor for a prefix of F unchanged since the last iteration are kept
             for a in range(m):
-                _axpy(x[F[a]], H, F[a], grad, K)
-            for c in range(nn):
-                _axpy(x[N[c]], H, N[c], grad, K)
-            for i in range(K):
-                if status[i] == 0:
-                    bad[i] = x[i] < lo[i] - tolf or x[i] > hi[i] + tolf
-                else:
-                    g = grad[i]
-                    bad[i] = (status[i] == -1 and g < -tolg) or (status[i] == 1 and g > tolg)
-                if bad[i]:
-                    ninf += 1
-                    last = i
-            if ninf == 0 and not schur:
-                for i in range(K):
-                    X[t, i] = x[i]
-                done[t] = True
-                break
-            full = True
-            if ninf < best:
-                best = ninf
-                tries = 3
-            elif tries > 0:
-                tries -= 1
+                s = q[F[a]]
+                for c in range(nn):
+                    s -= H[F[a], N[c]] * x[N[c]]
+                b[a] = s
+            r = 0
+            while r < min(m, pm) and F[r] == prevF[r]:
+                r += 1
+            if not _factor(H, F, r, m, L, dinv):
+                break  # numerically singular: the caller finishes this frame
+            for a in range(m):
+                prevF[a] = F[a]
+            pm = m
+            _solve(L, dinv, m, b)
+            for a in range(m):
+                x[F[a]] = b[a]
+        xm = 0.0
+        for i in range(K):
+            xm = max(xm, abs(x[i]))
+        tolx = 1e-10 * (1.0 + xm)
+        tolg = 1e-11 * (qs + hscale * (1.0 + xm))
+        # KKT check: count the infeasible variables, remember the last one
+        ninf = 0
+        last = -1
+        # a Schur point is accurate to about cond(H)·eps only: there, values
+        # within 1e-8 of a bound are taken to be at it (a wrong guess is
+        # undone by the multiplier check of the next, direct, iteration)
+        tolf = -1e-8 * (1.0 + xm) if schur else tolx
+        # gradient Hx − q, as a sum of rows of H (H is symmetric) over the
+        # nonzero entries of x: contiguous loops the compiler vectorises
+        for i in range(K):
+            grad[i] = -q[i]
+        for a in range(m):
+            _axpy(x[F[a]], H, F[a], grad, K)
+        for c in range(nn):
+            _axpy(x[N[c]], H, N[c], grad, K)
+        for i in range(K):
+            if status[i] == 0:
+                bad[i] = x[i] < lo[i] - tolf or x[i] > hi[i] + tolf
             else:
-                full = False
+                g = grad[i]
+                bad[i] = (status[i] == -1 and g < -tolg) or (status[i] == 1 and g > tolg)
+            if bad[i]:
+                ninf += 1
+                last = i
+        if ninf == 0 and not schur:
             for i in range(K):
-                if not bad[i] or not (full or i == last):
-                    continue
-                if status[i] != 0:
-                    status[i] = 0
-                elif x[i] < lo[i] - tolf:
-                    status[i] = -1
-                else:
-                    status[i] = 1
+                out[i] = x[i]
+            return True
+        full = True
+        if ninf < best:
+            best = ninf
+            tries = 3
+        elif tries > 0:
+            tries -= 1
+        else:
+            full = False
+        for i in range(K):
+            if not bad[i] or not (full or i == last):
+                continue
+            if status[i] != 0:
+                status[i] = 0
+            elif x[i] < lo[i] - tolf:
+                status[i] = -1
+            else:
+                status[i] = 1
+    return False
 
 
 @njit(cache=True, nogil=True)

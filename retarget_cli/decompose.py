@@ -29,8 +29,8 @@ compiled kernel); each frame's answer is certified by its KKT conditions, and th
 few frames that do not settle are finished by an exact per-frame primal
 active-set method (Nocedal & Wright, Algorithm 16.3). The result is the exact
 optimum, not an approximation. With per-frame confidence weights the Hessian
-differs per frame, and frames with distinct confidence rows are solved one
-call at a time.
+differs per frame: :func:`weighted_hessians` forms all of them in one matrix
+product and :func:`box_qp_weighted` solves them by the same method.
 """
 
 from __future__ import annotations
@@ -184,8 +184,15 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     if used.size:
         W[:, used] = _solve(S, B[used], C, solver=solver, convex=formulation == "convex",
                             lam=alpha * _spread(B[used]), upper=upper)
-    residual = np.linalg.norm(S - W @ B, axis=1)
-    return W, residual
+    return W, row_residuals(S, W, B)
+
+
+def row_residuals(S, W, B, step: int = 8192) -> np.ndarray:
+    """``‖S_t − W_t B‖`` per frame, a block of frames at a time (no (T, D) temporaries)."""
+    out = np.empty(len(S))
+    for c0 in range(0, len(S), step):
+        out[c0:c0 + step] = np.linalg.norm(S[c0:c0 + step] - W[c0:c0 + step] @ B, axis=1)
+    return out
 
 
 def reconstruction_error(frames, keys) -> float:
@@ -206,21 +213,27 @@ def reconstruction_error(frames, keys) -> float:
     return float(np.sum(res**2))
 
 
-def nnls_batched(frames, keys, *, upper: float | None = None, compiled: bool | None = None) -> np.ndarray:
+def nnls_batched(frames, keys, *, upper: float | None = None, confidence=None,
+                 compiled: bool | None = None) -> np.ndarray:
     """Exact non-negative least squares for every frame at once (eq. 4).
 
-    Solves ``min ‖S_t − Σ w_i S_i‖², w ≥ 0`` (and ``w ≤ upper``) for all
-    frames with one shared Gram matrix ``H = B Bᵀ`` through :func:`box_qp`;
-    agrees with ``scipy.optimize.nnls`` frame by frame.
+    Solves ``min ‖S_t − Σ w_i S_i‖²_{C_t}, w ≥ 0`` (and ``w ≤ upper``) for
+    all frames: with one shared Gram matrix ``H = B Bᵀ`` through
+    :func:`box_qp`, or, with *confidence*, with every frame's
+    ``H_t = B C_t Bᵀ`` formed in one product (:func:`weighted_hessians`)
+    through :func:`box_qp_weighted`. Agrees with ``scipy.optimize.nnls``
+    frame by frame (on the rows scaled by ``√c_t``).
 
     Parameters
     ----------
     frames : ndarray, shape (T, D)
     keys : ndarray, shape (K, D)
     upper : float, optional
+    confidence : ndarray, shape (T, D), optional
+        Non-negative weight of each coordinate in each frame.
     compiled : bool, optional
-        Force (True) or avoid (False) the compiled kernel; by default
-        :func:`box_qp` decides from the problem size.
+        Force (True) or avoid (False) the compiled kernel; by default the
+        solver decides from the problem size.
 
     Returns
     -------
@@ -230,8 +243,16 @@ def nnls_batched(frames, keys, *, upper: float | None = None, compiled: bool | N
     B = check_array(keys, "keys", ndim=2)
     if B.shape[1] != S.shape[1]:
         raise ShapeError(f"keys: expected shape (K, {S.shape[1]}) to match frames, got {B.shape}")
+    hi = np.inf if upper is None else upper
+    if confidence is not None:
+        C = check_array(confidence, "confidence", ndim=2)
+        if C.shape != S.shape:
+            raise ShapeError(f"confidence: expected shape {S.shape} like frames, got {C.shape}")
+        with _one_blas_thread(len(S)):
+            Htri, Q = weighted_hessians(B, C), (S * C) @ B.T
+        return box_qp_weighted(Htri, Q, lower=0.0, upper=hi, compiled=compiled)
     with _one_blas_thread(len(S)):
-        return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=np.inf if upper is None else upper, compiled=compiled)
+        return box_qp(B @ B.T, S @ B.T, lower=0.0, upper=hi, compiled=compiled)
 
 
 def cardinality(weights, threshold: float = CARDINALITY_THRESHOLD) -> np.ndarray:
@@ -334,6 +355,8 @@ def _solve(S, B, C, *, solver, convex, lam, upper):
         return _temporal_causal(S, B, C, lam=lam, upper=upper, eq=eq)
     if solver == "sequential":
         return _sequential(S, B, C, upper=upper)
+    if C is not None:
+        return _solve_weighted(S, B, C, solver=solver, eq=eq, lam=lam, upper=upper)
     W = np.empty((T, K))
     for rows, c in _groups(C, T):
         Bc = B if c is None else B * c
@@ -484,6 +507,187 @@ def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk, compiled):
     return X, finish
 
 
+def weighted_hessians(keys, confidence) -> np.ndarray:
+    """Upper triangles of every frame's Hessian ``H_t = B diag(c_t) Bᵀ`` in one matrix product.
+
+    With ``P[d, (i, j)] = B[i, d]·B[j, d]`` for ``i ≤ j``, the triangles of
+    all frames are ``C P``, a (T × D) by (D × K(K+1)/2) product; when the
+    coordinates come in pairs of equal weight (x and y of a landmark), the
+    pairs' rows of ``P`` are summed first, a (T × D/2) by (D/2 × K(K+1)/2) product.
+
+    Parameters
+    ----------
+    keys : ndarray, shape (K, D)
+    confidence : ndarray, shape (T, D)
+
+    Returns
+    -------
+    ndarray, shape (T, K(K+1)/2)
+        Row ``t``: ``H_t[i, j]`` for ``i ≤ j`` in the order of ``numpy.triu_indices(K)``.
+    """
+    B = np.asarray(keys, dtype=np.float64)
+    C = np.asarray(confidence, dtype=np.float64)
+    iu, ju = np.triu_indices(len(B))
+    P = (B[iu] * B[ju]).T
+    if C.shape[1] % 2 == 0 and np.array_equal(C[:, 0::2], C[:, 1::2]):
+        # landmark rows: x and y share their point's confidence, which halves the product
+        return C[:, 0::2] @ np.ascontiguousarray(P[0::2] + P[1::2])
+    return C @ np.ascontiguousarray(P)
+
+
+def _pairs(K: int) -> np.ndarray:
+    """(K, K) column of ``H[i, j]`` in the upper-triangle rows of :func:`weighted_hessians`."""
+    iu, ju = np.triu_indices(K)
+    pairs = np.empty((K, K), dtype=np.int64)
+    pairs[iu, ju] = pairs[ju, iu] = np.arange(len(iu))
+    return pairs
+
+
+def box_qp_weighted(Htri, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30,
+                    compiled: bool | None = None) -> np.ndarray:
+    """:func:`box_qp` with a Hessian per frame: ``min ½ x_tᵀH_t x_t − q_tᵀx_t, l ≤ x_t ≤ u``.
+
+    The per-frame problems of weighted NNLS (Chuang & Bregler's eq. 4 with a
+    confidence per coordinate, ``H_t = B C_t Bᵀ``, ``q_t = B C_t S_t``) are
+    solved together by the same exact primal–dual active-set iteration and
+    certified by their KKT conditions: in numpy on all frames at once (the
+    reduced systems gathered from the stack of Hessians), or, for large
+    problems without an equality, per frame in the compiled kernel
+    (:func:`retarget_cli._qp_kernel.pdas_frames_weighted`). Frames left
+    unsettled are finished by the per-frame primal active-set method.
+
+    Parameters
+    ----------
+    Htri : ndarray, shape (T, K(K+1)/2)
+        Upper triangles of the Hessians (:func:`weighted_hessians`).
+    Q : ndarray, shape (T, K)
+    lower, upper, sum_to, max_iter
+        As for :func:`box_qp`.
+    compiled : bool, optional
+        Use the compiled kernel (True) or the numpy iteration (False). By
+        default the kernel runs when ``T·K ≥ 5·10⁵`` (about 23,000 frames at
+        K = 22): the numpy iteration costs about 25 µs a frame more, the
+        kernel about half a second to load once per process. The choice depends
+        on the size alone, so outputs stay reproducible.
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+    """
+    Q = np.atleast_2d(np.asarray(Q, dtype=np.float64))
+    T, K = Q.shape
+    Htri = np.asarray(Htri, dtype=np.float64)
+    if Htri.shape != (T, K * (K + 1) // 2):
+        raise ShapeError(f"Htri: expected shape ({T}, {K * (K + 1) // 2}), got {Htri.shape}")
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,)).copy()
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,)).copy()
+    if np.any(lo > hi):
+        raise ValueError("bounds: lower must not exceed upper")
+    if sum_to is not None and not (lo.sum() <= sum_to <= hi.sum()):
+        raise ValueError(f"sum_to: {sum_to} cannot be reached within the bounds")
+    X = np.empty((T, K))
+    if T == 0 or K == 0:
+        return X
+    pairs = _pairs(K)
+    use = (T * K >= _KERNEL_MIN_WORK_WEIGHTED) if compiled is None else bool(compiled)
+    rows = np.arange(T)
+    with _one_blas_thread(T):
+        if use and sum_to is None:
+            from ._qp_kernel import pdas_frames_weighted
+
+            done = np.empty(T, dtype=bool)
+            pdas_frames_weighted(Htri, Q, lo, hi, max_iter, X, done)
+            rows = np.flatnonzero(~done)
+            if rows.size:
+                log.debug("box_qp_weighted: %d of %d frames left by the compiled kernel", rows.size, T)
+        # the stacked reduced systems of a chunk take about 2**25 bytes
+        chunk = max(16, 2**22 // (4 * K * K))
+        finish = []
+        for c0 in range(0, rows.size, chunk):
+            sl = rows[c0:c0 + chunk]
+            H = Htri[sl][:, pairs]
+            hscale = np.maximum(np.abs(np.diagonal(H, axis1=1, axis2=2)).max(1), 1e-300)
+            Hd = H + (1e-14 * hscale)[:, None, None] * np.eye(K)
+            X0 = _equality_ls_stacked(Hd, Q[sl], sum_to)
+            X[sl], left = _pdas(Hd, Q[sl], lo, hi, sum_to, X0, max_iter, hscale)
+            finish += [(t, H[i]) for t, i in zip(sl[left], left)]
+    if finish:
+        log.debug("box_qp_weighted: %d of %d frames finished by the per-frame active-set method", len(finish), T)
+    for t, H in finish:
+        X[t] = _active_set_one(H, Q[t], lo, hi, sum_to)
+    return np.clip(X, lo, hi)
+
+
+def _equality_ls_stacked(H, Q, eq):
+    """:func:`_equality_ls` for a Hessian per frame, H (n, K, K) and Q (n, K): a batched solve.
+
+    Falls back to the per-frame pseudo-inverse when a system is singular.
+    """
+    n, K = Q.shape
+    if eq is None:
+        M, R = H, Q
+    else:
+        M = np.zeros((n, K + 1, K + 1))
+        M[:, :K, :K], M[:, :K, K], M[:, K, :K] = H, 1.0, 1.0
+        R = np.hstack([Q, np.full((n, 1), eq)])
+    try:
+        X = np.linalg.solve(M, R[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        X = np.stack([_pinv_sym(M[t]) @ R[t] for t in range(n)])
+    if not np.isfinite(X).all():
+        bad = ~np.isfinite(X).all(1)
+        X[bad] = np.stack([_pinv_sym(M[t]) @ R[t] for t in np.flatnonzero(bad)])
+    return X[:, :K]
+
+
+def _solve_weighted(S, B, C, *, solver, eq, lam, upper):
+    """:func:`_solve` with a confidence row per frame: every frame's Hessian at once (no per-frame calls)."""
+    T, K = len(S), len(B)
+    if solver in ("ls", "ridge", "ridge-clipped"):
+        Q = (S * C) @ B.T
+        X = np.empty((T, K))
+        step = max(1, 2**22 // (K * K))
+        for c0 in range(0, T, step):
+            sl = slice(c0, c0 + step)
+            H = weighted_hessians(B, C[sl])[:, _pairs(K)]
+            if solver != "ls":
+                H = H + lam * np.eye(K)
+            X[sl] = _equality_ls_pinv_stacked(H, Q[sl], eq)
+        if solver == "ridge-clipped":
+            X = np.clip(X, 0.0, DEFAULT_UPPER if upper is None else upper)
+        return X
+    hi = DEFAULT_UPPER if (solver == "bounded" and upper is None) else (np.inf if upper is None else upper)
+    # the choice of kernel is made on the whole take; the Hessians are formed a chunk at a time
+    compiled = T * K >= _KERNEL_MIN_WORK_WEIGHTED
+    step = max(256, 2**24 // (K * (K + 1) * 4))
+    X = np.empty((T, K))
+    for c0 in range(0, T, step):
+        sl = slice(c0, c0 + step)
+        with _one_blas_thread(T):
+            Htri = weighted_hessians(B, C[sl])
+            Q = (S[sl] * C[sl]) @ B.T
+        if solver == "sparse":
+            Q -= lam / 2
+        X[sl] = box_qp_weighted(Htri, Q, lower=0.0, upper=hi, sum_to=eq, compiled=compiled)
+    return X
+
+
+def _equality_ls_pinv_stacked(H, Q, eq):
+    """:func:`_equality_ls` frame by frame for H (n, K, K): the minimum-norm solution, batched eigendecompositions."""
+    n, K = Q.shape
+    if eq is None:
+        M, R = H, Q
+    else:
+        M = np.zeros((n, K + 1, K + 1))
+        M[:, :K, :K], M[:, :K, K], M[:, K, :K] = H, 1.0, 1.0
+        R = np.hstack([Q, np.full((n, 1), eq)])
+    lam, V = np.linalg.eigh(M)
+    cut = np.maximum(np.abs(lam).max(1, keepdims=True), 1e-300) * M.shape[1] * _EPS * 4
+    inv = np.where(np.abs(lam) > cut, 1.0 / np.where(lam == 0, 1.0, lam), 0.0)
+    Y = np.einsum("nkj,nk->nj", V, R) * inv
+    return np.einsum("nij,nj->ni", V, Y)[:, :K]
+
+
 def _one_blas_thread(n_rows: int):
     """Limit BLAS to one thread for large batches: the many small products run faster unthreaded."""
     return contextlib.nullcontext() if n_rows < 512 else small_blas()
@@ -526,6 +730,8 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
     certified only from a direct solve.
     """
     n, K = Q.shape
+    stacked = H.ndim == 3  # a Hessian per frame (H[t] for Q[t]), hscale per frame
+    hs = np.broadcast_to(np.asarray(hscale, dtype=np.float64), (n,))[:, None]
     X = np.empty((n, K))
     status = np.zeros((n, K), dtype=np.int8)  # -1 at lower bound, +1 at upper, 0 free
     status[X0 < lo] = -1
@@ -560,15 +766,17 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
         if not small_z.all():
             i = np.flatnonzero(~small_z) if small_z.any() else slice(None)
             R = Q[pending[i]]
+            Hi = H[pending[i]] if stacked else H
             if upper or not zero_lo:
-                R = R - xB[i] @ H  # right-hand side for every coordinate
-            Xp[i], nup[i] = _solve_free(H, R, free[i], m[i], xB[i], eq)
+                R = R - (np.einsum("tk,tkl->tl", xB[i], Hi) if stacked else xB[i] @ H)  # for every coordinate
+            Xp[i], nup[i] = _solve_free(Hi, R, free[i], m[i], xB[i], eq)
         X[pending] = Xp
         nu[pending] = nup
-        G = Xp @ H - Q[pending] + nup[:, None]
+        HX = np.einsum("tk,tkl->tl", Xp, H[pending]) if stacked else Xp @ H
+        G = HX - Q[pending] + nup[:, None]
         xs = 1.0 + np.abs(Xp).max(1, keepdims=True)
         tolx = 1e-10 * xs
-        tolg = 1e-11 * (qscale[pending] + hscale * xs)
+        tolg = 1e-11 * (qscale[pending] + hs[pending] * xs)
         # a Schur point is accurate to about cond(H)·eps only: there, values
         # within 1e-8 of a bound are taken to be at it (a wrong guess is undone
         # by the multiplier check of the next, direct, iteration)
@@ -625,6 +833,9 @@ def _pdas(H, Q, lo, hi, eq, X0, max_iter, hscale, Hinv=None):
 #: per frame at K = 22); the numpy iteration handles the rest, equalities and
 #: any frame the kernel leaves.
 _KERNEL_MIN_WORK = 2_000_000
+#: ... and :func:`box_qp_weighted` from this ``T·K`` on (its numpy iteration
+#: is slower: no shared Hessian to invert, every reduced system gathered from its own).
+_KERNEL_MIN_WORK_WEIGHTED = 500_000
 
 #: :func:`_pdas` starts from the Schur complement of the bound set when the
 #: Hessian's condition number is below this (the inverse is then accurate).
@@ -651,7 +862,7 @@ def _solve_free(H, R, free, m, xB, eq):
 
     Parameters
     ----------
-    H : ndarray, shape (K, K)
+    H : ndarray, shape (K, K), or (n, K, K) for a Hessian per frame
     R : ndarray, shape (n, K)
         Right-hand sides (already corrected for the bound variables).
     free : ndarray of bool, shape (n, K)
@@ -678,9 +889,16 @@ def _solve_free(H, R, free, m, xB, eq):
             groups.append((start, start + acc, size))
             start, acc = start + acc, 0
     W = K + top  # variables plus the dummy identity variables that pad a bucket
-    Hp = np.zeros((W, W))
-    Hp[:K, :K] = H
-    Hp[K:, K:] = np.eye(top)
+    if H.ndim == 3:  # a Hessian per frame: frame t's entries start at base[t]
+        Hp = np.zeros((n, W, W))
+        Hp[:, :K, :K] = H
+        Hp[:, K:, K:] = np.eye(top)
+        base = np.arange(n, dtype=np.intp) * (W * W)
+    else:
+        Hp = np.zeros((W, W))
+        Hp[:K, :K] = H
+        Hp[K:, K:] = np.eye(top)
+        base = None
     Hflat = Hp.ravel()
     Rp = np.zeros((n, W))
     Rp[:, :K] = R
@@ -714,7 +932,7 @@ def _solve_free(H, R, free, m, xB, eq):
             A = np.empty((size + (1 if eq is None else 2), size, count))
             # lower triangles only (all the factorisation reads); mode="clip" avoids
             # numpy's slow bounds-checked path, the indices are valid by construction
-            idx = Ft[tri_i]
+            idx = Ft[tri_i] if base is None else Ft[tri_i] + base[rows][None, :] // W
             idx *= W
             idx += Ft[tri_j]
             A[tri_i, tri_j] = np.take(Hflat, idx, mode="clip")
@@ -729,7 +947,10 @@ def _solve_free(H, R, free, m, xB, eq):
             # small buckets, or systems the Cholesky found numerically singular: LAPACK's LU
             sub = np.flatnonzero(~ok)
             Fs = Ft[:, sub].T
-            A = np.take(Hflat, Fs[:, :, None] * W + Fs[:, None, :], mode="clip")
+            idx = Fs[:, :, None].astype(np.intp) * W + Fs[:, None, :]
+            if base is not None:
+                idx += base[rows[sub]][:, None, None]
+            A = np.take(Hflat, idx, mode="clip")
             bs = np.take(Rflat, flat_rows[:, sub].T + Fs, mode="clip")
             if eq is not None:
                 ones = (np.arange(size)[None, :] < mr[sub, None]).astype(float)
@@ -1005,7 +1226,7 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
     if C_is_none:
         x = box_qp(B @ B.T, Q, lower=0.0, upper=hi_v).ravel()
     else:
-        x = np.concatenate([box_qp(Hb[t], Q[t][None], lower=0.0, upper=hi_v)[0] for t in range(T)])
+        x = box_qp_weighted(weighted_hessians(B, C), Q, lower=0.0, upper=hi_v).ravel()
     if lam == 0 or T < 3:
         return x.reshape(T, K)
     n = T * K

@@ -99,7 +99,8 @@ class QuadraticRig:
         :math:`\\mathbf D^{(i)}`; :meth:`D` materialises one.
     lam_min, lam_max, sigma : ndarray, shape (3N,)
         Smallest and largest eigenvalue and largest singular value of each
-        :math:`\\mathbf D^{(i)}`, computed once (Algorithm 2, first loop).
+        :math:`\\mathbf D^{(i)}`, computed once, on first use
+        (Algorithm 2, first loop): only the ``mm`` solver reads them.
     """
 
     def __init__(self, neutral, deltas, pairs=(), correctives=None, *, names=None):
@@ -142,7 +143,26 @@ class QuadraticRig:
         C.eliminate_zeros()
         C.sort_indices()
         self.C = C
-        self.lam_min, self.lam_max, self.sigma = _corrective_spectra(C, pairs, m)
+        self._spectra = None
+
+    # ------------------------------------------------------------------ spectra (mm only)
+    def _spectrum(self):
+        """(lam_min, lam_max, sigma), computed on first use: only the ``mm`` solver needs them."""
+        if self._spectra is None:
+            self._spectra = _corrective_spectra(self.C, self.pairs, self.n_shapes)
+        return self._spectra
+
+    @property
+    def lam_min(self) -> np.ndarray:
+        return self._spectrum()[0]
+
+    @property
+    def lam_max(self) -> np.ndarray:
+        return self._spectrum()[1]
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return self._spectrum()[2]
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -311,15 +331,20 @@ def _corrective_spectra(C, pairs, m: int):
         cols = np.frombuffer(key, dtype=C.indices.dtype)
         shapes, local = np.unique(pairs[cols].ravel(), return_inverse=True)
         local = local.reshape(-1, 2)
-        rows = np.asarray(rows)
-        vals = np.stack([C.data[C.indptr[i]:C.indptr[i + 1]] for i in rows])  # (R, len(cols))
-        M = np.zeros((len(rows), len(shapes), len(shapes)))
-        M[:, local[:, 0], local[:, 1]] = 0.5 * vals
-        M[:, local[:, 1], local[:, 0]] = 0.5 * vals
-        ev = np.linalg.eigvalsh(M)
         pad = len(shapes) < m  # D^(i) has further zero eigenvalues
-        lam_min[rows] = np.minimum(ev[:, 0], 0.0) if pad else ev[:, 0]
-        lam_max[rows] = np.maximum(ev[:, -1], 0.0) if pad else ev[:, -1]
+        # a block of rows at a time: with dense correctives one layout covers every coordinate,
+        # and (3N, s, s) at once would not fit in memory (about 2**25 bytes per block)
+        step = max(1, 2**22 // (len(shapes) ** 2))
+        all_rows = np.asarray(rows)
+        for r0 in range(0, len(all_rows), step):
+            rows = all_rows[r0:r0 + step]
+            vals = np.stack([C.data[C.indptr[i]:C.indptr[i + 1]] for i in rows])  # (R, len(cols))
+            M = np.zeros((len(rows), len(shapes), len(shapes)))
+            M[:, local[:, 0], local[:, 1]] = 0.5 * vals
+            M[:, local[:, 1], local[:, 0]] = 0.5 * vals
+            ev = np.linalg.eigvalsh(M)
+            lam_min[rows] = np.minimum(ev[:, 0], 0.0) if pad else ev[:, 0]
+            lam_max[rows] = np.maximum(ev[:, -1], 0.0) if pad else ev[:, -1]
     sigma = np.maximum(np.abs(lam_min), np.abs(lam_max))  # D^(i) is symmetric
     return lam_min, lam_max, sigma
 
@@ -573,8 +598,9 @@ def _lbfgsb_frame(rig: QuadraticRig, bt, bb: float, w0, *, alpha: float, tol: fl
     :math:`\\|\\mathbf r\\|^2 = \\mathbf w^TB^T\\mathbf r + \\mathbf p^TC^T\\mathbf r - \\hat b^T\\mathbf r` and
     :math:`\\nabla = 2(B^T\\mathbf r + S(\\mathbf w)^TC^T\\mathbf r) + \\alpha`.
     Each evaluation costs :math:`O(m^2 + mP + P^2)`, independent of the
-    vertex count. The objective is scaled by its value at ``w0`` so that the
-    relative stopping test does not depend on mesh units.
+    vertex count. It stops when an iteration lowers the objective by less
+    than ``tol`` times the objective (or the projected gradient falls below
+    ``1e-12·f(w0)``).
     """
     from scipy.optimize import minimize
 
@@ -593,10 +619,22 @@ def _lbfgsb_frame(rig: QuadraticRig, bt, bb: float, w0, *, alpha: float, tol: fl
 
     w0 = np.clip(np.asarray(w0, dtype=np.float64), 0.0, 1.0)
     f0 = fg(w0)[0]
+    # L-BFGS-B's own test, (f_k − f_{k+1}) ≤ ftol·max(|f_k|, |f_{k+1}|, 1), is absolute once f < 1: on
+    # f / f(w0) it stops at a decrease below tol·f(w0). The documented test, a decrease below
+    # tol × objective, is made in the callback instead (ftol off); the objective is still scaled by
+    # 1/f(w0) so that the gradient test (projected gradient ≤ 1e-12·f(w0)) has no mesh units.
     scale = 1.0 / f0 if f0 > 0 else 1.0
+    last = [f0 * scale]
+
+    def stop(intermediate_result):
+        f = float(intermediate_result.fun)
+        if last[0] - f <= tol * abs(f):
+            raise StopIteration
+        last[0] = f
+
     res = minimize(lambda w: tuple(x * scale for x in fg(w)), w0, jac=True, method="L-BFGS-B",
-                   bounds=[(0.0, 1.0)] * rig.n_shapes,
-                   options={"maxiter": max_iter, "ftol": tol, "gtol": 1e-12, "maxcor": 20})
+                   bounds=[(0.0, 1.0)] * rig.n_shapes, callback=stop,
+                   options={"maxiter": max_iter, "ftol": 0.0, "gtol": 1e-12, "maxcor": 20})
     return np.clip(res.x, 0.0, 1.0), int(res.nit)
 
 

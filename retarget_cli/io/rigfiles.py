@@ -13,6 +13,9 @@ Like a shape, a corrective OBJ is a full mesh: the neutral with the
 corrective's displacement added, so :math:`\\mathbf b^{\\{i,j\\}}` = corrective
 OBJ − neutral, and the rig is eq. 4 of Racković et al. (2023):
 ``neutral + Σ w_e (shape_e − neutral) + Σ w_i w_j (corrective_ij − neutral)``.
+With ``shapes_are: delta`` the shape and corrective OBJs hold the offsets
+themselves (``neutral + Σ w_e shape_e + Σ w_i w_j corrective_ij``), as for
+:class:`~retarget_cli.rig.BlendshapeRig`.
 """
 
 from __future__ import annotations
@@ -149,8 +152,10 @@ def read_quadratic_rig(path: str | os.PathLike, *, cache_dir=None):
     spec, corr, entries, files = _quadratic_spec(path)
     _, V = load_rig_meshes(path, entries, cache_dir=cache_dir)
     V0, n = V[0], len(spec.shapes)
-    rig = QuadraticRig(V0, V[1:n + 1] - V0, [(i, j) for i, j, _ in corr],
-                       V[n + 1:] - V0 if corr else None, names=list(spec.shapes))
+    # ``shapes_are: delta``: the shape and corrective OBJs hold the offsets themselves
+    base = V0 if spec.shapes_are == "absolute" else 0.0
+    rig = QuadraticRig(V0, V[1:n + 1] - base, [(i, j) for i, j, _ in corr],
+                       V[n + 1:] - base if corr else None, names=list(spec.shapes))
     return rig, files
 
 

@@ -561,7 +561,7 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
     neutral key's column holds ``1 − Σ`` of the others, so ``apply`` needs no
     change (Lewis et al. 2005, §3).
     """
-    from ..decompose import cardinality, decompose, interpolate_lost, jitter
+    from ..decompose import cardinality, decompose, interpolate_lost, jitter, row_residuals
     from ..io.landmarks import load_landmarks
     from ..io.stagefiles import read_keys, save_weights, weights_csv
 
@@ -569,8 +569,7 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
     check_not_input(output, [landmarks, keys])
     lm = load_landmarks(landmarks)
     kf = read_keys(keys)
-    stab = lm.stabilized.astype(np.float64)
-    conf = lm.confidence.astype(np.float64)
+    stab, conf = lm.stabilized, lm.confidence  # float32; a region's rows become float64 once, below
     T = lm.n_frames
     if formulation == "delta" and not 0 <= neutral_frame < T:
         raise InputError(f"neutral_frame: frame {neutral_frame} is outside the take ({T} frames in {landmarks})")
@@ -583,7 +582,10 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
         if badp:
             raise InputError(f"{keys}: region {name!r} landmark {badp[0]} does not exist ({lm.n_points} points in {landmarks})")
         pts, frames = reg["points"], np.array(reg["frames"])
-        P, C = stab[:, pts], conf[:, pts]
+        # (a region of all the points in order needs no gather: at long takes every copy counts)
+        every = list(pts) == list(range(lm.n_points))
+        P = (stab if every else stab[:, pts]).astype(np.float64)
+        C = (conf if every else conf[:, pts]).astype(np.float64)
         nan = ~np.isfinite(P).all(-1)
         if np.any(nan & (C > 0)):
             t, i = np.argwhere(nan & (C > 0))[0]
@@ -604,8 +606,10 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
         lost_keys = [int(f) for f in frames if lost_pt[f].any()]
         if lost_keys:
             log.info("region %s: key frame %d has lost landmarks; its key shape may be inaccurate", name, lost_keys[0])
-        X = np.where(nan[..., None], 0.0, P).reshape(T, -1)
+        X = (np.where(nan[..., None], 0.0, P) if nan.any() else P).reshape(T, -1)
+        del P
         weight = np.repeat(np.where(lost_pt, 0.0, C if confidence else 1.0), 2, axis=1)
+        del C
         kw = {}
         if formulation == "delta":
             if neutral_frame not in reg["frames"]:
@@ -624,7 +628,7 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
             W = interpolate_lost(W, lost)
             log.warning("region %s: lost in %d of %d frames (first: %d); weights interpolated",
                         name, int(lost.sum()), T, int(np.flatnonzero(lost)[0]))
-        res = np.linalg.norm(X - W @ X[frames], axis=1)
+        res = row_residuals(X, W, X[frames])
         card = cardinality(W)
         regions[name] = (W, frames, res)
         extras[name] = {"cardinality": card, "lost": lost}

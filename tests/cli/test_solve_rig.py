@@ -9,7 +9,7 @@ from click.testing import CliRunner
 from retarget_cli.cli import main
 from retarget_cli.errors import InputError, RetargetError
 from retarget_cli.io.atomic import load_npz
-from retarget_cli.io.obj import format_obj
+from retarget_cli.io.obj import format_obj, read_obj
 from retarget_cli.io.rigfiles import read_meshes, read_quadratic_rig
 from retarget_cli.io.stagefiles import read_rig
 
@@ -156,6 +156,35 @@ def test_solve_rig_recovers_known_weights(tmp_path, solver):
     assert meta["solver"] == solver and meta["summary"]["frames"] == 5
     assert "5 frames, 49 vertices, 4 shapes, 2 correctives" in res.stdout
     assert "mean rmse" in res.stdout and str(out) in res.stdout
+
+
+def test_delta_rig_gives_the_same_result_as_the_equivalent_absolute_rig(tmp_path):
+    """``shapes_are: delta``: shape and corrective OBJs are offsets, not neutral + offset (solve-rig)."""
+    rig_yaml, verts, quads = write_rig(tmp_path / "abs")
+    rig = write_frames(tmp_path / "frames", rig_yaml, np.random.default_rng(3).uniform(0.05, 0.95, size=(4, 4)))
+    d = tmp_path / "delta"
+    (d / "shapes").mkdir(parents=True)
+    (d / "correctives").mkdir()
+    (d / "neutral.obj").write_bytes(format_obj(verts, quads))
+    for name in SHAPES:  # the offsets, read back from the absolute OBJs
+        off = read_obj(tmp_path / "abs" / "shapes" / f"{name}.obj").vertices - read_obj(d / "neutral.obj").vertices
+        (d / "shapes" / f"{name}.obj").write_bytes(format_obj(off, quads))
+    for a, b in CORRECTIVES:
+        off = (read_obj(tmp_path / "abs" / "correctives" / f"{a}_{b}.obj").vertices
+               - read_obj(d / "neutral.obj").vertices)
+        (d / "correctives" / f"{a}_{b}.obj").write_bytes(format_obj(off, quads))
+    (d / "rig.yaml").write_text((tmp_path / "abs" / "rig.yaml").read_text() + "shapes_are: delta\n")
+    delta_rig, _ = read_quadratic_rig(d / "rig.yaml")
+    np.testing.assert_allclose(delta_rig.evaluate(np.full((1, 4), 0.7)), rig.evaluate(np.full((1, 4), 0.7)),
+                               atol=1e-5)
+    curves = []
+    for y in (rig_yaml, d / "rig.yaml"):
+        out = tmp_path / f"{y.parent.name}.npz"
+        res = CliRunner().invoke(main, ["solve-rig", str(y), str(tmp_path / "frames"), "-o", str(out)])
+        assert res.exit_code == 0, res.output
+        curves.append(load_npz(out)["curves"])
+    assert curves[0].max() > 0.1
+    np.testing.assert_allclose(curves[1], curves[0], atol=1e-5)
 
 
 def test_solve_rig_output_is_deterministic_and_metrics_csv(tmp_path):

@@ -188,6 +188,70 @@ def test_batched_nnls_matches_scipy_objective(case, compiled):
     assert objective_gap(S, B, W).max() <= 1e-8
 
 
+def weighted_gap(S, B, C, W):
+    """Relative objective gap to scipy's nnls on the rows scaled by sqrt(c), per frame."""
+    rw = np.sqrt(C)
+    ref = np.array([nnls(B.T * r[:, None], s * r)[1] ** 2 for s, r in zip(S, rw)])
+    f = np.sum(C * (S - W @ B) ** 2, axis=1)
+    return (f - ref) / np.maximum(ref, np.maximum(1e-10 * np.sum(C * S**2, axis=1), 1e-300))
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("case", ["random", "rank-deficient", "duplicated", "more-keys-than-coordinates",
+                                  "fits", "paired", "zero-rows"])
+def test_weighted_batched_nnls_matches_scipy(case, compiled):
+    """Every frame with its own confidence row (its own Hessian B C_t Bᵀ) is solved exactly, like scipy."""
+    rng = np.random.default_rng(31)
+    B = rng.normal(size=(12, 30))
+    if case == "rank-deficient":
+        B[5] = B[1] + B[2]
+        B[7] = 0.5 * B[3]
+    elif case == "duplicated":
+        B[4] = B[9] = B[0]
+    elif case == "more-keys-than-coordinates":
+        B = rng.normal(size=(40, 20))
+    T, D = (100 if len(B) > B.shape[1] else 300), B.shape[1]
+    S = rng.normal(size=(T, D))
+    if case == "fits":
+        S = np.vstack([B, rng.uniform(0, 1, size=(50, len(B))) @ B])
+        T = len(S)
+    C = rng.uniform(0.05, 1.0, size=(T, D))
+    if case == "paired":  # x and y of a landmark share a confidence (the halved product)
+        C = np.repeat(C[:, : D // 2], 2, axis=1)
+    elif case == "zero-rows":  # some coordinates lost, and one frame lost entirely
+        C[rng.uniform(size=C.shape) < 0.3] = 0.0
+        C[7] = 0.0
+    W = nnls_batched(S, B, confidence=C, compiled=compiled)
+    assert W.shape == (T, len(B)) and W.min() >= 0 and np.isfinite(W).all()
+    assert weighted_gap(S, B, C, W).max() <= 1e-8
+
+
+def test_weighted_decompose_agrees_with_one_call_per_frame():
+    """decompose with a confidence row per frame equals solving each frame alone with its weighted Hessian."""
+    from retarget_cli.decompose import box_qp
+
+    rng = np.random.default_rng(32)
+    B = rng.normal(size=(6, 16))
+    S = rng.uniform(0, 1, size=(40, 6)) @ B + 0.1 * rng.normal(size=(40, 16))
+    C = rng.uniform(0.5, 1.0, size=(40, 16))
+    for solver, kw in (("nnls", {}), ("bounded", {"upper": 0.5}), ("sparse", {"alpha": 0.05}),
+                       ("ridge", {}), ("nnls", {"formulation": "convex"})):
+        W, _ = decompose(S, B, solver=solver, confidence=C, **kw)
+        for t in (0, 17, 39):
+            one, _ = decompose(S[t:t + 1], B, solver=solver, confidence=C[t:t + 1], **kw)
+            Bc = B * C[t]
+            H, q = Bc @ B.T, Bc @ S[t]
+            f = lambda w, H=H, q=q: 0.5 * w @ H @ w - q @ w  # noqa: E731
+            assert f(W[t]) <= f(one[0]) + 1e-9 * max(1.0, abs(f(one[0]))), (solver, t)
+            if solver == "nnls" and not kw:
+                ref = box_qp(H, q[None], lower=0.0)[0]
+                assert f(W[t]) <= f(ref) + 1e-9 * max(1.0, abs(f(ref)))
+        if kw.get("formulation") == "convex":
+            np.testing.assert_allclose(W.sum(1), 1.0, atol=1e-9)
+        if solver == "bounded":
+            assert W.max() <= 0.5
+
+
 def test_batched_nnls_on_near_collinear_face_like_keys():
     """Whole-face keys are nearly collinear (one huge eigenvalue): the case of the benchmark."""
     rng = np.random.default_rng(9)

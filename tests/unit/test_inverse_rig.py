@@ -281,3 +281,30 @@ def test_bad_shapes_and_options_are_rejected():
     with pytest.raises(ShapeError, match="correctives"):
         QuadraticRig(np.zeros((4, 3)), np.zeros((2, 4, 3)), [(0, 1)], np.zeros((1, 5, 3)))
     assert InputError  # imported for the file-level tests in test_rigfiles
+
+
+def test_lbfgsb_stops_relative_to_the_objective_not_to_its_start():
+    """tol is relative to f (documented), not to f(w0): from a start far above the minimum it still gets close."""
+    rng = np.random.default_rng(41)
+    n, m = 60, 8
+    deltas = rng.normal(size=(m, n, 3)) + 0.5 * rng.normal(size=(1, n, 3))  # correlated shapes: many iterations
+    rig = QuadraticRig(rng.normal(size=(n, 3)), deltas)
+    X = rig.evaluate(rng.uniform(0.2, 0.8, size=(1, m))) + 1e-3 * rng.normal(size=(1, n, 3))
+    ref = solve(rig, X, solver="bounded", alpha=0.0)
+    got = solve(rig, X, solver="lbfgsb", alpha=0.0, tol=1e-9, init=np.ones(m))
+    f0 = np.array([rig.objective(np.ones(m), x.reshape(-1), 0.0) for x in X])
+    assert np.all(f0 > 1e4 * ref.objective)  # the start is far above the minimum
+    assert np.all(got.objective <= ref.objective * (1 + 1e-5))
+
+
+def test_corrective_spectra_are_computed_for_mm_only():
+    rng = np.random.default_rng(42)
+    n, m = 30, 4
+    rig = QuadraticRig(rng.normal(size=(n, 3)), rng.normal(size=(m, n, 3)), [(0, 1), (1, 2)],
+                       rng.normal(size=(2, n, 3)))
+    X = rig.evaluate(rng.uniform(0, 1, size=(2, m)))
+    for solver in ("lbfgsb", "bounded", "ridge"):
+        solve(rig, X, solver=solver)
+        assert rig._spectra is None, solver
+    solve(rig, X, solver="mm", max_iter=5)
+    assert rig._spectra is not None and rig.sigma.shape == (3 * n,)
