@@ -26,9 +26,11 @@ from . import FRAME_RE, _no_progress, _require
 log = logging.getLogger(__name__)
 
 #: Exports ``apply`` can write (``--format``); file names inside the output directory.
-APPLY_FORMATS = ("obj", "csv", "exr", "glb", "curves")
+APPLY_FORMATS = ("obj", "csv", "exr", "glb", "curves", "livelink", "usd")
 APPLY_FILES = {"csv": "weights.csv", "exr": "animation.exr", "exr_json": "animation.json", "glb": "animation.glb",
-               "curves": "curves.csv", "curves_npz": "curves.npz"}
+               "curves": "curves.csv", "curves_npz": "curves.npz", "livelink": "livelink.csv", "usd": "animation.usd"}
+#: Formats that need the rig's slider curves (keys posed on a rig).
+RIG_FORMATS = ("curves", "livelink")
 DRIVES = ("auto", "rig", "keys")
 
 
@@ -211,8 +213,9 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     use_rig = tg.rig is not None and drive != "keys"
     if drive == "rig" and tg.rig is None:
         raise InputError(f"{targets}: drive rig needs a targets.yaml that names 'rig' and 'sliders' (from auto-pose)")
-    if "curves" in formats and not use_rig:
-        raise InputError(f"{targets}: format curves needs keys posed on a rig (a targets.yaml from auto-pose)")
+    for f in RIG_FORMATS:
+        if f in formats and not use_rig:
+            raise InputError(f"{targets}: format {f} needs keys posed on a rig (a targets.yaml from auto-pose)")
     out = Path(output)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
@@ -261,6 +264,10 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         write_animation(out / APPLY_FILES["curves_npz"], rig.names, curves, frames,
                         meta={"fps": fps, "rig": Path(tg.rig).name, "weights": Path(weights).name})
         written += [out / APPLY_FILES["curves"], out / APPLY_FILES["curves_npz"]]
+    if "livelink" in formats:
+        from .exports import write_livelink
+
+        written.append(write_livelink(out / APPLY_FILES["livelink"], rig_out[0], rig_out[1], fps, landmarks=landmarks))
     if "csv" in formats:
         write_text(out / APPLY_FILES["csv"], weights_csv(regions, fps))
         written.append(out / APPLY_FILES["csv"])

@@ -1,0 +1,195 @@
+"""apply's exports for rig users, read back by independent readers: Live Link Face CSV (csv by column name),
+USD (pxr), glTF (pygltflib)."""
+
+import csv
+import logging
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from retarget_cli.cli import main
+from retarget_cli.errors import InputError
+from retarget_cli.io.editfiles import read_animation, write_animation
+from retarget_cli.io.landmarks import Landmarks, save_landmarks
+from retarget_cli.io.livelink import ARKIT_SHAPES, COLUMNS, canonical_name, parse_timecode, timecode
+from retarget_cli.io.stagefiles import read_rig, save_weights, write_targets
+from retarget_cli.rig import BlendshapeRig
+from retarget_cli.stages import run_apply
+
+T, FPS = 12, 30.0
+#: Slider names spelt the ways rigs spell them; the ARKit column each maps to automatically (or None).
+SLIDERS = {"jawOpen": "JawOpen", "eyeBlink_L": "EyeBlinkLeft", "EyeBlinkRight": "EyeBlinkRight",
+           "mouthLeft": "MouthLeft", "mouth_smile.R": "MouthSmileRight", "browInnerUp_L": None, "browInnerUp_R": None,
+           "custom": None}
+
+
+def grid_obj(nx=7, ny=5):
+    """A quad grid with a UV seam down the middle column and two materials; (text, vertices, faces)."""
+    u, v = np.meshgrid(np.linspace(-3, 3, nx), np.linspace(-2, 2, ny))
+    V = np.stack([u.ravel(), v.ravel(), 0.3 * np.cos(u.ravel())], 1)
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    quads = np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]], -1).reshape(-1, 4)
+    uv = np.stack([(u.ravel() + 3) / 6, (v.ravel() + 2) / 4], 1)
+    mid = nx // 2
+    # The right half has its own UV island (shifted copies): vertices on the middle column get two UVs.
+    right = np.isin(quads % nx, np.arange(mid, nx)).all(1)
+    uv2 = uv + [0.05, 0.0]
+    lines = ["mtllib grid.mtl"] + [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in V]
+    lines += [f"vt {a:.6f} {b:.6f}" for a, b in np.concatenate([uv, uv2])]
+    n = len(V)
+    for mat, sel in (("left_mat", ~right), ("right_mat", right)):
+        lines.append(f"usemtl {mat}")
+        for q, r in zip(quads[sel], right[sel]):
+            lines.append("f " + " ".join(f"{i + 1}/{i + 1 + (n if r else 0)}" for i in q))
+    return "\n".join(lines) + "\n", V, quads
+
+
+@pytest.fixture
+def rig_scene(tmp_path):
+    """A small rig (the grid and one shape per SLIDERS entry), keys posed on it, weights and landmarks."""
+    rng = np.random.default_rng(3)
+    text, V, _ = grid_obj()
+    r = tmp_path / "rig"
+    r.mkdir()
+    (r / "neutral.obj").write_text(text)
+    (r / "grid.mtl").write_text("newmtl left_mat\nKd 0.8 0.2 0.1\nnewmtl right_mat\nKd 0.1 0.3 0.9\n")
+    shapes = {}
+    for k, name in enumerate(SLIDERS):
+        D = np.zeros_like(V)
+        moved = rng.choice(len(V), size=6 + k, replace=False)  # sparse shapes
+        D[moved] = rng.normal(size=(len(moved), 3)) * 0.3
+        lines = text.splitlines()
+        vi = [i for i, ln in enumerate(lines) if ln.startswith("v ")]
+        for i, p in zip(vi, V + D):
+            lines[i] = f"v {p[0]:.6f} {p[1]:.6f} {p[2]:.6f}"
+        (r / f"{k}.obj").write_text("\n".join(lines) + "\n")
+        shapes[name] = f"{k}.obj"
+    import yaml
+
+    (r / "rig.yaml").write_text(yaml.safe_dump({"neutral": "neutral.obj", "shapes": shapes}, sort_keys=False))
+    rig = BlendshapeRig.load(r / "rig.yaml")
+    K = 4
+    frames = np.array([0, 3, 6, 9])
+    S = rng.uniform(0, 1, size=(K, len(SLIDERS)))
+    S[0] = 0  # the neutral key
+    t = tmp_path / "t"
+    t.mkdir()
+    write_animation(t / "sliders.npz", rig.names, S, frames)
+    keys = {}
+    from retarget_cli.io.obj import write_obj
+
+    for f, s in zip(frames, S):
+        write_obj(t / f"key_{f:05d}.obj", rig.template, rig.evaluate(s))
+        keys[int(f)] = f"key_{f:05d}.obj"
+    write_targets(t / "targets.yaml", {"face": {"keys": keys}}, rig="../rig/rig.yaml", sliders="sliders.npz")
+    W = rng.dirichlet(np.ones(K), size=T)
+    save_weights(tmp_path / "weights.npz", {"face": (W, frames, np.zeros(T))}, {"fps": FPS})
+    roll = 0.02 * np.arange(T)  # image-plane roll (y down), radians
+    heads = np.stack([[[np.cos(a), -np.sin(a), 1.0 * i], [np.sin(a), np.cos(a), 0.0]] for i, a in enumerate(roll)])
+    pts = rng.uniform(50, 150, size=(T, 68, 2))
+    save_landmarks(tmp_path / "landmarks.npz", Landmarks(pts, np.ones((T, 68)), heads, pts, FPS, np.array([200, 200])))
+    return tmp_path, rig, W @ S, roll
+
+
+def apply_rig(tmp, out, formats, **kw):
+    return run_apply(weights=tmp / "weights.npz", targets=tmp / "t" / "targets.yaml", output=out, formats=formats, **kw)
+
+
+def read_livelink(path):
+    """Rows of a Live Link Face CSV as {column: text}, by column name."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return rows
+
+
+# --------------------------------------------------------------------------- Live Link Face CSV
+
+
+def test_livelink_columns_are_the_61_values_in_live_link_face_order():
+    assert COLUMNS[:2] == ("Timecode", "BlendShapeCount") and len(COLUMNS) == 2 + 61
+    assert len(ARKIT_SHAPES) == 52 and len(set(COLUMNS)) == len(COLUMNS)
+    # Live Link Face puts Right before Left for the jaw and mouth sideways shapes.
+    assert ARKIT_SHAPES.index("JawRight") + 1 == ARKIT_SHAPES.index("JawLeft")
+    assert ARKIT_SHAPES.index("MouthRight") + 1 == ARKIT_SHAPES.index("MouthLeft")
+    assert ARKIT_SHAPES[0] == "EyeBlinkLeft" and ARKIT_SHAPES[-1] == "TongueOut"
+    assert COLUMNS[-9:] == ("HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
+                            "RightEyeYaw", "RightEyePitch", "RightEyeRoll")
+
+
+@pytest.mark.parametrize("name, arkit", [("eyeBlink_L", "EyeBlinkLeft"), ("EyeBlink.R", "EyeBlinkRight"),
+                                         ("eyeblinkleft", "EyeBlinkLeft"), ("jawLeft", "JawLeft"),
+                                         ("mouthSmile-Right", "MouthSmileRight"), ("JAWOPEN", "JawOpen")])
+def test_slider_names_match_arkit_names_by_case_and_side(name, arkit):
+    assert canonical_name(name) == canonical_name(arkit)
+
+
+def test_timecodes_count_frames_within_the_second_and_parse_back():
+    assert timecode(0, 30) == "00:00:00:00.000"
+    assert timecode(31, 30) == "00:00:01:01.000"
+    assert timecode(30 * 3661 + 7, 30) == "01:01:01:07.000"
+    for fps in (24.0, 25.0, 29.97, 60.0):
+        for f in (0, 1, 59, 1000, 12345):
+            assert abs(parse_timecode(timecode(f, fps), fps) - f / fps) < 1e-3 / fps
+
+
+def test_livelink_csv_reproduces_the_mapped_curves_by_column_name(rig_scene, caplog):
+    tmp, rig, curves, roll = rig_scene
+    with caplog.at_level(logging.WARNING, logger="retarget_cli"):
+        apply_rig(tmp, tmp / "out", ["curves", "livelink"], landmarks=tmp / "landmarks.npz")
+    rows = read_livelink(tmp / "out" / "livelink.csv")
+    names, C, _, _ = read_animation(tmp / "out" / "curves.npz")
+    np.testing.assert_allclose(C, curves, atol=1e-12)
+    assert len(rows) == T and list(rows[0]) == list(COLUMNS)
+    for t, row in enumerate(rows):
+        assert row["BlendShapeCount"] == "61"
+        assert abs(parse_timecode(row["Timecode"], FPS) - t / FPS) < 1e-9
+    got = lambda col: np.array([float(r[col]) for r in rows])
+    for slider, arkit in SLIDERS.items():
+        if arkit is not None:
+            np.testing.assert_allclose(got(arkit), C[:, names.index(slider)], atol=5e-7)
+    # Unmapped columns are 0 and named in one warning.
+    assert np.all(got("BrowInnerUp") == 0) and np.all(got("TongueOut") == 0)
+    warnings = [r.getMessage() for r in caplog.records if "Live Link Face" in r.getMessage()]
+    assert len(warnings) == 1 and "BrowInnerUp" in warnings[0] and "TongueOut" in warnings[0]
+    assert "JawOpen" not in warnings[0] and "47 ARKit columns" in warnings[0]
+    # Head roll from the tracked head motion (counter-clockwise seen by the camera); yaw and pitch are 0.
+    np.testing.assert_allclose(got("HeadRoll"), -roll, atol=5e-7)
+    assert np.all(got("HeadYaw") == 0) and np.all(got("HeadPitch") == 0)
+
+
+def test_rig_yaml_names_map_the_remaining_columns(rig_scene):
+    tmp, _, _, _ = rig_scene
+    y = tmp / "rig" / "rig.yaml"
+    y.write_text(y.read_text() + "names:\n  BrowInnerUp: [browInnerUp_L, browInnerUp_R]\n  tongueOut: custom\n"
+                 "  JawOpen: custom\n")
+    apply_rig(tmp, tmp / "out", ["curves", "livelink"])
+    rows = read_livelink(tmp / "out" / "livelink.csv")
+    names, C, _, _ = read_animation(tmp / "out" / "curves.npz")
+    got = lambda col: np.array([float(r[col]) for r in rows])
+    want = (C[:, names.index("browInnerUp_L")] + C[:, names.index("browInnerUp_R")]) / 2
+    np.testing.assert_allclose(got("BrowInnerUp"), want, atol=5e-7)
+    np.testing.assert_allclose(got("TongueOut"), C[:, names.index("custom")], atol=5e-7)
+    np.testing.assert_allclose(got("JawOpen"), C[:, names.index("custom")], atol=5e-7)  # names: wins
+    assert np.all(got("HeadRoll") == 0)  # no landmarks file
+
+
+@pytest.mark.parametrize("entry, message", [("  BrowUp: custom\n", "names.BrowUp: not an ARKit blendshape"),
+                                            ("  JawOpen: jaw_open\n", "names.JawOpen: unknown slider 'jaw_open'"),
+                                            ("  JawOpen: []\n", "names.JawOpen: expected a slider name")])
+def test_bad_names_mapping_is_a_one_line_error(rig_scene, entry, message):
+    tmp, _, _, _ = rig_scene
+    y = tmp / "rig" / "rig.yaml"
+    y.write_text(y.read_text() + "names:\n" + entry)
+    with pytest.raises(InputError, match=message):
+        read_rig(y)
+
+
+def test_livelink_needs_a_rig_and_is_deterministic(rig_scene):
+    tmp, _, _, _ = rig_scene
+    apply_rig(tmp, tmp / "a", ["livelink"], landmarks=tmp / "landmarks.npz")
+    apply_rig(tmp, tmp / "b", ["livelink"], landmarks=tmp / "landmarks.npz")
+    assert (tmp / "a" / "livelink.csv").read_bytes() == (tmp / "b" / "livelink.csv").read_bytes()
+    r = CliRunner().invoke(main, ["apply", str(tmp / "weights.npz"), str(tmp / "t" / "targets.yaml"), "--drive",
+                                  "keys", "--format", "livelink", "-o", str(tmp / "c")])
+    assert r.exit_code == 1 and "format livelink needs keys posed on a rig" in r.stderr
