@@ -168,8 +168,9 @@ def _rig_driver(regions, tg, targets, cache_dir):
         return rig.evaluate(curves[sl])
 
     def glb():
-        D = rig.D.toarray() if rig.sparse else np.asarray(rig.D)
-        return D.T.reshape(rig.n_sliders, -1, 3), list(rig.names), curves
+        from .exports import rig_shapes
+
+        return rig_shapes(rig, curves)
 
     return positions, rig.template, rig.neutral, glb, (rig, curves)
 
@@ -216,6 +217,10 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     for f in RIG_FORMATS:
         if f in formats and not use_rig:
             raise InputError(f"{targets}: format {f} needs keys posed on a rig (a targets.yaml from auto-pose)")
+    if "usd" in formats:
+        from ..io.usd import require_pxr
+
+        require_pxr()
     out = Path(output)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
@@ -268,6 +273,11 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         from .exports import write_livelink
 
         written.append(write_livelink(out / APPLY_FILES["livelink"], rig_out[0], rig_out[1], fps, landmarks=landmarks))
+    if "usd" in formats:
+        from .exports import write_usd
+
+        written.append(write_usd(out / APPLY_FILES["usd"], template, base, positions, T, fps, rig_out=rig_out,
+                                 head=head))
     if "csv" in formats:
         write_text(out / APPLY_FILES["csv"], weights_csv(regions, fps))
         written.append(out / APPLY_FILES["csv"])

@@ -193,3 +193,115 @@ def test_livelink_needs_a_rig_and_is_deterministic(rig_scene):
     r = CliRunner().invoke(main, ["apply", str(tmp / "weights.npz"), str(tmp / "t" / "targets.yaml"), "--drive",
                                   "keys", "--format", "livelink", "-o", str(tmp / "c")])
     assert r.exit_code == 1 and "format livelink needs keys posed on a rig" in r.stderr
+
+
+# --------------------------------------------------------------------------- USD
+
+
+def usd_blendshape_frames(path):
+    """(names, weights (T, M), meshes (T, N, 3)) by UsdSkel's own queries: AnimQuery weights, BlendShapeQuery points."""
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    stage = Usd.Stage.Open(str(path))
+    cache = UsdSkel.Cache()
+    root = UsdSkel.Root(stage.GetDefaultPrim())
+    cache.Populate(root, Usd.PrimDefaultPredicate)
+    (binding,) = cache.ComputeSkelBindings(root, Usd.PrimDefaultPredicate)
+    skel_query = cache.GetSkelQuery(binding.GetSkeleton())
+    anim = skel_query.GetAnimQuery()
+    (skinning,) = binding.GetSkinningTargets()
+    mesh = UsdGeom.Mesh(skinning.GetPrim())
+    shapes = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(mesh.GetPrim()))
+    point_ids = shapes.ComputeBlendShapePointIndices()
+    offsets = shapes.ComputeSubShapePointOffsets()
+    names, W, X = list(anim.GetBlendShapeOrder()), [], []
+    for t in range(int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode()) + 1):
+        w = anim.ComputeBlendShapeWeights(Usd.TimeCode(t))
+        W.append(np.array(w))
+        w_mesh = skinning.GetBlendShapeMapper().Remap(w)
+        sub, bs_idx, sub_idx = shapes.ComputeSubShapeWeights(w_mesh)
+        pts = mesh.GetPointsAttr().Get(Usd.TimeCode(t))
+        shapes.ComputeDeformedPoints(sub, bs_idx, sub_idx, point_ids, offsets, pts)
+        xforms = skel_query.ComputeSkinningTransforms(Usd.TimeCode(t))
+        skinning.ComputeSkinnedPoints(xforms, pts, Usd.TimeCode(t))
+        X.append(np.array(pts, dtype=np.float64))
+    return stage, names, np.array(W), np.array(X)
+
+
+def test_usd_skel_reproduces_curves_and_meshes(rig_scene):
+    pytest.importorskip("pxr")
+    from pxr import UsdSkel
+
+    from retarget_cli.io.obj import read_obj
+
+    tmp, rig, _, _ = rig_scene
+    apply_rig(tmp, tmp / "out", ["obj", "curves", "usd"])
+    stage, names, W, X = usd_blendshape_frames(tmp / "out" / "animation.usd")
+    slider_names, C, _, _ = read_animation(tmp / "out" / "curves.npz")
+    assert names == slider_names and stage.GetTimeCodesPerSecond() == FPS and len(W) == T
+    np.testing.assert_allclose(W, C, atol=1e-6)
+    objs = np.stack([read_obj(tmp / "out" / f"frame_{t:05d}.obj").vertices for t in range(T)])
+    np.testing.assert_allclose(X, objs, atol=1e-5)
+    # Sparse shapes: offsets only for the vertices they move.
+    mesh = next(p for p in stage.Traverse() if p.GetTypeName() == "Mesh")
+    shape = UsdSkel.BlendShape(mesh.GetChild("jawOpen"))
+    assert len(shape.GetPointIndicesAttr().Get()) == 6 == len(shape.GetOffsetsAttr().Get())
+    st = mesh.GetAttribute("primvars:st")
+    assert st.GetMetadata("interpolation") == "faceVarying" and len(st.Get()) == 2 * rig.n_vertices
+
+
+def test_usd_bakes_correctives_as_shapes_driven_by_the_product(rig_scene):
+    pytest.importorskip("pxr")
+    tmp, rig, _, _ = rig_scene
+    r = tmp / "rig"
+    C = rig.neutral.copy()
+    C[[0, 5]] += [[0.1, 0.2, -0.3], [0.0, 0.4, 0.1]]
+    from retarget_cli.io.obj import write_obj
+
+    write_obj(r / "corr.obj", rig.template, C)
+    (r / "rig.yaml").write_text((r / "rig.yaml").read_text()
+                                + "correctives:\n  - {shapes: [jawOpen, mouthLeft], obj: corr.obj}\n")
+    apply_rig(tmp, tmp / "out", ["curves", "usd"])
+    _, names, W, X = usd_blendshape_frames(tmp / "out" / "animation.usd")
+    slider_names, S, _, _ = read_animation(tmp / "out" / "curves.npz")
+    assert names == [*slider_names, "corrective_jawOpen_mouthLeft"]
+    prod = S[:, slider_names.index("jawOpen")] * S[:, slider_names.index("mouthLeft")]
+    np.testing.assert_allclose(W[:, -1], prod, atol=1e-6)
+    want = rig.evaluate(S) + prod[:, None, None] * (C - rig.neutral)
+    np.testing.assert_allclose(X, want, atol=1e-5)
+
+
+def test_usd_point_cache_without_a_rig_and_head_motion(rig_scene):
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    from retarget_cli.io.obj import read_obj
+
+    tmp, _, _, _ = rig_scene
+    kw = dict(landmarks=tmp / "landmarks.npz", head_motion="2d", scale=0.05)
+    apply_rig(tmp, tmp / "out", ["obj", "usd"], drive="keys", **kw)
+    stage = Usd.Stage.Open(str(tmp / "out" / "animation.usd"))
+    mesh = UsdGeom.Mesh(next(p for p in stage.Traverse() if p.GetTypeName() == "Mesh"))
+    assert stage.GetTimeCodesPerSecond() == FPS and stage.GetEndTimeCode() == T - 1
+    assert mesh.GetPointsAttr().GetNumTimeSamples() == T
+    for t in (0, 5, T - 1):
+        pts = np.array(mesh.GetPointsAttr().Get(Usd.TimeCode(t)), dtype=np.float64)
+        M = np.array(UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(Usd.TimeCode(t)))
+        world = pts @ M[:3, :3] + M[3, :3]
+        np.testing.assert_allclose(world, read_obj(tmp / "out" / f"frame_{t:05d}.obj").vertices, atol=1e-4)
+
+
+def test_usd_is_deterministic_and_needs_usd_core(rig_scene, monkeypatch):
+    pytest.importorskip("pxr")
+    import sys
+
+    tmp, _, _, _ = rig_scene
+    apply_rig(tmp, tmp / "a", ["usd"])
+    apply_rig(tmp, tmp / "b", ["usd"])
+    assert (tmp / "a" / "animation.usd").read_bytes() == (tmp / "b" / "animation.usd").read_bytes()
+    assert sorted(p.name for p in (tmp / "a").iterdir()) == ["animation.usd"]  # no temporary file left
+    monkeypatch.setitem(sys.modules, "pxr", None)  # as if usd-core were not installed
+    r = CliRunner().invoke(main, ["apply", str(tmp / "weights.npz"), str(tmp / "t" / "targets.yaml"), "--format",
+                                  "usd", "-o", str(tmp / "c")])
+    assert r.exit_code == 1 and "usd-core" in r.stderr and "retarget[usd]" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp / "c").exists()
