@@ -288,10 +288,11 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         written += [out / APPLY_FILES["exr"], out / APPLY_FILES["exr_json"]]
     if "glb" in formats:
         from ..io.gltf import write_glb
+        from ..io.objsurface import obj_surface
 
         mt, names, mw = glb()
-        write_glb(out / APPLY_FILES["glb"], base=base, faces=template.faces(), targets=mt, target_names=names,
-                  weights=mw, fps=fps, node_transforms=head, name=template.path.stem)
+        write_glb(out / APPLY_FILES["glb"], base=base, faces=None, targets=mt, target_names=names, weights=mw,
+                  fps=fps, node_transforms=head, name=template.path.stem, surface=obj_surface(template))
         written.append(out / APPLY_FILES["glb"])
     log.info("wrote %d frames of %d vertices to %s (%s; driven by %s)", T, N, out, ", ".join(formats),
              "the rig" if use_rig else "the key shapes")

@@ -7,6 +7,7 @@ import logging
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from usd_readback import usd_blendshape_frames
 
 from retarget_cli.cli import main
 from retarget_cli.errors import InputError
@@ -198,36 +199,6 @@ def test_livelink_needs_a_rig_and_is_deterministic(rig_scene):
 # --------------------------------------------------------------------------- USD
 
 
-def usd_blendshape_frames(path):
-    """(names, weights (T, M), meshes (T, N, 3)) by UsdSkel's own queries: AnimQuery weights, BlendShapeQuery points."""
-    from pxr import Usd, UsdGeom, UsdSkel
-
-    stage = Usd.Stage.Open(str(path))
-    cache = UsdSkel.Cache()
-    root = UsdSkel.Root(stage.GetDefaultPrim())
-    cache.Populate(root, Usd.PrimDefaultPredicate)
-    (binding,) = cache.ComputeSkelBindings(root, Usd.PrimDefaultPredicate)
-    skel_query = cache.GetSkelQuery(binding.GetSkeleton())
-    anim = skel_query.GetAnimQuery()
-    (skinning,) = binding.GetSkinningTargets()
-    mesh = UsdGeom.Mesh(skinning.GetPrim())
-    shapes = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(mesh.GetPrim()))
-    point_ids = shapes.ComputeBlendShapePointIndices()
-    offsets = shapes.ComputeSubShapePointOffsets()
-    names, W, X = list(anim.GetBlendShapeOrder()), [], []
-    for t in range(int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode()) + 1):
-        w = anim.ComputeBlendShapeWeights(Usd.TimeCode(t))
-        W.append(np.array(w))
-        w_mesh = skinning.GetBlendShapeMapper().Remap(w)
-        sub, bs_idx, sub_idx = shapes.ComputeSubShapeWeights(w_mesh)
-        pts = mesh.GetPointsAttr().Get(Usd.TimeCode(t))
-        shapes.ComputeDeformedPoints(sub, bs_idx, sub_idx, point_ids, offsets, pts)
-        xforms = skel_query.ComputeSkinningTransforms(Usd.TimeCode(t))
-        skinning.ComputeSkinnedPoints(xforms, pts, Usd.TimeCode(t))
-        X.append(np.array(pts, dtype=np.float64))
-    return stage, names, np.array(W), np.array(X)
-
-
 def test_usd_skel_reproduces_curves_and_meshes(rig_scene):
     pytest.importorskip("pxr")
     from pxr import UsdSkel
@@ -305,3 +276,85 @@ def test_usd_is_deterministic_and_needs_usd_core(rig_scene, monkeypatch):
                                   "usd", "-o", str(tmp / "c")])
     assert r.exit_code == 1 and "usd-core" in r.stderr and "retarget[usd]" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp / "c").exists()
+
+
+# --------------------------------------------------------------------------- glTF
+
+
+def read_glb(path):
+    """pygltflib's view of a glb: (gltf, accessor reader)."""
+    from pygltflib import GLTF2
+
+    g = GLTF2().load_binary(str(path))
+    blob = g.binary_blob()
+
+    def acc(i):
+        a = g.accessors[i]
+        n = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}[a.type]
+        dt = np.uint32 if a.componentType == 5125 else np.float32
+        view = g.bufferViews[a.bufferView]
+        data = np.frombuffer(blob, dt, count=a.count * n, offset=view.byteOffset + (a.byteOffset or 0))
+        return data.reshape(a.count, n) if n > 1 else data
+
+    return g, acc
+
+
+def obj_corners(path):
+    """Per face of an OBJ (read here, independently): material, [(v, vt), ...] 0-based."""
+    faces, mat = [], None
+    for line in path.read_text().splitlines():
+        tok = line.split()
+        if tok and tok[0] == "usemtl":
+            mat = tok[1]
+        elif tok and tok[0] == "f":
+            faces.append((mat, [tuple(int(x) - 1 for x in c.split("/")[:2]) for c in tok[1:]]))
+    return faces
+
+
+def test_glb_has_the_rig_shapes_as_named_morph_targets_uvs_normals_and_base_colours(rig_scene):
+    from retarget_cli.io.obj import read_obj
+
+    tmp, rig, _, _ = rig_scene
+    apply_rig(tmp, tmp / "out", ["obj", "curves", "glb"])
+    g, acc = read_glb(tmp / "out" / "animation.glb")
+    mesh = g.meshes[0]
+    assert mesh.extras["targetNames"] == list(rig.names)
+    prims = mesh.primitives
+    assert len(prims) == 2 and all(len(p.targets) == rig.n_sliders for p in prims)
+    P = acc(prims[0].attributes.POSITION)
+    D = np.stack([acc(t["POSITION"]) for t in prims[0].targets])
+    anim = g.animations[0]
+    sampler = anim.samplers[anim.channels[0].sampler]
+    times = acc(sampler.input)
+    W = acc(sampler.output).reshape(len(times), -1)
+    _, C, _, _ = read_animation(tmp / "out" / "curves.npz")
+    np.testing.assert_allclose(W, C, atol=1e-6)
+    np.testing.assert_allclose(times, np.arange(T) / FPS, rtol=1e-6)
+    frames = P[None] + np.einsum("tm,mnd->tnd", W, D)
+    objs = np.stack([read_obj(tmp / "out" / f"frame_{t:05d}.obj").vertices for t in range(T)])
+    N = rig.n_vertices
+    # The seam down the middle column splits its vertices: N + one copy per seam vertex (5 rows).
+    assert len(P) == N + 5
+    np.testing.assert_allclose(frames[:, :N], objs, atol=1e-5)  # every frame, the OBJ's vertices in order
+    uv = acc(prims[0].attributes.TEXCOORD_0)
+    nrm = acc(prims[0].attributes.NORMAL)
+    np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1, atol=1e-6)
+    # Every triangle corner: its position at every frame is its OBJ vertex's, its UV the corner's vt.
+    vt_lines = np.array([[float(x) for x in ln.split()[1:]] for ln in
+                         (tmp / "rig" / "neutral.obj").read_text().splitlines() if ln.startswith("vt ")])
+    faces = obj_corners(tmp / "rig" / "neutral.obj")
+    kd = {"left_mat": [0.8, 0.2, 0.1, 1.0], "right_mat": [0.1, 0.3, 0.9, 1.0]}
+    for prim in prims:
+        mat = g.materials[prim.material]
+        np.testing.assert_allclose(mat.pbrMetallicRoughness.baseColorFactor, kd[mat.name])
+        tris = acc(prim.indices).reshape(-1, 3)
+        want = [c for m, f in faces if m == mat.name for i in range(1, len(f) - 1) for c in (f[0], f[i], f[i + 1])]
+        want = np.array(want)
+        assert len(tris) * 3 == len(want)
+        np.testing.assert_allclose(frames[:, tris.ravel()], objs[:, want[:, 0]], atol=1e-5)
+        np.testing.assert_allclose(uv[tris.ravel()], vt_lines[want[:, 1]] * [1, -1] + [0, 1], atol=1e-6)
+        # Smooth normals: the seam copies share their vertex's normal, and face the same way as the triangles.
+        np.testing.assert_allclose(nrm[tris.ravel()], nrm[want[:, 0]], atol=1e-6)
+        a, b, c = (P[tris[:, k]] for k in range(3))
+        face_n = np.cross(b - a, c - a)
+        assert np.all(np.einsum("td,td->t", face_n, nrm[tris[:, 0]]) > 0)
