@@ -407,7 +407,8 @@ def _parse_masks(masks) -> dict:
 @click.option("--format", "formats", default="obj", show_default=True, metavar="LIST",
               help="Comma-separated exports: obj (frame_%05d.obj), csv (weights.csv), "
                    "exr (animation.exr + animation.json), glb (animation.glb), curves (curves.csv + curves.npz: "
-                   "the rig's sliders per frame, with keys posed by auto-pose).")
+                   "the rig's sliders per frame, with keys posed by auto-pose), livelink (livelink.csv: Live Link "
+                   "Face CSV of the rig's sliders), usd (animation.usd: UsdSkel blendshapes or a point cache).")
 @click.option("--landmarks", type=click.Path(dir_okay=False), default=None,
               help="landmarks.npz whose head motion --head-motion 2d applies.")
 @setting("apply", "head_motion")

@@ -270,7 +270,8 @@ STAGES: dict[str, Stage] = {
                       "Directory for frame_00000.obj, ..., weights.csv, animation.exr/.json, animation.glb."),
                 Param("formats", "setting", list, ["obj"],
                       "Exports: any of obj, csv, exr, glb, curves (the rig's slider curves: curves.csv, curves.npz; "
-                      "needs keys posed on a rig).", choices=("obj", "csv", "exr", "glb", "curves")),
+                      "needs keys posed on a rig), livelink (Live Link Face CSV; needs a rig), usd (animation.usd; "
+                      "needs usd-core).", choices=("obj", "csv", "exr", "glb", "curves", "livelink", "usd")),
                 Param("drive", "setting", str, "auto",
                       "What drives the character: auto (the rig when targets.yaml names one, else the key shapes), "
                       "rig, or keys (blend the key OBJs with the region masks).", choices=("auto", "rig", "keys")),

@@ -2,9 +2,19 @@
 
 A small writer following the glTF 2.0 specification (Khronos, 2021): one
 mesh (polygons fan-triangulated, vertices in OBJ order, never merged), one
-morph target per key shape, a ``weights`` animation sampled at every frame,
-and optionally the head motion as the node's animated translation, rotation
-and scale. Any glTF viewer plays it.
+morph target per key shape or rig shape (their names in
+``mesh.extras.targetNames``, the convention Blender, three.js and Babylon.js
+read), a ``weights`` animation sampled at every frame, and optionally the
+head motion as the node's animated translation, rotation and scale. Any glTF
+viewer plays it.
+
+Given the OBJ's surface (:func:`~retarget_cli.io.objsurface.obj_surface`),
+the mesh also carries ``TEXCOORD_0`` (where every face corner has a ``vt``),
+``NORMAL`` (the OBJ's ``vn``, else smooth area-weighted normals of the base
+mesh) and one primitive per ``usemtl`` material with the ``.mtl``'s ``Kd`` as
+``baseColorFactor``. glTF has one UV and normal per vertex, so a vertex whose
+corners carry different UVs or normals (a UV seam) is split: the first N
+glTF vertices are the OBJ's in order, the copies follow.
 
 Layout of the file: 12-byte header (``glTF``, version 2, total length), a JSON
 chunk padded with spaces and a BIN chunk padded with zeros, both to 4 bytes;
@@ -47,6 +57,70 @@ def triangulate(faces) -> np.ndarray:
     return np.asarray(rows, dtype=np.uint32).reshape(-1, 3)
 
 
+def split_vertices(surface, n_vertices: int):
+    """glTF vertices for an OBJ surface: one per distinct (vertex, UV, normal) of the face corners.
+
+    Parameters
+    ----------
+    surface : ObjSurface
+    n_vertices : int
+        N, the OBJ's vertex count.
+
+    Returns
+    -------
+    src : ndarray, shape (N',), int64
+        OBJ vertex of each glTF vertex; ``src[:N] == arange(N)``, the seam
+        copies after, in order of first use.
+    corners : ndarray, shape (C,), int64
+        glTF vertex of each face corner.
+    vt, vn : ndarray, shape (N',), int64, or None
+        The ``vt`` / ``vn`` id of each glTF vertex (-1 for vertices no face
+        uses); None when not every corner has one.
+    """
+    v = surface.v
+    cols = [v]
+    use_vt, use_vn = surface.has_uv, surface.has_normals
+    if use_vt:
+        cols.append(surface.vt)
+    if use_vn:
+        cols.append(surface.vn)
+    K = np.stack(cols, 1)
+    primary = np.full((n_vertices, K.shape[1]), -1, np.int64)
+    primary[:, 0] = np.arange(n_vertices)
+    first_v, first_at = np.unique(v, return_index=True)
+    primary[first_v] = K[first_at]
+    same = np.all(K == primary[v], axis=1)
+    corners = v.copy()
+    extra = np.zeros((0, K.shape[1]), np.int64)
+    if not same.all():
+        rows, first, inverse = np.unique(K[~same], axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        corners[~same] = n_vertices + rank[inverse.ravel()]
+        extra = rows[order]
+    table = np.concatenate([primary, extra])
+    k = 1
+    vt = vn = None
+    if use_vt:
+        vt, k = table[:, k], k + 1
+    if use_vn:
+        vn = table[:, k]
+    return table[:, 0], corners, vt, vn
+
+
+def _fan(counts, corners) -> np.ndarray:
+    """Fan triangles ``(c0, cj, cj+1)`` of every face, in file order; (F', 3) and the face of each."""
+    counts = np.asarray(counts, dtype=np.int64)
+    n_tri = np.maximum(counts - 2, 0)
+    face = np.repeat(np.arange(len(counts)), n_tri)
+    start = np.cumsum(counts) - counts
+    j = np.arange(len(face)) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri) + 1
+    s0 = start[face]
+    tris = np.stack([corners[s0], corners[s0 + j], corners[s0 + j + 1]], 1)
+    return tris.astype(np.uint32), face
+
+
 class _Bin:
     """The BIN chunk under construction: buffer views and accessors."""
 
@@ -67,7 +141,7 @@ class _Bin:
         pad = (-len(data)) % 4
         self.parts += [data, b"\0" * pad]
         self.size += len(data) + pad
-        n_comp = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[kind]
+        n_comp = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}[kind]
         acc = {"bufferView": len(self.views) - 1, "componentType": comp, "count": arr.size // n_comp, "type": kind}
         if bounds:
             flat = arr.reshape(acc["count"], n_comp)
@@ -78,7 +152,7 @@ class _Bin:
 
 
 def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_transforms=None,
-              name: str = "character") -> bytes:
+              name: str = "character", surface=None) -> bytes:
     """A complete ``.glb`` file.
 
     The mesh at frame ``t`` is ``base + Σ_m weights[t, m] targets[m]`` (glTF
@@ -100,6 +174,11 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
     node_transforms : ndarray, shape (T, 3, 4), optional
         Per-frame similarity ``X' = s R X + t`` (rotation, uniform scale,
         translation), animated as the node's TRS.
+    surface : ObjSurface, optional
+        The OBJ's faces, UVs, normals and materials
+        (:func:`~retarget_cli.io.objsurface.obj_surface`); replaces *faces*
+        and adds ``TEXCOORD_0``, ``NORMAL`` and materials (see the module
+        docstring).
     """
     base = np.asarray(base, dtype=np.float32)
     D = np.asarray(targets, dtype=np.float32)
@@ -115,15 +194,59 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
     if not fps > 0:
         raise ShapeError(f"fps: expected > 0, got {fps}")
     T = W.shape[0]
-    tris = triangulate(faces)
-    if tris.size and int(tris.max()) >= base.shape[0]:
-        raise ShapeError(f"faces: vertex id {int(tris.max())} is out of range for {base.shape[0]} vertices")
+    N = base.shape[0]
     b = _Bin()
-    prim = {"attributes": {"POSITION": b.add(base, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)},
-            "mode": _TRIANGLES}
-    if len(tris):
-        prim["indices"] = b.add(tris.reshape(-1), kind="SCALAR", target=_ELEMENT_ARRAY_BUFFER)
-    prim["targets"] = [{"POSITION": b.add(d, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)} for d in D]
+    materials = []
+    if surface is None:
+        tris = triangulate(faces)
+        if tris.size and int(tris.max()) >= N:
+            raise ShapeError(f"faces: vertex id {int(tris.max())} is out of range for {N} vertices")
+        attributes = {"POSITION": b.add(base, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)}
+        groups = [(None, tris)]
+    else:
+        from .objsurface import vertex_normals
+
+        if surface.v.size and int(surface.v.max()) >= N:
+            raise ShapeError(f"surface: vertex id {int(surface.v.max())} is out of range for {N} vertices")
+        src, corners, vt, vn = split_vertices(surface, N)
+        base, D = base[src], D[:, src]
+        attributes = {"POSITION": b.add(base, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)}
+        if vn is not None:
+            nrm = surface.normals[np.maximum(vn, 0)]
+            nrm[vn < 0] = 0
+        else:
+            nrm = vertex_normals(base[:N], surface.counts, surface.v)[src]
+        length = np.linalg.norm(nrm, axis=1, keepdims=True)
+        nrm = np.where(length > 0, nrm / np.where(length > 0, length, 1), [0.0, 0.0, 1.0])  # unit, as glTF requires
+        attributes["NORMAL"] = b.add(nrm.astype(np.float32), kind="VEC3", target=_ARRAY_BUFFER)
+        if vt is not None:
+            uv = surface.uv[np.maximum(vt, 0)] * [1.0, -1.0] + [0.0, 1.0]  # glTF's v runs downwards
+            uv[vt < 0] = 0
+            attributes["TEXCOORD_0"] = b.add(uv.astype(np.float32), kind="VEC2", target=_ARRAY_BUFFER)
+        tris, face = _fan(surface.counts, corners)
+        tri_mat = surface.material[face]
+        groups = []
+        for m, mat in enumerate(surface.materials):
+            color = surface.base_colors.get(mat)
+            if color is None and not mat:
+                groups.append((None, tris[tri_mat == m]))
+                continue
+            pbr = {"metallicFactor": 0.0}
+            if color is not None:
+                pbr["baseColorFactor"] = [float(c) for c in color] + [1.0]
+            groups.append((len(materials), tris[tri_mat == m]))
+            materials.append({"name": mat, "pbrMetallicRoughness": pbr})
+        if not groups:
+            groups = [(None, tris)]
+    targets = [{"POSITION": b.add(d, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)} for d in D]
+    prims = []
+    for mat, tri in groups:
+        prim = {"attributes": attributes, "mode": _TRIANGLES, "targets": targets}
+        if len(tri):
+            prim["indices"] = b.add(tri.reshape(-1), kind="SCALAR", target=_ELEMENT_ARRAY_BUFFER)
+        if mat is not None:
+            prim["material"] = mat
+        prims.append(prim)
     times = (np.arange(T) / fps).astype(np.float32)
     t_acc = b.add(times, kind="SCALAR", bounds=True)
     samplers = [{"input": t_acc, "output": b.add(W.reshape(-1), kind="SCALAR"), "interpolation": "LINEAR"}]
@@ -145,13 +268,15 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"mesh": 0, "name": name}],
-        "meshes": [{"name": name, "primitives": [prim], "weights": [0.0] * D.shape[0],
+        "meshes": [{"name": name, "primitives": prims, "weights": [0.0] * D.shape[0],
                     "extras": {"targetNames": list(map(str, target_names))}}],
         "animations": [{"name": "retarget", "samplers": samplers, "channels": channels}],
         "buffers": [{"byteLength": b.size}],
         "bufferViews": b.views,
         "accessors": b.accessors,
     }
+    if materials:
+        doc["materials"] = materials
     js = json.dumps(doc, sort_keys=True, separators=(",", ":"), allow_nan=False).encode("utf-8")
     js += b" " * ((-len(js)) % 4)
     binary = b"".join(b.parts)

@@ -347,12 +347,16 @@ class Rig:
     landmarks: list | Path | None = None
     #: Pairs of slider names that never act together (``exclusive:``), or None to infer them.
     exclusive: list | None = None
+    #: ``names:``: ARKit column to the slider names it averages, for the Live Link Face CSV
+    #: (:mod:`retarget_cli.io.livelink`); empty when the rig does not say.
+    names: dict = field(default_factory=dict)
 
     def files(self) -> list[Path]:
         return [self.neutral, *self.shapes.values()]
 
 
-RIG_KEYS = ("neutral", "shapes", "shapes_are", "range", "ranges", "library", "correctives", "landmarks", "exclusive")
+RIG_KEYS = ("neutral", "shapes", "shapes_are", "range", "ranges", "library", "correctives", "landmarks", "exclusive",
+            "names")
 
 
 def _rig_range(value, where: str) -> tuple[float, float]:
@@ -372,7 +376,9 @@ def read_rig(path: str | os.PathLike) -> Rig:
     Keys: ``neutral``, ``shapes: {name: obj}``, optional ``shapes_are``
     (``absolute`` or ``delta``), ``range`` (``t`` or ``[lo, hi]``, every
     slider), ``ranges`` (per-shape overrides), ``library`` (``{expression:
-    {slider: weight}}``) and ``correctives`` (kept unparsed).
+    {slider: weight}}``), ``correctives`` (kept unparsed), ``landmarks``,
+    ``exclusive`` and ``names`` (``{ARKitName: slider or [sliders]}``, for
+    the Live Link Face CSV).
 
     Raises
     ------
@@ -443,8 +449,11 @@ def read_rig(path: str | os.PathLike) -> Rig:
                 raise InputError(f"{path}: exclusive[{i}]: expected a pair of two different slider names, got {pair!r}")
             pairs.append(tuple(check_name(n, f"{path}: exclusive[{i}]") for n in pair))
         exclusive = pairs
+    from .livelink import check_names_mapping
+
+    names = check_names_mapping(data.get("names"), shapes, f"{path}: names")
     return Rig(path, path.parent / data["neutral"], shapes, rng, ranges, shapes_are, library, data.get("correctives"),
-               landmarks, exclusive)
+               landmarks, exclusive, names)
 
 
 __all__ = [

@@ -26,9 +26,11 @@ from . import FRAME_RE, _no_progress, _require
 log = logging.getLogger(__name__)
 
 #: Exports ``apply`` can write (``--format``); file names inside the output directory.
-APPLY_FORMATS = ("obj", "csv", "exr", "glb", "curves")
+APPLY_FORMATS = ("obj", "csv", "exr", "glb", "curves", "livelink", "usd")
 APPLY_FILES = {"csv": "weights.csv", "exr": "animation.exr", "exr_json": "animation.json", "glb": "animation.glb",
-               "curves": "curves.csv", "curves_npz": "curves.npz"}
+               "curves": "curves.csv", "curves_npz": "curves.npz", "livelink": "livelink.csv", "usd": "animation.usd"}
+#: Formats that need the rig's slider curves (keys posed on a rig).
+RIG_FORMATS = ("curves", "livelink")
 DRIVES = ("auto", "rig", "keys")
 
 
@@ -166,8 +168,9 @@ def _rig_driver(regions, tg, targets, cache_dir):
         return rig.evaluate(curves[sl])
 
     def glb():
-        D = rig.D.toarray() if rig.sparse else np.asarray(rig.D)
-        return D.T.reshape(rig.n_sliders, -1, 3), list(rig.names), curves
+        from .exports import rig_shapes
+
+        return rig_shapes(rig, curves)
 
     return positions, rig.template, rig.neutral, glb, (rig, curves)
 
@@ -211,8 +214,13 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     use_rig = tg.rig is not None and drive != "keys"
     if drive == "rig" and tg.rig is None:
         raise InputError(f"{targets}: drive rig needs a targets.yaml that names 'rig' and 'sliders' (from auto-pose)")
-    if "curves" in formats and not use_rig:
-        raise InputError(f"{targets}: format curves needs keys posed on a rig (a targets.yaml from auto-pose)")
+    for f in RIG_FORMATS:
+        if f in formats and not use_rig:
+            raise InputError(f"{targets}: format {f} needs keys posed on a rig (a targets.yaml from auto-pose)")
+    if "usd" in formats:
+        from ..io.usd import require_pxr
+
+        require_pxr()
     out = Path(output)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
@@ -261,6 +269,15 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         write_animation(out / APPLY_FILES["curves_npz"], rig.names, curves, frames,
                         meta={"fps": fps, "rig": Path(tg.rig).name, "weights": Path(weights).name})
         written += [out / APPLY_FILES["curves"], out / APPLY_FILES["curves_npz"]]
+    if "livelink" in formats:
+        from .exports import write_livelink
+
+        written.append(write_livelink(out / APPLY_FILES["livelink"], rig_out[0], rig_out[1], fps, landmarks=landmarks))
+    if "usd" in formats:
+        from .exports import write_usd
+
+        written.append(write_usd(out / APPLY_FILES["usd"], template, base, positions, T, fps, rig_out=rig_out,
+                                 head=head))
     if "csv" in formats:
         write_text(out / APPLY_FILES["csv"], weights_csv(regions, fps))
         written.append(out / APPLY_FILES["csv"])
@@ -271,10 +288,11 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         written += [out / APPLY_FILES["exr"], out / APPLY_FILES["exr_json"]]
     if "glb" in formats:
         from ..io.gltf import write_glb
+        from ..io.objsurface import obj_surface
 
         mt, names, mw = glb()
-        write_glb(out / APPLY_FILES["glb"], base=base, faces=template.faces(), targets=mt, target_names=names,
-                  weights=mw, fps=fps, node_transforms=head, name=template.path.stem)
+        write_glb(out / APPLY_FILES["glb"], base=base, faces=None, targets=mt, target_names=names, weights=mw,
+                  fps=fps, node_transforms=head, name=template.path.stem, surface=obj_surface(template))
         written.append(out / APPLY_FILES["glb"])
     log.info("wrote %d frames of %d vertices to %s (%s; driven by %s)", T, N, out, ", ".join(formats),
              "the rig" if use_rig else "the key shapes")
