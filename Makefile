@@ -21,7 +21,7 @@ demo: $(STAMP) $(ICT)
 	@echo "Preview: build/sample/preview.mp4"
 	@echo "Report:  build/sample/report.html"
 	$(BIN)/retarget run configs/real.yaml
-	@echo "Real clip onto the ICT FaceKit: build/real/frames/curves.csv (the rig's sliders per frame), curves.npz, animation.glb"
+	@echo "Real clip onto the ICT FaceKit: build/real/frames/curves.csv (the rig's sliders per frame), curves.npz, livelink.csv, animation.glb"
 
 # Your video, your rig: the real clip sample_data/real/d3.mp4 onto the ICT FaceKit (both MIT), configs/real.yaml.
 $(ICT): sample_data/ict/ict-facekit-rig.tar.xz sample_data/ict/rig.yaml
@@ -31,7 +31,7 @@ $(ICT): sample_data/ict/ict-facekit-rig.tar.xz sample_data/ict/rig.yaml
 
 real-demo: $(STAMP) $(ICT)
 	$(BIN)/retarget run configs/real.yaml
-	@echo "Rig curves: build/real/frames/curves.csv (one column per ICT slider), curves.npz; glTF: build/real/frames/animation.glb"
+	@echo "Rig curves: build/real/frames/curves.csv (one column per ICT slider), curves.npz; Live Link Face: livelink.csv; glTF: animation.glb"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
