@@ -246,7 +246,10 @@ def run_batch(client, shots: list, *, retries: int = 1, force: bool = False, cac
             res = dict(fut.result(), status="done", attempts=attempts[shot.name], error=None)
             kind = "done"
         else:
-            exc = fut.exception()
+            try:
+                exc = fut.exception()
+            except BaseException as lost:  # cancelled: the scheduler lost the task
+                exc = lost
             res = {"name": shot.name, "output_dir": str(shot.output_dir), "stages": {}, "frames": None,
                    "confidence": None, "residual_px": None, "jitter": None, "seconds": None,
                    "status": "failed", "attempts": attempts[shot.name], "error": _error_text(exc)}
