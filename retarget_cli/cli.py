@@ -539,7 +539,8 @@ def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics, no_cac
 @click.option("--from", "start", metavar="STAGE", help="First stage to consider.")
 @click.option("--until", "stop", metavar="STAGE", help="Last stage to consider.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE",
-              help="Override a config value (YAML syntax), e.g. --set select.k=8. Repeatable.")
+              help="Override a config value (YAML syntax), e.g. --set select.k=8 or --set output_dir=/scratch/"
+                   "take01. Repeatable.")
 @click.option("--no-cache", is_flag=True,
               help="Read rigs' OBJs every time instead of keeping them parsed in <output_dir>/.retarget/cache.")
 def run(config, force, start, stop, overrides, no_cache):
@@ -554,6 +555,89 @@ def run(config, force, start, stop, overrides, no_cache):
             click.echo(f"{name}: {status}", err=True)
         for p in outs:
             click.echo(f"{name}\t{p}")
+
+
+@main.command()
+@click.argument("shots", type=click.Path(dir_okay=False))
+@click.option("-j", "--jobs", type=click.IntRange(1, 1024), default=None,
+              help="Worker processes of the local cluster, one thread each (default: the CPUs available).")
+@click.option("--scheduler", metavar="ADDRESS", default=None,
+              help="Use an existing Dask scheduler (tcp://host:8786, or a scheduler file .json) instead of a "
+                   "local cluster; every path must be visible to its workers.")
+@click.option("--retries", type=click.IntRange(0, 100), default=1, show_default=True,
+              help="Further attempts of a shot that failed (or whose worker died) before it is reported.")
+@click.option("--only", "only", multiple=True, metavar="PATTERN",
+              help="Only the shots whose name matches (fnmatch, e.g. 'take0*'). Repeatable.")
+@click.option("--force", is_flag=True, help="Rerun every stage of the selected shots even if it is up to date.")
+@click.option("--emit-commands", is_flag=True,
+              help="Print one self-contained 'retarget run ...' per pending shot (for a farm manager) and exit.")
+@click.option("--report", "report", is_flag=True,
+              help="Also write each shot's report.html (needs the extra report), linked from index.html.")
+@click.option("-o", "--output-dir", type=click.Path(file_okay=False), default=None,
+              help="Batch folder for batch.json and index.html, and default parent of the shot folders "
+                   "(default: the shot list's output_dir, else 'out' beside it).")
+def batch(shots, jobs, scheduler, retries, only, force, emit_commands, report, output_dir):
+    """Run every shot of the shot list SHOTS (YAML or CSV) through the pipeline on Dask.
+
+    Each shot runs `retarget run` into its own output folder (resumable by its
+    manifests); a failed shot is retried, then reported, and never stops the
+    others. Writes batch.json and index.html into the batch folder and a
+    summary table on stdout. See README, "Many shots".
+    """
+    import time as _time
+
+    from .batch import format_table, load_plan, pending
+    from .stages import batch as engine
+
+    plan = load_plan(shots, output_dir=output_dir)
+    chosen = plan.select(only)
+    if emit_commands:
+        for shot in chosen:
+            if pending(shot, force=force):
+                click.echo(shot.command(force=force))
+        return
+    if scheduler is not None and jobs is not None:
+        raise click.UsageError("--jobs sets the size of the local cluster; it cannot be used with --scheduler")
+    quiet = log.getEffectiveLevel() > logging.WARNING
+
+    def say(msg):
+        if not quiet:
+            click.echo(msg, err=True)
+
+    def on_event(kind, res, c):
+        eta = "" if c["eta"] is None else f", ETA {_time.strftime('%H:%M:%S', _time.gmtime(c['eta']))}"
+        what = {"done": f"done in {res.get('seconds')} s", "failed": f"FAILED: {res['error']}",
+                "retry": f"failed, retrying (attempt {res['attempts'] + 1}): {res['error']}"}[kind]
+        say(f"[{c['done'] + c['failed']}/{c['total']}] {res['name']} {what}  "
+            f"({c['done']} done, {c['failed']} failed, {c['running']} to go{eta})")
+
+    engine.quiet_dask(logging.INFO if log.isEnabledFor(logging.DEBUG) else logging.ERROR)
+    with contextlib.ExitStack() as stack:
+        if scheduler is not None:
+            client = stack.enter_context(engine.connect(scheduler))
+        else:
+            import os as _os
+
+            cpus = len(_os.sched_getaffinity(0)) if hasattr(_os, "sched_getaffinity") else (_os.cpu_count() or 1)
+            cluster = stack.enter_context(engine.local_cluster(jobs or cpus))
+            client = stack.enter_context(cluster.get_client())
+        link = engine.dashboard_link(client)
+        n_workers = len(client.scheduler_info().get("workers", {}))
+        say(f"batch: {len(chosen)} shots on {n_workers} workers ({scheduler or 'local cluster'})"
+            + (f", dashboard {link}" if link else ""))
+        results = engine.run_batch(client, chosen, retries=retries, force=force, report=report, on_event=on_event)
+    earlier = engine.previous_results(plan.output_dir)
+    names = {r["name"] for r in results}
+    merged = [next(r for r in results if r["name"] == s.name) if s.name in names else earlier[s.name]
+              for s in plan.shots if s.name in names or s.name in earlier]
+    written = engine.write_summary(plan.output_dir, plan.path, merged)
+    click.echo(format_table(results))
+    for p in written:
+        click.echo(str(p))
+    failed = [r["name"] for r in results if r["status"] == "failed"]
+    if failed:
+        click.echo(f"error: {len(failed)} of {len(results)} shots failed: {', '.join(failed)}", err=True)
+        click.get_current_context().exit(1)
 
 
 def _camera_options(f):

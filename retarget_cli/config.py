@@ -161,13 +161,17 @@ class Config:
 
 
 def parse_override(text: str) -> tuple[str, str, Any]:
-    """Parse ``stage.key=value`` (value in YAML syntax) from ``--set``."""
+    """Parse ``stage.key=value`` (value in YAML syntax) from ``--set``.
+
+    A top-level key (``output_dir=...``, ``seed=...``) comes back with stage ``""``.
+    """
     import yaml
 
-    if "=" not in text or "." not in text.split("=", 1)[0]:
-        raise ConfigError(f"--set {text!r}: expected STAGE.KEY=VALUE, e.g. select.k=8")
+    lhs = text.split("=", 1)[0].strip()
+    if "=" not in text or ("." not in lhs and lhs not in TOP_LEVEL):
+        raise ConfigError(f"--set {text!r}: expected STAGE.KEY=VALUE, e.g. select.k=8 (or output_dir=..., seed=...)")
     lhs, rhs = text.split("=", 1)
-    stage, key = lhs.split(".", 1)
+    stage, key = lhs.split(".", 1) if lhs.strip() not in TOP_LEVEL else ("", lhs)
     try:
         value = yaml.safe_load(rhs) if rhs.strip() else None
     except yaml.YAMLError as exc:
@@ -211,6 +215,9 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
     raw = {k: (dict(v) if isinstance(v, dict) else v) for k, v in raw.items()}
     for text in overrides:
         stage, key, value = parse_override(text)
+        if not stage:
+            raw[key] = value
+            continue
         if stage not in stages:
             raise unknown_key_error(f"--set {text}", stage, stages)
         section = raw.setdefault(stage, {}) or {}
