@@ -53,6 +53,10 @@ FORMULATIONS = ("whole", "convex", "delta")
 NO_CONVEX = ("ridge-clipped", "sequential", "temporal")
 #: Default regularisation strength (relative to the keys' spread) per solver.
 DEFAULT_ALPHA = {"ridge": 0.01, "ridge-clipped": 0.01, "temporal": 0.1, "temporal-causal": 0.1, "sparse": 0.05}
+#: What ``temporal`` and ``temporal-causal`` smooth: the reconstructed shape ``Σ w_i S_i`` or the raw weights.
+SMOOTH_SPACES = ("shape", "weights")
+#: Default alpha of the temporal solvers in shape space (the penalty is in landmark units, alpha is not scaled).
+DEFAULT_SHAPE_ALPHA = {"temporal": 1.0, "temporal-causal": 1.0}
 #: Upper bound of ``bounded`` and ``ridge-clipped`` when none is given.
 DEFAULT_UPPER = 1.0
 #: A weight above this counts towards the frame's cardinality.
@@ -65,7 +69,7 @@ _EPS = np.finfo(np.float64).eps
 
 
 def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole", alpha: float | None = None,
-              upper: float | None = None, neutral=None, confidence=None):
+              upper: float | None = None, neutral=None, confidence=None, smooth_space: str = "shape"):
     """Weights ``w_t`` with ``S_t ≈ Σ_i w_{t,i} S_i`` for every frame.
 
     The default is Chuang & Bregler's eq. 4:
@@ -78,7 +82,9 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     where ``‖r‖²_C = Σ_d c_{t,d} r_d²`` weights each coordinate by its
     landmark's confidence (all ones by default). Other solvers add to or
     replace the constraint (``λ = alpha · mean_i ‖S_i − S̄‖²``, so *alpha* is
-    relative to the spread of the key shapes and has no units):
+    relative to the spread of the key shapes and has no units; the temporal
+    solvers in shape space use ``λ = alpha``, their penalty being in the
+    landmarks' units already):
 
     ``ls``
         no constraint (their Fig. 4, to show the distortion);
@@ -93,11 +99,15 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
         ``ridge`` clipped to ``[0, upper]`` (*upper* defaults to 1), their
         initialisation;
     ``temporal-causal``
-        ``+ λ‖w_t − w_{t−1}‖²``, ``w ≥ 0``, frame by frame (Lewis & Anjyo
-        2010, eq. 2 with the previous frame's weights as ``w_0``);
+        ``+ λ‖Bᵀ(w_t − w_{t−1})‖²``, ``w ≥ 0``, frame by frame (Lewis & Anjyo
+        2010, eq. 2 with the previous frame's weights as ``w_0``, the distance
+        measured on the reconstructed shape); ``+ λ‖w_t − w_{t−1}‖²`` with
+        ``smooth_space="weights"``;
     ``temporal``
-        ``+ λ Σ_t ‖w_{t−1} − 2w_t + w_{t+1}‖²`` over the whole take, ``w ≥ 0``,
-        solved jointly (:func:`temporal_whole`);
+        ``+ λ Σ_t ‖Bᵀ(w_{t−1} − 2w_t + w_{t+1})‖²`` over the whole take
+        (``‖D₂ W S‖²``, the acceleration of the reconstructed landmarks),
+        ``w ≥ 0``, solved jointly (:func:`temporal_whole`); ``+ λ Σ_t
+        ‖w_{t−1} − 2w_t + w_{t+1}‖²`` with ``smooth_space="weights"``;
     ``sparse``
         ``+ λ 1ᵀw``, ``w ≥ 0`` (the L1 norm on the non-negative orthant);
     ``sequential``
@@ -127,6 +137,8 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
         ``S_0``; required by ``formulation="delta"``.
     confidence : ndarray, shape (T, D), optional
         Non-negative weight of each coordinate in each frame (row weights).
+    smooth_space : {"shape", "weights"}
+        What ``temporal`` and ``temporal-causal`` penalise (see above).
 
     Returns
     -------
@@ -151,8 +163,11 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     if formulation == "convex" and solver in NO_CONVEX:
         raise ValueError(f"solver {solver!r} does not support formulation 'convex' "
                          f"(use one of {tuple(s for s in SOLVERS if s not in NO_CONVEX)})")
+    if smooth_space not in SMOOTH_SPACES:
+        raise ValueError(f"smooth_space: expected one of {SMOOTH_SPACES}, got {smooth_space!r}")
+    shape_space = smooth_space == "shape" and solver in ("temporal", "temporal-causal")
     if alpha is None:
-        alpha = DEFAULT_ALPHA.get(solver, 0.0)
+        alpha = (DEFAULT_SHAPE_ALPHA if shape_space else DEFAULT_ALPHA).get(solver, 0.0)
     if not np.isfinite(alpha) or alpha < 0:
         raise ValueError(f"alpha: expected a finite number >= 0, got {alpha!r}")
     if upper is not None and not upper > 0:
@@ -183,7 +198,8 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     W = np.zeros((T, K))
     if used.size:
         W[:, used] = _solve(S, B[used], C, solver=solver, convex=formulation == "convex",
-                            lam=alpha * _spread(B[used]), upper=upper)
+                            lam=alpha if shape_space else alpha * _spread(B[used]), upper=upper,
+                            shape_space=shape_space)
     residual = np.linalg.norm(S - W @ B, axis=1)
     return W, residual
 
@@ -324,14 +340,14 @@ def _groups(C, T):
         yield np.flatnonzero(inv == g), uniq[g]
 
 
-def _solve(S, B, C, *, solver, convex, lam, upper):
+def _solve(S, B, C, *, solver, convex, lam, upper, shape_space=False):
     """Weights (T, K) for one formulation's frames S (T, D) and keys B (K, D)."""
     T, K = len(S), len(B)
     eq = 1.0 if convex else None
     if solver == "temporal":
-        return temporal_whole(S, B, lam=lam, upper=upper, confidence=C)
+        return temporal_whole(S, B, lam=lam, upper=upper, confidence=C, shape_space=shape_space)
     if solver == "temporal-causal":
-        return _temporal_causal(S, B, C, lam=lam, upper=upper, eq=eq)
+        return _temporal_causal(S, B, C, lam=lam, upper=upper, eq=eq, shape_space=shape_space)
     if solver == "sequential":
         return _sequential(S, B, C, upper=upper)
     W = np.empty((T, K))
@@ -888,13 +904,15 @@ def _active_set_one(H, q, lo, hi, eq=None, x0=None, max_iter=None) -> np.ndarray
     return x
 
 
-def _temporal_causal(S, B, C, *, lam, upper, eq):
-    """Frame-by-frame ``min ‖Bᵀw − S_t‖²_C + λ‖w − w_{t−1}‖²`` with ``0 ≤ w ≤ upper`` (Lewis & Anjyo eq. 2).
+def _temporal_causal(S, B, C, *, lam, upper, eq, shape_space=False):
+    """Frame-by-frame ``min ‖Bᵀw − S_t‖²_C + λ‖w − w_{t−1}‖²_M`` with ``0 ≤ w ≤ upper`` (Lewis & Anjyo eq. 2).
 
-    The first frame has no predecessor and is solved without the penalty.
-    Each frame's active set warm-starts the next.
+    ``M = BBᵀ`` in shape space (the change of the reconstructed shape),
+    ``M = I`` in weight space. The first frame has no predecessor and is
+    solved without the penalty. Each frame's active set warm-starts the next.
     """
     T, K = len(S), len(B)
+    M = B @ B.T if shape_space else np.eye(K)
     lo = np.zeros(K)
     hi = np.full(K, np.inf if upper is None else upper)
     W = np.empty((T, K))
@@ -909,7 +927,7 @@ def _temporal_causal(S, B, C, *, lam, upper, eq):
         if prev is None:
             W[t] = box_qp(H, q[None], lower=lo, upper=hi, sum_to=eq)[0]
         else:
-            W[t] = _active_set_one(H + lam * np.eye(K), q + lam * prev, lo, hi, eq, x0=prev)
+            W[t] = _active_set_one(H + lam * M, q + lam * (M @ prev), lo, hi, eq, x0=prev)
         prev = W[t]
     return W
 
@@ -950,16 +968,20 @@ def _second_difference(T: int):
 
 
 def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, confidence=None,
-                   max_iter: int = 60) -> np.ndarray:
+                   max_iter: int = 60, shape_space: bool = False) -> np.ndarray:
     """Whole-take smooth weights: one sparse banded bound-constrained problem.
 
     .. math::
 
         \\min_{W} \\sum_t \\| S_t - B^T w_t \\|_{C_t}^2
-        + \\lambda \\sum_{t=1}^{T-2} \\| w_{t-1} - 2 w_t + w_{t+1} \\|^2
+        + \\lambda \\sum_{t=1}^{T-2} \\| w_{t-1} - 2 w_t + w_{t+1} \\|_M^2
         \\quad \\text{s.t. } 0 \\le w_{t,i} \\le u
 
-    The Hessian ``blockdiag(B C_t Bᵀ) + λ (D₂ᵀD₂ ⊗ I_K)`` of all ``T·K``
+    with ``M = I`` (weight space) or, with *shape_space*, ``M = BBᵀ``: the
+    penalty is then ``‖D₂ W B‖²``, the squared acceleration of the
+    reconstructed landmarks, so many small weight changes that move the face
+    cost as much as the motion they cause, and keys that barely move it cost
+    little. The Hessian ``blockdiag(B C_t Bᵀ) + λ (D₂ᵀD₂ ⊗ M)`` of all ``T·K``
     unknowns is banded (bandwidth ``3K``). It is solved exactly by a
     primal–dual active-set iteration (Hintermüller, Ito & Kunisch 2002) started
     from the per-frame NNLS solution; each iteration is one sparse LU solve
@@ -999,7 +1021,8 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
         Q = (S * C) @ B.T
     blocks = sparse.bsr_matrix((np.ascontiguousarray(Hb), np.arange(T), np.arange(T + 1)), shape=(T * K, T * K))
     D2 = _second_difference(T)
-    Hbig = (blocks + lam * sparse.kron(D2.T @ D2, sparse.identity(K), format="csr")).tocsc()
+    M = sparse.csr_matrix(B @ B.T) if shape_space else sparse.identity(K, format="csr")
+    Hbig = (blocks + lam * sparse.kron(D2.T @ D2, M, format="csr")).tocsc()
     q = Q.ravel()
     # Start: per-frame NNLS, whose active set is usually close.
     if C_is_none:
@@ -1056,7 +1079,8 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
         rw = np.sqrt(C)
         rows = sparse.block_diag([sparse.csr_matrix(B.T * rw[t][:, None]) for t in range(T)])
         b = (S * rw).ravel()
-    A = sparse.vstack([rows, np.sqrt(lam) * sparse.kron(D2, sparse.identity(K))]).tocsr()
-    b = np.concatenate([b, np.zeros(D2.shape[0] * K)])
+    pen = sparse.kron(D2, sparse.csr_matrix(B.T)) if shape_space else sparse.kron(D2, sparse.identity(K))
+    A = sparse.vstack([rows, np.sqrt(lam) * pen]).tocsr()
+    b = np.concatenate([b, np.zeros(pen.shape[0])])
     res = lsq_linear(A, b, bounds=(0.0, hi_v), method="trf", lsmr_tol="auto", tol=1e-12, max_iter=200)
     return np.clip(res.x, 0.0, hi_v).reshape(T, K)
