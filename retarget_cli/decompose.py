@@ -283,6 +283,32 @@ def jitter(weights) -> float:
     return float(np.mean(np.diff(W, n=2, axis=0) ** 2))
 
 
+def mean_acceleration(x) -> float:
+    """Mean point acceleration of a point sequence, ``mean_{t,v} ‖x_{t−1,v} − 2x_{t,v} + x_{t+1,v}‖``.
+
+    The mesh-space jitter measure: for landmarks (pixels per frame²) or mesh
+    vertices (model units per frame²).
+
+    Parameters
+    ----------
+    x : ndarray, shape (T, N, d) or (T, N·d) with ``d`` given by the last axis
+        A (T, D) array is read as (T, D/2, 2): 2-D landmarks, flattened.
+
+    Returns
+    -------
+    float
+        0 for fewer than three frames.
+    """
+    X = np.asarray(x, dtype=np.float64)
+    if X.ndim == 2:
+        X = X.reshape(len(X), -1, 2)
+    if X.ndim != 3:
+        raise ShapeError(f"x: expected shape (T, N, d) or (T, D), got {X.shape}")
+    if len(X) < 3:
+        return 0.0
+    return float(np.mean(np.linalg.norm(np.diff(X, n=2, axis=0), axis=-1)))
+
+
 def interpolate_lost(weights, lost) -> np.ndarray:
     """Replace the weights of *lost* frames by linear interpolation between kept frames.
 

@@ -120,3 +120,25 @@ def test_filter_rejects_bad_shapes():
         rts_smooth(np.zeros((5, 3, 2)), np.ones((5, 2)))
     with pytest.raises(ValueError, match="filter"):
         filter_points(np.zeros((5, 3, 2)), method="kalman")
+
+
+def test_import_with_filter_keeps_points_raw(tmp_path):
+    from retarget_cli.io.annotations import write_csv_landmarks
+    from retarget_cli.io.landmarks import load_landmarks
+    from retarget_cli.stages import run_import
+
+    rng = np.random.default_rng(2)
+    T = 40
+    t = np.arange(T)[:, None]
+    base = np.stack([100 + 40 * np.cos(np.linspace(0, 6, 68)), 100 + 40 * np.sin(np.linspace(0, 6, 68))], -1)
+    P = base[None] + 0.2 * t[..., None] + rng.normal(0, 0.5, (T, 68, 2))
+    write_csv_landmarks(tmp_path / "lm.csv", P)
+    run_import(source=tmp_path / "lm.csv", output=tmp_path / "f.npz", filter="rts")
+    lm = load_landmarks(tmp_path / "f.npz")
+    np.testing.assert_allclose(lm.points_raw, P, atol=1e-3)
+    assert np.abs(lm.points - lm.points_raw).max() > 0.1       # filtered ...
+    d2 = lambda p: np.mean(np.diff(p, n=2, axis=0) ** 2)  # noqa: E731
+    assert d2(lm.points) < 0.1 * d2(lm.points_raw)           # ... and smoother
+    assert lm.meta["filter"]["method"] == "rts"
+    run_import(source=tmp_path / "lm.csv", output=tmp_path / "n.npz")  # import's default: as given
+    assert load_landmarks(tmp_path / "n.npz").points_raw is None
