@@ -56,24 +56,28 @@ REPO = Path(__file__).resolve().parents[1]
 #: Perturbations of the stressed take (as bench/track.py).
 STRESS = dict(noise=5.0, blur=1.0, jpeg=40, light=2.5, speed=2.5)
 
-#: Smoothers: name -> filter settings (track.filter*).
+#: Smoothers: name -> filter settings (track.filter*); "rts (default)" is track's default.
 SMOOTHERS = {
     "none": {"filter": "none"},
     "one-euro": {"filter": "one-euro"},
     "rts (plain)": {"filter": "rts", "filter_robust": 0.0},
     "rts (default)": {"filter": "rts"},
 }
-#: Solvers: name -> decompose settings.
+#: Solvers: name -> decompose settings (the stage defaults for the rest: temporal robust 2, alpha 1 in shape space).
 SOLVERS = {
     "sparse delta 0.05": dict(solver="sparse", formulation="delta", alpha=0.05),
     "nnls whole": dict(solver="nnls", formulation="whole"),
+    "temporal weights 0.1": dict(solver="temporal", formulation="delta", alpha=0.1, smooth_space="weights",
+                                 robust=0.0),
+    "temporal shape r0": dict(solver="temporal", formulation="delta", robust=0.0),
     "temporal shape": dict(solver="temporal", formulation="delta"),
-    "temporal weights 0.1": dict(solver="temporal", formulation="delta", alpha=0.1, smooth_space="weights"),
     "temporal-causal shape": dict(solver="temporal-causal", formulation="delta"),
 }
 #: Rows measured: (smoother, solver). The baseline is the first: today's sample config, unfiltered.
-ROWS = [("none", s) for s in SOLVERS] + [(f, s) for f in ("one-euro", "rts (plain)", "rts (default)")
-                                           for s in ("sparse delta 0.05", "temporal shape", "temporal-causal shape")]
+ROWS = ([("none", s) for s in ("sparse delta 0.05", "nnls whole", "temporal weights 0.1", "temporal shape")]
+        + [("one-euro", s) for s in ("sparse delta 0.05", "temporal shape")]
+        + [("rts (plain)", s) for s in ("sparse delta 0.05", "temporal shape")]
+        + [("rts (default)", s) for s in SOLVERS if s != "temporal weights 0.1"])
 
 
 @dataclass

@@ -372,6 +372,7 @@ def _parse_regions(specs) -> dict | None:
 @setting("decompose", "confidence")
 @setting("decompose", "lost_fraction")
 @setting("decompose", "smooth_space")
+@setting("decompose", "robust")
 @click.option("--summary/--no-summary", default=True, show_default=True,
               help="Print a per-region table of residual, cardinality, jitter and lost frames after the file names.")
 def decompose(landmarks, keys, output, csv, summary, **settings):

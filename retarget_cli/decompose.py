@@ -69,7 +69,8 @@ _EPS = np.finfo(np.float64).eps
 
 
 def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole", alpha: float | None = None,
-              upper: float | None = None, neutral=None, confidence=None, smooth_space: str = "shape"):
+              upper: float | None = None, neutral=None, confidence=None, smooth_space: str = "shape",
+              robust: float = 0.0):
     """Weights ``w_t`` with ``S_t ≈ Σ_i w_{t,i} S_i`` for every frame.
 
     The default is Chuang & Bregler's eq. 4:
@@ -139,6 +140,9 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
         Non-negative weight of each coordinate in each frame (row weights).
     smooth_space : {"shape", "weights"}
         What ``temporal`` and ``temporal-causal`` penalise (see above).
+    robust : float
+        ``temporal`` only: release the penalty at fast events whose windowed
+        excess residual exceeds this (:func:`temporal_events`; 0: off).
 
     Returns
     -------
@@ -199,7 +203,7 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     if used.size:
         W[:, used] = _solve(S, B[used], C, solver=solver, convex=formulation == "convex",
                             lam=alpha if shape_space else alpha * _spread(B[used]), upper=upper,
-                            shape_space=shape_space)
+                            shape_space=shape_space, robust=robust)
     residual = np.linalg.norm(S - W @ B, axis=1)
     return W, residual
 
@@ -366,12 +370,12 @@ def _groups(C, T):
         yield np.flatnonzero(inv == g), uniq[g]
 
 
-def _solve(S, B, C, *, solver, convex, lam, upper, shape_space=False):
+def _solve(S, B, C, *, solver, convex, lam, upper, shape_space=False, robust=0.0):
     """Weights (T, K) for one formulation's frames S (T, D) and keys B (K, D)."""
     T, K = len(S), len(B)
     eq = 1.0 if convex else None
     if solver == "temporal":
-        return temporal_whole(S, B, lam=lam, upper=upper, confidence=C, shape_space=shape_space)
+        return temporal_events(S, B, lam=lam, upper=upper, confidence=C, shape_space=shape_space, robust=robust)
     if solver == "temporal-causal":
         return _temporal_causal(S, B, C, lam=lam, upper=upper, eq=eq, shape_space=shape_space)
     if solver == "sequential":
@@ -984,6 +988,75 @@ def _sequential(S, B, C, *, upper):
     return W
 
 
+def temporal_events(frames, keys, *, lam: float, upper: float | None = None, confidence=None,
+                    shape_space: bool = True, robust: float = 0.0, passes: int = 3) -> np.ndarray:
+    """:func:`temporal_whole` that lets go of the smoothness penalty at fast events (blinks).
+
+    After a smooth solve ``W``, each frame's excess residual over the
+    unsmoothed (per-frame) solution ``W⁰``,
+
+    .. math::
+
+        e_t = \\frac{\\|S_t - B^T w_t\\|^2_{C_t} - \\|S_t - B^T w^0_t\\|^2_{C_t}}
+                   {\\operatorname{median}_t \\|S_t - B^T w^0_t\\|^2_{C_t}},
+
+    is averaged over frames ``t−1, t, t+1``; where the average exceeds
+    *robust* the penalty cannot be the right model (the face moved faster
+    than the smoothness allows: a blink, a plosive), so the weights ``ρ`` of
+    the second-difference terms touching those frames (dilated by one frame)
+    are set to 0 and the problem is solved again, at most *passes* times.
+    Elsewhere the solution is smoothed as before. ``robust = 0`` is plain
+    :func:`temporal_whole`.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, D)
+    keys : ndarray, shape (K, D)
+    lam, upper, confidence, shape_space
+        As :func:`temporal_whole`.
+    robust : float
+        Threshold on the windowed excess residual (0: off).
+    passes : int
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+    """
+    S = check_array(frames, "frames", ndim=2)
+    B = check_array(keys, "keys", ndim=2)
+    W = temporal_whole(S, B, lam=lam, upper=upper, confidence=confidence, shape_space=shape_space)
+    T = len(S)
+    if not robust > 0 or T < 3 or lam == 0:
+        return W
+    C = np.ones_like(S) if confidence is None else np.asarray(confidence, dtype=np.float64)
+    hi = np.inf if upper is None else upper
+    W0 = np.concatenate([box_qp((B * C[t]) @ B.T, ((S[t] * C[t]) @ B.T)[None], lower=0.0, upper=hi)
+                         for t in range(T)]) if confidence is not None else box_qp(B @ B.T, S @ B.T, upper=hi)
+    r0 = np.sum(C * (S - W0 @ B) ** 2, axis=1)
+    scale = max(float(np.median(r0)), 1e-12 * float(np.mean(np.sum(C * S**2, axis=1))), 1e-300)
+    rho = np.ones(T - 2)
+    for it in range(max(int(passes), 1)):
+        e = (np.sum(C * (S - W @ B) ** 2, axis=1) - r0) / scale
+        win = e.copy()
+        win[1:] += e[:-1]
+        win[:-1] += e[1:]
+        win /= np.convolve(np.ones(T), np.ones(3), mode="same")
+        event = win > robust
+        if not event.any():
+            break
+        event[1:] |= event[:-1].copy()
+        event[:-1] |= event[1:].copy()
+        # term t (frames t, t+1, t+2) touches an event frame
+        touch = event[:-2] | event[1:-1] | event[2:]
+        if not np.any(touch & (rho > 0)):
+            break
+        rho[touch] = 0.0
+        log.debug("temporal: pass %d, %d event frames, %d terms released", it + 1, int(event.sum()), int(touch.sum()))
+        W = temporal_whole(S, B, lam=lam, upper=upper, confidence=confidence, shape_space=shape_space,
+                           row_weights=rho)
+    return W
+
+
 def _second_difference(T: int):
     """Sparse (T−2, T) second-difference operator."""
     from scipy import sparse
@@ -994,7 +1067,7 @@ def _second_difference(T: int):
 
 
 def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, confidence=None,
-                   max_iter: int = 60, shape_space: bool = False) -> np.ndarray:
+                   max_iter: int = 60, shape_space: bool = False, row_weights=None) -> np.ndarray:
     """Whole-take smooth weights: one sparse banded bound-constrained problem.
 
     .. math::
@@ -1025,6 +1098,12 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
     upper : float, optional
     confidence : ndarray, shape (T, D), optional
     max_iter : int
+    shape_space : bool
+        ``M = BBᵀ`` instead of ``I``.
+    row_weights : ndarray, shape (T−2,), optional
+        Weight ``ρ_t ≥ 0`` of each second-difference term (default 1): the
+        penalty becomes ``λ Σ_t ρ_t ‖…‖²_M`` (0 lets frames ``t−1 … t+1``
+        bend freely; see :func:`temporal_events`).
 
     Returns
     -------
@@ -1047,6 +1126,8 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
         Q = (S * C) @ B.T
     blocks = sparse.bsr_matrix((np.ascontiguousarray(Hb), np.arange(T), np.arange(T + 1)), shape=(T * K, T * K))
     D2 = _second_difference(T)
+    if row_weights is not None and D2.shape[0]:
+        D2 = sparse.diags(np.sqrt(np.asarray(row_weights, dtype=np.float64))) @ D2
     M = sparse.csr_matrix(B @ B.T) if shape_space else sparse.identity(K, format="csr")
     Hbig = (blocks + lam * sparse.kron(D2.T @ D2, M, format="csr")).tocsc()
     q = Q.ravel()

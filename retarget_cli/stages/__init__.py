@@ -570,7 +570,8 @@ LOST_CONFIDENCE = 1e-3
 
 
 def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulation="whole", alpha=None, upper=None,
-                  neutral_frame=0, confidence=True, lost_fraction=0.5, smooth_space="shape") -> list[Path]:
+                  neutral_frame=0, confidence=True, lost_fraction=0.5, smooth_space="shape",
+                  robust=2.0) -> list[Path]:
     """Weights over the key shapes for every frame and region; writes ``weights.npz``.
 
     Per region: landmarks with NaN coordinates and confidence 0 are lost;
@@ -635,7 +636,8 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
             kw["neutral"] = X[neutral_frame]
         try:
             W, _ = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
-                             confidence=None if np.all(weight == 1) else weight, smooth_space=smooth_space, **kw)
+                             confidence=None if np.all(weight == 1) else weight, smooth_space=smooth_space,
+                             robust=robust, **kw)
         except ValueError as exc:
             raise InputError(f"{keys}: region {name!r}: {exc}") from exc
         if formulation == "delta":
@@ -662,6 +664,7 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
                  diagnostics[name]["mean_residual_px"], card.mean(), diagnostics[name]["jitter"])
     meta = {"solver": solver, "formulation": formulation, "alpha": alpha, "upper": upper,
             "smooth_space": smooth_space if solver in ("temporal", "temporal-causal") else None,
+            "robust": robust if solver == "temporal" else None,
             "neutral_frame": neutral_frame if formulation == "delta" else None, "confidence": confidence,
             "fps": lm.fps, "landmarks": Path(landmarks).name, "diagnostics": diagnostics}
     save_weights(output, regions, meta, extras)

@@ -219,8 +219,10 @@ def rts_smooth(points, confidence=None, *, model: str = "ca", process_noise: flo
     :data:`_MAX_SCALE`, so the model lets go there and the track follows the
     measurements. Passes repeat until no window exceeds ``k`` (at most
     *iterations*). Under the model, ``r̄_t² · 6`` is χ² with 6 degrees of
-    freedom, so ``k = 3`` flags a quiet window with probability about 1e-9;
-    everything outside the events is smoothed exactly as without *robust*.
+    freedom, so a quiet window is flagged with probability about 5e-4 at
+    ``k = 2`` (``track``'s default) and 1e-9 at ``k = 3``; a flagged window
+    only means less smoothing there. Everything outside the events is
+    smoothed exactly as without *robust*.
 
     Parameters
     ----------
