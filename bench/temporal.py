@@ -30,7 +30,7 @@ masks, as ``apply`` does. Reported per smoother × solver:
   blink displacement (peak frame against the frames just before and after)
   onto the truth's, over the vertices the blink moves; mean over events, %.
 
-Run: ``python bench/temporal.py [--frames 600] [--takes synthetic,stressed,ict]``.
+Run: ``python bench/temporal.py [--frames 600] [--takes synthetic,stressed,ict] [--all]``.
 """
 
 from __future__ import annotations
@@ -73,11 +73,12 @@ SOLVERS = {
     "temporal shape": dict(solver="temporal", formulation="delta"),
     "temporal-causal shape": dict(solver="temporal-causal", formulation="delta"),
 }
-#: Rows measured: (smoother, solver). The baseline is the first: today's sample config, unfiltered.
-ROWS = ([("none", s) for s in ("sparse delta 0.05", "nnls whole", "temporal weights 0.1", "temporal shape")]
-        + [("one-euro", s) for s in ("sparse delta 0.05", "temporal shape")]
-        + [("rts (plain)", s) for s in ("sparse delta 0.05", "temporal shape")]
-        + [("rts (default)", s) for s in SOLVERS if s != "temporal weights 0.1"])
+#: Rows measured by default: (smoother, solver). The baseline is the first: today's sample config, unfiltered.
+ROWS = [("none", "sparse delta 0.05"), ("none", "nnls whole"), ("none", "temporal shape"),
+        ("rts (default)", "sparse delta 0.05"), ("rts (default)", "temporal shape")]
+#: Every combination (--all).
+ALL_ROWS = ([("none", s) for s in SOLVERS] + [(f, s) for f in ("one-euro", "rts (plain)", "rts (default)")
+                                              for s in SOLVERS if s != "temporal weights 0.1"])
 
 
 @dataclass
@@ -267,7 +268,7 @@ def retarget(take: Take, lm: Path, keys: Path, out: Path, settings: dict) -> np.
     return blend_regions(parts, [take.masks[r][take.measure] for r in names], take.neutral[take.measure])
 
 
-def bench_take(name: str, take: Take, d: Path) -> list[tuple]:
+def bench_take(name: str, take: Take, d: Path, rows_wanted=ROWS) -> list[tuple]:
     truth = take.mesh(take.curves)[:, take.measure]
     V0 = take.neutral[take.measure]
     disp = np.linalg.norm(truth - V0, axis=2).mean()
@@ -275,7 +276,7 @@ def bench_take(name: str, take: Take, d: Path) -> list[tuple]:
     regions = {r: REGION_PRESETS_68[r] for r in ("brows-eyes", "mouth")}
     rows = []
     files = {}
-    for fname, solver in ROWS:
+    for fname, solver in rows_wanted:
         if fname not in files:
             lm = landmarks_file(take, SMOOTHERS[fname], d / f"{fname.split()[0]}{len(files)}.landmarks.npz")
             keys = d / f"keys{len(files)}.json"
@@ -296,6 +297,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--takes", default="synthetic,stressed,ict")
+    ap.add_argument("--all", action="store_true", help="every smoother x solver (about 4x longer)")
     args = ap.parse_args()
     takes = args.takes.split(",")
     rows = []
@@ -313,7 +315,7 @@ def main() -> None:
                 take = ict_take(d, args.frames, args.seed)
             else:
                 raise SystemExit(f"unknown take {name!r}; expected synthetic, stressed, ict")
-            rows += bench_take(name, take, d)
+            rows += bench_take(name, take, d, ALL_ROWS if args.all else ROWS)
     print(f"temporal quality, {args.frames} frames, seed {args.seed} ({time.perf_counter() - t_all:.0f} s); "
           f"mesh error in % of the mean true expression displacement; jitter = mean vertex acceleration / truth's")
     print(f"{'take':<10}{'smoother':<15}{'solver':<23}{'mesh error':>11}{'jitter':>9}{'blink':>8}"

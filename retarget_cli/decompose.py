@@ -1144,7 +1144,8 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
     status[x >= hi_v] = 1
     hscale = max(float(np.abs(Hbig.diagonal()).max()), 1e-300)
     seen = set()
-    for it in range(max_iter):
+    limit = None  # after a cycle: change at most this many of the worst violators per iteration
+    for it in range(4 * max_iter):
         F = np.flatnonzero(status == 0)
         xB = np.where(status == -1, 0.0, np.where(status == 1, hi_v, 0.0))
         x = xB.copy()
@@ -1168,12 +1169,21 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
         log.debug("temporal: iteration %d, %d free of %d, %d KKT violations", it + 1, F.size, n, nbad)
         if nbad == 0:
             return np.clip(x, 0.0, hi_v).reshape(T, K)
+        if limit is not None and nbad > limit:
+            score = np.where(below, -x / xs, 0.0) + np.where(above, (x - hi_v) / xs, 0.0) \
+                + np.where(wrong, np.abs(g) / (hscale * xs), 0.0)
+            keep = np.zeros(n, dtype=bool)
+            keep[np.argsort(-score, kind="stable")[:limit]] = True
+            below, above, wrong = below & keep, above & keep, wrong & keep
         status[below] = -1
         status[above] = 1
         status[wrong] = 0
         key = hash(status.tobytes())
-        if key in seen:  # cycling
-            break
+        if key in seen:  # cycling: change fewer variables at a time (the KKT check still certifies the end)
+            if limit == 1 or it >= max_iter and limit is None:
+                break
+            limit = max(1, (nbad if limit is None else limit) // 4)
+            seen.clear()
         seen.add(key)
     log.warning("temporal: the active-set iteration did not settle after %d iterations; finishing with "
                 "scipy.optimize.lsq_linear (weights may be slightly inexact; try a larger decompose.alpha)", it + 1)
