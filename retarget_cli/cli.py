@@ -158,6 +158,14 @@ def _print_outputs(paths):
               help="Landmarks that define head motion, e.g. 27-31,33,35,36,39,42,45 (default: eye corners "
                    "and nose for 68 points, else all).")
 @setting("track", "keep_partial")
+@setting("track", "filter")
+@setting("track", "filter_model")
+@setting("track", "filter_process_noise")
+@setting("track", "filter_measurement_noise")
+@setting("track", "filter_robust")
+@setting("track", "filter_min_cutoff")
+@setting("track", "filter_beta")
+@setting("track", "filter_d_cutoff")
 def track(video, init, annotations, output, rigid_points, **settings):
     """Track facial landmarks through VIDEO (a video file or an image-sequence pattern such as
     'frames/%05d.png' or 'frames/*.exr'), from one or more annotated frames (by default the detector
@@ -256,7 +264,15 @@ def _parse_frames(spec: str) -> list[int]:
 @click.option("--rigid-points", default=None, metavar="SPEC", help="Landmarks that define head motion.")
 @click.option("--smooth-head", type=click.IntRange(0, 301), default=0, show_default=True,
               help="Temporal smoothing of the head track (Savitzky-Golay window in frames).")
-def import_(source, output, fps, frame_size, rigid_points, smooth_head):
+@setting("track", "filter", default="none")
+@setting("track", "filter_model")
+@setting("track", "filter_process_noise")
+@setting("track", "filter_measurement_noise")
+@setting("track", "filter_robust")
+@setting("track", "filter_min_cutoff")
+@setting("track", "filter_beta")
+@setting("track", "filter_d_cutoff")
+def import_(source, output, fps, frame_size, rigid_points, smooth_head, **filters):
     """Bring landmarks from another tool into landmarks.npz, with head motion and stabilization.
 
     SOURCE is a frame,point,x,y CSV, an NPZ with 'points' (T, L, 2) or a folder of .pts files (frame number
@@ -274,7 +290,7 @@ def import_(source, output, fps, frame_size, rigid_points, smooth_head):
         except (ValueError, AssertionError):
             raise click.BadParameter(f"expected WxH, got {frame_size!r}", param_hint="--frame-size") from None
     _print_outputs(run_import(source=source, output=output, fps=fps, frame_size=size, rigid_points=rigid,
-                              smooth_head=smooth_head))
+                              smooth_head=smooth_head, **filters))
 
 
 @main.command()
@@ -355,6 +371,8 @@ def _parse_regions(specs) -> dict | None:
 @setting("decompose", "neutral_frame")
 @setting("decompose", "confidence")
 @setting("decompose", "lost_fraction")
+@setting("decompose", "smooth_space")
+@setting("decompose", "robust")
 @click.option("--summary/--no-summary", default=True, show_default=True,
               help="Print a per-region table of residual, cardinality, jitter and lost frames after the file names.")
 def decompose(landmarks, keys, output, csv, summary, **settings):

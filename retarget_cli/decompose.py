@@ -53,6 +53,10 @@ FORMULATIONS = ("whole", "convex", "delta")
 NO_CONVEX = ("ridge-clipped", "sequential", "temporal")
 #: Default regularisation strength (relative to the keys' spread) per solver.
 DEFAULT_ALPHA = {"ridge": 0.01, "ridge-clipped": 0.01, "temporal": 0.1, "temporal-causal": 0.1, "sparse": 0.05}
+#: What ``temporal`` and ``temporal-causal`` smooth: the reconstructed shape ``Σ w_i S_i`` or the raw weights.
+SMOOTH_SPACES = ("shape", "weights")
+#: Default alpha of the temporal solvers in shape space (the penalty is in landmark units, alpha is not scaled).
+DEFAULT_SHAPE_ALPHA = {"temporal": 1.0, "temporal-causal": 1.0}
 #: Upper bound of ``bounded`` and ``ridge-clipped`` when none is given.
 DEFAULT_UPPER = 1.0
 #: A weight above this counts towards the frame's cardinality.
@@ -65,7 +69,8 @@ _EPS = np.finfo(np.float64).eps
 
 
 def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole", alpha: float | None = None,
-              upper: float | None = None, neutral=None, confidence=None):
+              upper: float | None = None, neutral=None, confidence=None, smooth_space: str = "shape",
+              robust: float = 0.0):
     """Weights ``w_t`` with ``S_t ≈ Σ_i w_{t,i} S_i`` for every frame.
 
     The default is Chuang & Bregler's eq. 4:
@@ -78,7 +83,9 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     where ``‖r‖²_C = Σ_d c_{t,d} r_d²`` weights each coordinate by its
     landmark's confidence (all ones by default). Other solvers add to or
     replace the constraint (``λ = alpha · mean_i ‖S_i − S̄‖²``, so *alpha* is
-    relative to the spread of the key shapes and has no units):
+    relative to the spread of the key shapes and has no units; the temporal
+    solvers in shape space use ``λ = alpha``, their penalty being in the
+    landmarks' units already):
 
     ``ls``
         no constraint (their Fig. 4, to show the distortion);
@@ -93,11 +100,15 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
         ``ridge`` clipped to ``[0, upper]`` (*upper* defaults to 1), their
         initialisation;
     ``temporal-causal``
-        ``+ λ‖w_t − w_{t−1}‖²``, ``w ≥ 0``, frame by frame (Lewis & Anjyo
-        2010, eq. 2 with the previous frame's weights as ``w_0``);
+        ``+ λ‖Bᵀ(w_t − w_{t−1})‖²``, ``w ≥ 0``, frame by frame (Lewis & Anjyo
+        2010, eq. 2 with the previous frame's weights as ``w_0``, the distance
+        measured on the reconstructed shape); ``+ λ‖w_t − w_{t−1}‖²`` with
+        ``smooth_space="weights"``;
     ``temporal``
-        ``+ λ Σ_t ‖w_{t−1} − 2w_t + w_{t+1}‖²`` over the whole take, ``w ≥ 0``,
-        solved jointly (:func:`temporal_whole`);
+        ``+ λ Σ_t ‖Bᵀ(w_{t−1} − 2w_t + w_{t+1})‖²`` over the whole take
+        (``‖D₂ W S‖²``, the acceleration of the reconstructed landmarks),
+        ``w ≥ 0``, solved jointly (:func:`temporal_whole`); ``+ λ Σ_t
+        ‖w_{t−1} − 2w_t + w_{t+1}‖²`` with ``smooth_space="weights"``;
     ``sparse``
         ``+ λ 1ᵀw``, ``w ≥ 0`` (the L1 norm on the non-negative orthant);
     ``sequential``
@@ -127,6 +138,11 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
         ``S_0``; required by ``formulation="delta"``.
     confidence : ndarray, shape (T, D), optional
         Non-negative weight of each coordinate in each frame (row weights).
+    smooth_space : {"shape", "weights"}
+        What ``temporal`` and ``temporal-causal`` penalise (see above).
+    robust : float
+        ``temporal`` only: release the penalty at fast events whose windowed
+        excess residual exceeds this (:func:`temporal_events`; 0: off).
 
     Returns
     -------
@@ -151,8 +167,11 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     if formulation == "convex" and solver in NO_CONVEX:
         raise ValueError(f"solver {solver!r} does not support formulation 'convex' "
                          f"(use one of {tuple(s for s in SOLVERS if s not in NO_CONVEX)})")
+    if smooth_space not in SMOOTH_SPACES:
+        raise ValueError(f"smooth_space: expected one of {SMOOTH_SPACES}, got {smooth_space!r}")
+    shape_space = smooth_space == "shape" and solver in ("temporal", "temporal-causal")
     if alpha is None:
-        alpha = DEFAULT_ALPHA.get(solver, 0.0)
+        alpha = (DEFAULT_SHAPE_ALPHA if shape_space else DEFAULT_ALPHA).get(solver, 0.0)
     if not np.isfinite(alpha) or alpha < 0:
         raise ValueError(f"alpha: expected a finite number >= 0, got {alpha!r}")
     if upper is not None and not upper > 0:
@@ -183,7 +202,8 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     W = np.zeros((T, K))
     if used.size:
         W[:, used] = _solve(S, B[used], C, solver=solver, convex=formulation == "convex",
-                            lam=alpha * _spread(B[used]), upper=upper)
+                            lam=alpha if shape_space else alpha * _spread(B[used]), upper=upper,
+                            shape_space=shape_space, robust=robust)
     return W, row_residuals(S, W, B)
 
 
@@ -288,6 +308,32 @@ def jitter(weights) -> float:
     return float(np.mean(np.diff(W, n=2, axis=0) ** 2))
 
 
+def mean_acceleration(x) -> float:
+    """Mean point acceleration of a point sequence, ``mean_{t,v} ‖x_{t−1,v} − 2x_{t,v} + x_{t+1,v}‖``.
+
+    The mesh-space jitter measure: for landmarks (pixels per frame²) or mesh
+    vertices (model units per frame²).
+
+    Parameters
+    ----------
+    x : ndarray, shape (T, N, d) or (T, N·d) with ``d`` given by the last axis
+        A (T, D) array is read as (T, D/2, 2): 2-D landmarks, flattened.
+
+    Returns
+    -------
+    float
+        0 for fewer than three frames.
+    """
+    X = np.asarray(x, dtype=np.float64)
+    if X.ndim == 2:
+        X = X.reshape(len(X), -1, 2)
+    if X.ndim != 3:
+        raise ShapeError(f"x: expected shape (T, N, d) or (T, D), got {X.shape}")
+    if len(X) < 3:
+        return 0.0
+    return float(np.mean(np.linalg.norm(np.diff(X, n=2, axis=0), axis=-1)))
+
+
 def interpolate_lost(weights, lost) -> np.ndarray:
     """Replace the weights of *lost* frames by linear interpolation between kept frames.
 
@@ -345,14 +391,14 @@ def _groups(C, T):
         yield np.flatnonzero(inv == g), uniq[g]
 
 
-def _solve(S, B, C, *, solver, convex, lam, upper):
+def _solve(S, B, C, *, solver, convex, lam, upper, shape_space=False, robust=0.0):
     """Weights (T, K) for one formulation's frames S (T, D) and keys B (K, D)."""
     T, K = len(S), len(B)
     eq = 1.0 if convex else None
     if solver == "temporal":
-        return temporal_whole(S, B, lam=lam, upper=upper, confidence=C)
+        return temporal_events(S, B, lam=lam, upper=upper, confidence=C, shape_space=shape_space, robust=robust)
     if solver == "temporal-causal":
-        return _temporal_causal(S, B, C, lam=lam, upper=upper, eq=eq)
+        return _temporal_causal(S, B, C, lam=lam, upper=upper, eq=eq, shape_space=shape_space)
     if solver == "sequential":
         return _sequential(S, B, C, upper=upper)
     if C is not None:
@@ -1109,13 +1155,15 @@ def _active_set_one(H, q, lo, hi, eq=None, x0=None, max_iter=None) -> np.ndarray
     return x
 
 
-def _temporal_causal(S, B, C, *, lam, upper, eq):
-    """Frame-by-frame ``min ‖Bᵀw − S_t‖²_C + λ‖w − w_{t−1}‖²`` with ``0 ≤ w ≤ upper`` (Lewis & Anjyo eq. 2).
+def _temporal_causal(S, B, C, *, lam, upper, eq, shape_space=False):
+    """Frame-by-frame ``min ‖Bᵀw − S_t‖²_C + λ‖w − w_{t−1}‖²_M`` with ``0 ≤ w ≤ upper`` (Lewis & Anjyo eq. 2).
 
-    The first frame has no predecessor and is solved without the penalty.
-    Each frame's active set warm-starts the next.
+    ``M = BBᵀ`` in shape space (the change of the reconstructed shape),
+    ``M = I`` in weight space. The first frame has no predecessor and is
+    solved without the penalty. Each frame's active set warm-starts the next.
     """
     T, K = len(S), len(B)
+    M = B @ B.T if shape_space else np.eye(K)
     lo = np.zeros(K)
     hi = np.full(K, np.inf if upper is None else upper)
     W = np.empty((T, K))
@@ -1130,7 +1178,7 @@ def _temporal_causal(S, B, C, *, lam, upper, eq):
         if prev is None:
             W[t] = box_qp(H, q[None], lower=lo, upper=hi, sum_to=eq)[0]
         else:
-            W[t] = _active_set_one(H + lam * np.eye(K), q + lam * prev, lo, hi, eq, x0=prev)
+            W[t] = _active_set_one(H + lam * M, q + lam * (M @ prev), lo, hi, eq, x0=prev)
         prev = W[t]
     return W
 
@@ -1161,6 +1209,75 @@ def _sequential(S, B, C, *, upper):
     return W
 
 
+def temporal_events(frames, keys, *, lam: float, upper: float | None = None, confidence=None,
+                    shape_space: bool = True, robust: float = 0.0, passes: int = 3) -> np.ndarray:
+    """:func:`temporal_whole` that lets go of the smoothness penalty at fast events (blinks).
+
+    After a smooth solve ``W``, each frame's excess residual over the
+    unsmoothed (per-frame) solution ``W⁰``,
+
+    .. math::
+
+        e_t = \\frac{\\|S_t - B^T w_t\\|^2_{C_t} - \\|S_t - B^T w^0_t\\|^2_{C_t}}
+                   {\\operatorname{median}_t \\|S_t - B^T w^0_t\\|^2_{C_t}},
+
+    is averaged over frames ``t−1, t, t+1``; where the average exceeds
+    *robust* the penalty cannot be the right model (the face moved faster
+    than the smoothness allows: a blink, a plosive), so the weights ``ρ`` of
+    the second-difference terms touching those frames (dilated by one frame)
+    are set to 0 and the problem is solved again, at most *passes* times.
+    Elsewhere the solution is smoothed as before. ``robust = 0`` is plain
+    :func:`temporal_whole`.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, D)
+    keys : ndarray, shape (K, D)
+    lam, upper, confidence, shape_space
+        As :func:`temporal_whole`.
+    robust : float
+        Threshold on the windowed excess residual (0: off).
+    passes : int
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+    """
+    S = check_array(frames, "frames", ndim=2)
+    B = check_array(keys, "keys", ndim=2)
+    W = temporal_whole(S, B, lam=lam, upper=upper, confidence=confidence, shape_space=shape_space)
+    T = len(S)
+    if not robust > 0 or T < 3 or lam == 0:
+        return W
+    C = np.ones_like(S) if confidence is None else np.asarray(confidence, dtype=np.float64)
+    hi = np.inf if upper is None else upper
+    W0 = np.concatenate([box_qp((B * C[t]) @ B.T, ((S[t] * C[t]) @ B.T)[None], lower=0.0, upper=hi)
+                         for t in range(T)]) if confidence is not None else box_qp(B @ B.T, S @ B.T, upper=hi)
+    r0 = np.sum(C * (S - W0 @ B) ** 2, axis=1)
+    scale = max(float(np.median(r0)), 1e-12 * float(np.mean(np.sum(C * S**2, axis=1))), 1e-300)
+    rho = np.ones(T - 2)
+    for it in range(max(int(passes), 1)):
+        e = (np.sum(C * (S - W @ B) ** 2, axis=1) - r0) / scale
+        win = e.copy()
+        win[1:] += e[:-1]
+        win[:-1] += e[1:]
+        win /= np.convolve(np.ones(T), np.ones(3), mode="same")
+        event = win > robust
+        if not event.any():
+            break
+        event[1:] |= event[:-1].copy()
+        event[:-1] |= event[1:].copy()
+        # term t (frames t, t+1, t+2) touches an event frame
+        touch = event[:-2] | event[1:-1] | event[2:]
+        if not np.any(touch & (rho > 0)):
+            break
+        rho[touch] = 0.0
+        log.debug("temporal: pass %d, %d event frames, %d terms released", it + 1, int(event.sum()), int(touch.sum()))
+        W = temporal_whole(S, B, lam=lam, upper=upper, confidence=confidence, shape_space=shape_space,
+                           row_weights=rho)
+    return W
+
+
 def _second_difference(T: int):
     """Sparse (T−2, T) second-difference operator."""
     from scipy import sparse
@@ -1171,16 +1288,20 @@ def _second_difference(T: int):
 
 
 def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, confidence=None,
-                   max_iter: int = 60) -> np.ndarray:
+                   max_iter: int = 60, shape_space: bool = False, row_weights=None) -> np.ndarray:
     """Whole-take smooth weights: one sparse banded bound-constrained problem.
 
     .. math::
 
         \\min_{W} \\sum_t \\| S_t - B^T w_t \\|_{C_t}^2
-        + \\lambda \\sum_{t=1}^{T-2} \\| w_{t-1} - 2 w_t + w_{t+1} \\|^2
+        + \\lambda \\sum_{t=1}^{T-2} \\| w_{t-1} - 2 w_t + w_{t+1} \\|_M^2
         \\quad \\text{s.t. } 0 \\le w_{t,i} \\le u
 
-    The Hessian ``blockdiag(B C_t Bᵀ) + λ (D₂ᵀD₂ ⊗ I_K)`` of all ``T·K``
+    with ``M = I`` (weight space) or, with *shape_space*, ``M = BBᵀ``: the
+    penalty is then ``‖D₂ W B‖²``, the squared acceleration of the
+    reconstructed landmarks, so many small weight changes that move the face
+    cost as much as the motion they cause, and keys that barely move it cost
+    little. The Hessian ``blockdiag(B C_t Bᵀ) + λ (D₂ᵀD₂ ⊗ M)`` of all ``T·K``
     unknowns is banded (bandwidth ``3K``). It is solved exactly by a
     primal–dual active-set iteration (Hintermüller, Ito & Kunisch 2002) started
     from the per-frame NNLS solution; each iteration is one sparse LU solve
@@ -1198,6 +1319,12 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
     upper : float, optional
     confidence : ndarray, shape (T, D), optional
     max_iter : int
+    shape_space : bool
+        ``M = BBᵀ`` instead of ``I``.
+    row_weights : ndarray, shape (T−2,), optional
+        Weight ``ρ_t ≥ 0`` of each second-difference term (default 1): the
+        penalty becomes ``λ Σ_t ρ_t ‖…‖²_M`` (0 lets frames ``t−1 … t+1``
+        bend freely; see :func:`temporal_events`).
 
     Returns
     -------
@@ -1220,7 +1347,10 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
         Q = (S * C) @ B.T
     blocks = sparse.bsr_matrix((np.ascontiguousarray(Hb), np.arange(T), np.arange(T + 1)), shape=(T * K, T * K))
     D2 = _second_difference(T)
-    Hbig = (blocks + lam * sparse.kron(D2.T @ D2, sparse.identity(K), format="csr")).tocsc()
+    if row_weights is not None and D2.shape[0]:
+        D2 = sparse.diags(np.sqrt(np.asarray(row_weights, dtype=np.float64))) @ D2
+    M = sparse.csr_matrix(B @ B.T) if shape_space else sparse.identity(K, format="csr")
+    Hbig = (blocks + lam * sparse.kron(D2.T @ D2, M, format="csr")).tocsc()
     q = Q.ravel()
     # Start: per-frame NNLS, whose active set is usually close.
     if C_is_none:
@@ -1235,7 +1365,8 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
     status[x >= hi_v] = 1
     hscale = max(float(np.abs(Hbig.diagonal()).max()), 1e-300)
     seen = set()
-    for it in range(max_iter):
+    limit = None  # after a cycle: change at most this many of the worst violators per iteration
+    for it in range(4 * max_iter):
         F = np.flatnonzero(status == 0)
         xB = np.where(status == -1, 0.0, np.where(status == 1, hi_v, 0.0))
         x = xB.copy()
@@ -1259,12 +1390,21 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
         log.debug("temporal: iteration %d, %d free of %d, %d KKT violations", it + 1, F.size, n, nbad)
         if nbad == 0:
             return np.clip(x, 0.0, hi_v).reshape(T, K)
+        if limit is not None and nbad > limit:
+            score = np.where(below, -x / xs, 0.0) + np.where(above, (x - hi_v) / xs, 0.0) \
+                + np.where(wrong, np.abs(g) / (hscale * xs), 0.0)
+            keep = np.zeros(n, dtype=bool)
+            keep[np.argsort(-score, kind="stable")[:limit]] = True
+            below, above, wrong = below & keep, above & keep, wrong & keep
         status[below] = -1
         status[above] = 1
         status[wrong] = 0
         key = hash(status.tobytes())
-        if key in seen:  # cycling
-            break
+        if key in seen:  # cycling: change fewer variables at a time (the KKT check still certifies the end)
+            if limit == 1 or it >= max_iter and limit is None:
+                break
+            limit = max(1, (nbad if limit is None else limit) // 4)
+            seen.clear()
         seen.add(key)
     log.warning("temporal: the active-set iteration did not settle after %d iterations; finishing with "
                 "scipy.optimize.lsq_linear (weights may be slightly inexact; try a larger decompose.alpha)", it + 1)
@@ -1277,7 +1417,8 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
         rw = np.sqrt(C)
         rows = sparse.block_diag([sparse.csr_matrix(B.T * rw[t][:, None]) for t in range(T)])
         b = (S * rw).ravel()
-    A = sparse.vstack([rows, np.sqrt(lam) * sparse.kron(D2, sparse.identity(K))]).tocsr()
-    b = np.concatenate([b, np.zeros(D2.shape[0] * K)])
+    pen = sparse.kron(D2, sparse.csr_matrix(B.T)) if shape_space else sparse.kron(D2, sparse.identity(K))
+    A = sparse.vstack([rows, np.sqrt(lam) * pen]).tocsr()
+    b = np.concatenate([b, np.zeros(pen.shape[0])])
     res = lsq_linear(A, b, bounds=(0.0, hi_v), method="trf", lsmr_tol="auto", tol=1e-12, max_iter=200)
     return np.clip(res.x, 0.0, hi_v).reshape(T, K)

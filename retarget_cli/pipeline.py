@@ -57,6 +57,9 @@ def _track_files(kw) -> list[Path]:
     return [Path(kw.get("base_dir") or ".") / a for a in (kw.get("annotations") or [])]
 
 
+from .stages.filtering import FILTER_PARAMS  # noqa: E402  (declared beside the stage code)
+
+
 def _track_expand(name, path) -> list[Path]:
     from .io.frames import is_sequence, sequence_files
 
@@ -130,6 +133,7 @@ STAGES: dict[str, Stage] = {
                 Param("rigid_points", "setting", list, None,
                       "Landmarks that define head motion (default: eye corners and nose for 68 points).",
                       nullable=True),
+                *FILTER_PARAMS,
             ],
             stages.run_track,
             extra_inputs=_track_files,
@@ -196,6 +200,13 @@ STAGES: dict[str, Stage] = {
                 Param("lost_fraction", "setting", float, 0.5,
                       "A region is lost in a frame when more than this fraction of its landmarks is lost; "
                       "its weights there are interpolated.", min=0, max=1),
+                Param("smooth_space", "setting", str, "shape",
+                      "What temporal and temporal-causal smooth: shape (the reconstructed landmarks, ||D2 W S||^2; "
+                      "alpha is then absolute) or weights (||D2 W||^2).", choices=("shape", "weights")),
+                Param("robust", "setting", float, 2.0,
+                      "temporal only: release the smoothness penalty around frames whose excess residual (over the "
+                      "unsmoothed fit, in units of its median) exceeds this, so blinks keep their amplitude; 0: off.",
+                      min=0),
             ],
             stages.run_decompose,
         ),

@@ -305,6 +305,10 @@ def _summary(data: RunData, run: RunFiles, keys: dict) -> tuple[str, bool]:
         rows.append(("landmarks", f"{data.lm.n_points} points, {w}x{h} pixels"))
         if data.lm.meta.get("tracker"):
             rows.append(("tracker", str(data.lm.meta.get("tracker"))))
+        filt = data.lm.meta.get("filter")
+        if isinstance(filt, dict) and filt.get("method"):
+            params = ", ".join(f"{k} {v}" for k, v in filt.items() if k != "method")
+            rows.append(("landmark filter", f"{filt['method']} ({params})" if params else str(filt["method"])))
     for name, (W, _) in data.regions.items():
         err = keys.get(name, {}).get("error")
         extra = f", E = {err:.4g} px² (eq. 5)" if isinstance(err, (int, float)) else ""
@@ -313,6 +317,12 @@ def _summary(data: RunData, run: RunFiles, keys: dict) -> tuple[str, bool]:
         solver = data.other["meta"].get("solver")
         if solver:
             rows.append(("solver", str(solver)))
+        for name, d in sorted((data.other["meta"].get("diagnostics") or {}).items()):
+            if isinstance(d, dict) and "shape_jitter_px" in d:
+                ratio = (f" ({d['shape_jitter_px'] / d['input_jitter_px']:.2f}× the input landmarks')"
+                         if d.get("input_jitter_px") else "")
+                rows.append((f"mesh-space jitter {name}", f"{d['shape_jitter_px']:.3g} px/frame² mean landmark "
+                             f"acceleration{ratio}"))
     if data.frame_files:
         rows.append(("target frames", f"{len(data.frame_files)} OBJ in {_show(run.frames)}"))
     parts.append(_table(("", ""), rows))

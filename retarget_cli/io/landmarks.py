@@ -42,6 +42,9 @@ class Landmarks:
     meta : dict
     frames : ndarray, shape (T,), int, optional
         Source frame number of each row (when a range or step was tracked).
+    points_raw : ndarray, shape (T, L, 2), float32, optional
+        The tracker's points before the landmark filter (``track.filter``);
+        ``points`` are then the filtered ones.
     """
 
     points: np.ndarray
@@ -53,6 +56,7 @@ class Landmarks:
     names: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
     frames: np.ndarray | None = None
+    points_raw: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -83,6 +87,10 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
         arrays["frames"] = np.asarray(lm.frames, dtype=np.int64)
         if arrays["frames"].shape != (T,):
             raise ValueError(f"frames: expected shape {(T,)}, got {arrays['frames'].shape}")
+    if lm.points_raw is not None:
+        arrays["points_raw"] = np.asarray(lm.points_raw, dtype=np.float32)
+        if arrays["points_raw"].shape != (T, L, 2):
+            raise ValueError(f"points_raw: expected shape {(T, L, 2)}, got {arrays['points_raw'].shape}")
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)
@@ -126,6 +134,9 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
             raise InputError(f"{path}: 'stabilized' must have shape {(T, L, 2)}, got {stab.shape}")
     else:
         head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+    raw = data.get("points_raw")
+    if raw is not None and raw.shape != (T, L, 2):
+        raise InputError(f"{path}: 'points_raw' must have shape {(T, L, 2)} like 'points', got {raw.shape}")
     meta = {}
     if "meta" in data:
         try:
@@ -142,4 +153,5 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         names=data.get("names"),
         frames=data.get("frames"),
         meta=meta,
+        points_raw=None if raw is None else raw.astype(np.float32),
     )

@@ -18,6 +18,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.atomic import check_not_input, sha256_file, write_text
 from ..io.vertexmap import read_vertex_map  # noqa: F401  (re-exported; run_auto_pose uses it)
+from .filtering import FILTER_DEFAULTS
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,12 @@ def _require(path, what: str) -> Path:
 def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
               rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
               fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, base_dir=None,
-              progress=_no_progress) -> list[Path]:
+              progress=_no_progress, filter=FILTER_DEFAULTS["filter"], filter_model=FILTER_DEFAULTS["filter_model"],
+              filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
+              filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
+              filter_robust=FILTER_DEFAULTS["filter_robust"], filter_min_cutoff=FILTER_DEFAULTS["filter_min_cutoff"],
+              filter_beta=FILTER_DEFAULTS["filter_beta"], filter_d_cutoff=FILTER_DEFAULTS["filter_d_cutoff"],
+              ) -> list[Path]:
     """Track landmarks through *video* (a video file or an image-sequence pattern).
 
     *init* and *annotations* are ``.pts`` or ``frame,point,x,y`` CSV files; a
@@ -59,7 +65,11 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
     where its extra is installed, else ``lk``. Writes the ``landmarks.npz`` contract to *output*
     (plus ``frames``, the source frame numbers) and, if asked, an *overlay*
     video. *model* is the Facemark model file of method ``facemark`` (see
-    :func:`run_train_tracker`).
+    :func:`run_train_tracker`). The ``filter`` and ``filter_*`` arguments are the landmark filter settings
+    (``filter``, ``filter_*``; :mod:`retarget_cli.stages.filtering`): the
+    points are filtered before the head motion is estimated, and the tracker's
+    own points are kept as ``points_raw``. Annotated frames keep their given
+    points and anchor the filter.
     """
     from ..io.annotations import read_annotations
     from ..io.frames import FrameSource, TruncatedInputError
@@ -68,7 +78,9 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
     from ..track.head import smooth_head as smooth_head_fn
     from ..track.lk import FaceLostError, check_inside, track_lk
     from .detect import detect_frame, init_pts_path, is_auto, write_pts_once
+    from .filtering import apply_filter
 
+    fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
     auto = is_auto(init)
     if not auto:
         init = _require(init, "annotation file")
@@ -202,6 +214,8 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
         files = source.files()
     if need_auto and method == "detect":
         write_pts_once(init_out, points[0])
+    points, raw, fmeta = apply_filter(points, conf, fps=source.fps, settings=fset, where=str(video),
+                                      anchors=[i for i in index if i < len(points)])
     head, stab = estimate_head(points, conf, rigid_points=rigid_points)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
@@ -211,6 +225,7 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
                        "downscale": downscale, "start": start, "end": end, "step": step,
                        "smooth_head": smooth_head, **({"fuse": fuse} if method == "detect" else {})},
+        "filter": fmeta,
         "source": Path(video).name,
         "source_sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
         "annotation": [Path(p).name for p in given + ([init_out] if init_out else [])],
@@ -220,7 +235,7 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
     if fitter is not None:
         meta["model"], meta["model_sha256"] = Path(model).name, sha256_file(model)
     save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
-                                     frames=frame_numbers))
+                                     frames=frame_numbers, points_raw=raw))
     written = [Path(output)] + ([init_out] if init_out else [])
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
     if overlay:
@@ -301,15 +316,27 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
     return [Path(output)]
 
 
-def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0) -> list[Path]:
+def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0, filter="none",
+               filter_model=FILTER_DEFAULTS["filter_model"], filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
+               filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
+               filter_robust=FILTER_DEFAULTS["filter_robust"], filter_min_cutoff=FILTER_DEFAULTS["filter_min_cutoff"],
+               filter_beta=FILTER_DEFAULTS["filter_beta"], filter_d_cutoff=FILTER_DEFAULTS["filter_d_cutoff"],
+               ) -> list[Path]:
     """Bring landmarks from another tool into the ``landmarks.npz`` contract.
 
     *source* is a ``frame,point,x,y`` CSV, an NPZ holding ``points`` (T, L, 2)
     (``confidence``, ``fps``, ``frame_size``, ``frames`` optional), or a
     folder of ``.pts`` files named with their frame number. Head motion and
     stabilization are computed with :func:`~retarget_cli.track.head.estimate_head`
-    (the routine ``track`` uses), optionally smoothed in time.
+    (the routine ``track`` uses), optionally smoothed in time. The landmark
+    filter settings (``filter``, ``filter_*``) are those of :func:`run_track`,
+    but *filter* defaults to ``none`` here (imported points stay as given;
+    the source's points are kept as ``points_raw`` when a filter is applied).
+    Filtering assumes consecutive frames.
     """
+    from .filtering import apply_filter
+
+    fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
     from ..io.annotations import read_annotations, read_csv_landmarks
     from ..io.atomic import load_npz
     from ..io.landmarks import Landmarks, save_landmarks
@@ -362,6 +389,7 @@ def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, 
                 raise InputError(f"{src}: landmark {i} has no finite coordinate in any frame")
             near = ok[np.abs(np.arange(len(points))[:, None] - ok[None]).argmin(1)]
             points[:, i] = points[near, i]
+    points, raw, fmeta = apply_filter(points, conf, fps=fps or 30.0, settings=fset, where=str(src))
     try:
         head, stab = estimate_head(points, conf, rigid_points=rigid_points)
     except ValueError as exc:
@@ -370,9 +398,10 @@ def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, 
         head = _smooth(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
     meta = {"tracker": "import", "source": src.name, "source_sha256": digest,
-            "parameters": {"smooth_head": smooth_head, "rigid_points": rigid_points}}
+            "parameters": {"smooth_head": smooth_head, "rigid_points": rigid_points}, "filter": fmeta}
     save_landmarks(output, Landmarks(points, conf, head, stab, fps or 30.0,
-                                     np.array(size if size else (0, 0)), None, meta, frames=frames))
+                                     np.array(size if size else (0, 0)), None, meta, frames=frames,
+                                     points_raw=raw))
     log.info("imported %d frames x %d points from %s", len(points), points.shape[1], src)
     return [Path(output)]
 
@@ -549,7 +578,8 @@ LOST_CONFIDENCE = 1e-3
 
 
 def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulation="whole", alpha=None, upper=None,
-                  neutral_frame=0, confidence=True, lost_fraction=0.5) -> list[Path]:
+                  neutral_frame=0, confidence=True, lost_fraction=0.5, smooth_space="shape",
+                  robust=2.0) -> list[Path]:
     """Weights over the key shapes for every frame and region; writes ``weights.npz``.
 
     Per region: landmarks with NaN coordinates and confidence 0 are lost;
@@ -561,7 +591,7 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
     neutral key's column holds ``1 − Σ`` of the others, so ``apply`` needs no
     change (Lewis et al. 2005, §3).
     """
-    from ..decompose import cardinality, decompose, interpolate_lost, jitter, row_residuals
+    from ..decompose import cardinality, decompose, interpolate_lost, jitter, mean_acceleration, row_residuals
     from ..io.landmarks import load_landmarks
     from ..io.stagefiles import read_keys, save_weights, weights_csv
 
@@ -618,7 +648,8 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
             kw["neutral"] = X[neutral_frame]
         try:
             W, _ = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
-                             confidence=None if np.all(weight == 1) else weight, **kw)
+                             confidence=None if np.all(weight == 1) else weight, smooth_space=smooth_space,
+                             robust=robust, **kw)
         except ValueError as exc:
             raise InputError(f"{keys}: region {name!r}: {exc}") from exc
         if formulation == "delta":
@@ -636,11 +667,16 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
             "mean_residual_px": float(f"{res[~lost].mean() / np.sqrt(len(pts)):.6g}"),
             "mean_cardinality": float(f"{card.mean():.6g}"),
             "jitter": float(f"{jitter(W):.6g}"),
+            # mesh-space jitter: mean acceleration of the reconstructed landmarks, and of the input ones
+            "shape_jitter_px": float(f"{mean_acceleration(W @ X[frames]):.6g}"),
+            "input_jitter_px": float(f"{mean_acceleration(X[:, ~lost_pt.all(0).repeat(2)]):.6g}"),
             "lost_frames": int(lost.sum()),
         }
         log.info("region %s: %d frames, mean residual %.4g px, mean cardinality %.2f, jitter %.3g", name, T,
                  diagnostics[name]["mean_residual_px"], card.mean(), diagnostics[name]["jitter"])
     meta = {"solver": solver, "formulation": formulation, "alpha": alpha, "upper": upper,
+            "smooth_space": smooth_space if solver in ("temporal", "temporal-causal") else None,
+            "robust": robust if solver == "temporal" else None,
             "neutral_frame": neutral_frame if formulation == "delta" else None, "confidence": confidence,
             "fps": lm.fps, "landmarks": Path(landmarks).name, "diagnostics": diagnostics}
     save_weights(output, regions, meta, extras)

@@ -135,7 +135,7 @@ def test_temporal_causal_pulls_towards_the_previous_frame():
     b2 = float(B[0] @ B[0])
     S = np.array([1.0, 0.2, 0.2])[:, None] * B[0]
     lam = 0.5 * _spread(B)
-    W, _ = decompose(S, B, solver="temporal-causal", alpha=0.5)
+    W, _ = decompose(S, B, solver="temporal-causal", alpha=0.5, smooth_space="weights")
     w1 = (0.2 * b2 + lam * 1.0) / (b2 + lam)  # Lewis & Anjyo eq. 2 with w0 = previous frame
     w2 = (0.2 * b2 + lam * w1) / (b2 + lam)
     np.testing.assert_allclose(W[:, 0], [1.0, w1, w2], atol=1e-10)
@@ -155,7 +155,7 @@ def test_temporal_whole_take_keeps_exact_linear_motion_and_matches_lsq_linear():
 
     S = W_true @ B + 0.3 * rng.normal(size=(20, 10))
     lam = 2.0 * _spread(B)
-    W, _ = decompose(S, B, solver="temporal", alpha=2.0)
+    W, _ = decompose(S, B, solver="temporal", alpha=2.0, smooth_space="weights")
     D2 = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(18, 20))
     A = sparse.vstack([sparse.kron(sparse.identity(20), B.T), np.sqrt(lam) * sparse.kron(D2, sparse.identity(3))])
     b = np.concatenate([S.ravel(), np.zeros(18 * 3)])
@@ -163,6 +163,59 @@ def test_temporal_whole_take_keeps_exact_linear_motion_and_matches_lsq_linear():
     f = lambda x: np.sum((A @ x - b) ** 2)
     assert f(W.ravel()) <= f(ref) * (1 + 1e-8)
     assert W.min() >= 0
+
+
+def test_shape_space_temporal_matches_lsq_linear_and_causal_formula():
+    from scipy import sparse
+
+    rng = np.random.default_rng(9)
+    B = rng.normal(size=(3, 10))
+    W_true = 0.2 + np.linspace(0, 1, 20)[:, None] * np.array([0.5, 0.1, 0.0])
+    S = W_true @ B + 0.3 * rng.normal(size=(20, 10))
+    W, _ = decompose(S, B, solver="temporal", alpha=2.0)  # shape space: λ = alpha, penalty ‖D₂ W B‖²
+    D2 = sparse.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(18, 20))
+    A = sparse.vstack([sparse.kron(sparse.identity(20), B.T), np.sqrt(2.0) * sparse.kron(D2, B.T)])
+    b = np.concatenate([S.ravel(), np.zeros(18 * 10)])
+    ref = lsq_linear(A.toarray(), b, bounds=(0, np.inf), method="bvls", tol=1e-14).x
+    f = lambda x: np.sum((A @ x - b) ** 2)  # noqa: E731
+    assert f(W.ravel()) <= f(ref) * (1 + 1e-8)
+    # causal: each frame minimises ‖S_t − Bᵀw‖² + λ‖Bᵀ(w − w_{t−1})‖², w ≥ 0
+    Wc, _ = decompose(S, B, solver="temporal-causal", alpha=0.7)
+    for t in (5, 12):
+        Ac = np.vstack([B.T, np.sqrt(0.7) * B.T])
+        bc = np.concatenate([S[t], np.sqrt(0.7) * (B.T @ Wc[t - 1])])
+        want = lsq_linear(Ac, bc, bounds=(0, np.inf), method="bvls", tol=1e-14).x
+        np.testing.assert_allclose(Wc[t], want, atol=1e-7)
+
+
+def test_shape_space_temporal_lowers_mesh_jitter_below_weight_space_at_equal_residual():
+    rng = np.random.default_rng(5)
+    T, K, D = 300, 8, 40
+    base = rng.normal(size=(4, D))
+    B = np.vstack([base, base + 0.3 * rng.normal(size=(4, D))])  # pairs of similar keys
+    t = np.arange(T)[:, None]
+    W_true = np.clip(0.3 + 0.3 * np.sin(2 * np.pi * t / 150 + np.arange(K)), 0, None)
+    S = W_true @ B + 0.3 * rng.normal(size=(T, D))
+    target = B + 0.3 * rng.normal(size=B.shape)  # the character's keys: other shapes, same weights
+
+    def residual(W):
+        return np.mean(np.sum((S - W @ B) ** 2, 1))
+
+    def mesh_jitter(W, keys):
+        return np.mean(np.sum(np.diff(W @ keys, n=2, axis=0) ** 2, 1))
+
+    Ww, _ = decompose(S, B, solver="temporal", alpha=0.1, smooth_space="weights")
+    goal = residual(Ww)
+    lo, hi = -3.0, 2.0  # bisect log10(alpha) of the shape-space solver to the same residual
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        Ws, _ = decompose(S, B, solver="temporal", alpha=10**mid)
+        lo, hi = (mid, hi) if residual(Ws) < goal else (lo, mid)
+        if abs(residual(Ws) / goal - 1) < 1e-3:
+            break
+    assert abs(residual(Ws) / goal - 1) < 1e-3
+    assert mesh_jitter(Ws, B) < 0.5 * mesh_jitter(Ww, B)
+    assert mesh_jitter(Ws, target) < 0.8 * mesh_jitter(Ww, target)
 
 
 # --------------------------------------------------------------------------- batched NNLS is exact
@@ -359,7 +412,7 @@ def test_whole_take_temporal_lowers_jitter_at_a_small_residual_cost():
     W_true = 0.5 + 0.4 * np.sin(2 * np.pi * t / 120 + np.arange(K))
     S = W_true @ B + 0.4 * rng.normal(size=(T, 40))
     W_n, r_n = decompose(S, B, solver="nnls")
-    W_t, r_t = decompose(S, B, solver="temporal", alpha=0.1)
+    W_t, r_t = decompose(S, B, solver="temporal", alpha=0.1, smooth_space="weights")
     assert jitter(W_t) < 0.5 * jitter(W_n)
     assert np.mean(r_t**2) < 1.05 * np.mean(r_n**2)
     # ... and the smooth weights are closer to the truth.
