@@ -106,7 +106,7 @@ def test_track_detect_range_step_downscale(real_clip, tmp_path):
 @needs_dlib
 def test_init_auto_writes_its_annotation_and_never_overwrites_another(real_clip, tmp_path):
     out = tmp_path / "lk.npz"
-    r = run("track", real_clip / "d3.avi", "-o", out, "--end", 10)  # init omitted: auto, method lk
+    r = run("track", real_clip / "d3.avi", "--method", "lk", "-o", out, "--end", 10)  # init omitted: auto
     assert r.exit_code == 0, r.output
     pts = tmp_path / "lk.init_00000.pts"
     assert str(pts) in r.output
@@ -114,9 +114,9 @@ def test_init_auto_writes_its_annotation_and_never_overwrites_another(real_clip,
     assert np.linalg.norm(auto - read_pts(real_clip / "d3_00000.pts"), axis=1).mean() < 2.0
     lm = load_landmarks(out)
     assert np.allclose(lm.points[0], auto, atol=1e-3) and lm.meta["init"] == "auto"
-    assert run("track", real_clip / "d3.avi", "--init", "auto", "-o", out, "--end", 10).exit_code == 0  # rerun
+    assert run("track", real_clip / "d3.avi", "--method", "lk", "--init", "auto", "-o", out, "--end", 10).exit_code == 0
     pts.write_text(pts.read_text().replace("version: 1", "version: 1 "))  # edited by hand
-    msg = one_line_error(run("-q", "track", real_clip / "d3.avi", "-o", out, "--end", 10))
+    msg = one_line_error(run("-q", "track", real_clip / "d3.avi", "--method", "lk", "-o", out, "--end", 10))
     assert str(pts) in msg and "refusing to overwrite" in msg
 
 

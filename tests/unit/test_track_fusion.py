@@ -109,8 +109,8 @@ def test_default_tracker_follows_a_synthetic_blink_that_lk_misses(tmp_path):
         e = eye_opening(lm.points)
         return (np.median(e) - e[blink].min()) / true_closure, lm.meta["tracker"]
 
-    fused, tracker = closure(init="auto")
+    fused, tracker = closure(init="auto", filter="none")  # the tracker alone (the landmark filter: test_filter)
     assert tracker == "detect"
-    lk, _ = closure(init=str(tmp_path / "default.init_00040.pts"), method="lk")
+    lk, _ = closure(init=str(tmp_path / "default.init_00040.pts"), method="lk", filter="none")
     assert fused >= 0.45, fused
     assert lk < 0.1, lk
