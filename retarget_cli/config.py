@@ -246,9 +246,7 @@ def load_yaml(text, where: str, error=ConfigError):
         size(node)
         return loader.construct_document(node)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f":{mark.line + 1}" if mark is not None and ":" not in where else ""
-        raise error(f"{where}{line}: invalid YAML ({yaml_problem(exc)})") from None
+        raise error(f"{where}: invalid YAML ({yaml_problem(exc)})") from None
     except RecursionError:
         raise error(f"{where}: the YAML document is nested too deeply") from None
     finally:

@@ -233,7 +233,7 @@ def check_not_input(output: str | os.PathLike, inputs) -> None:
     inputs = [i for i in inputs if i is not None]
     guard = _GUARD.get()
     if guard is not None:  # every later write of the run is checked against these inputs too
-        guard.protect(inputs)
+        guard.protect(i for i in inputs if os.path.exists(i) and _resolve(i) not in guard.files)
     out = Path(output).resolve()
     for inp in inputs:
         if Path(inp).resolve() == out:
