@@ -197,7 +197,7 @@ YAML_MAX_ALIASES = 1_000
 YAML_MAX_BYTES = 64 << 20
 
 
-def load_yaml(text, where: str, error=ConfigError):
+def load_yaml(text, where: str, error=ConfigError, with_line: bool = False):
     """``yaml.safe_load`` with limits: at most :data:`YAML_MAX_ALIASES` aliases and
     :data:`YAML_MAX_NODES` nodes once aliases are expanded (a "billion laughs" document
     is refused before it is built); *text* may be bytes (UTF-8 required).
@@ -246,7 +246,9 @@ def load_yaml(text, where: str, error=ConfigError):
         size(node)
         return loader.construct_document(node)
     except yaml.YAMLError as exc:
-        raise error(f"{where}: invalid YAML ({yaml_problem(exc)})") from None
+        mark = getattr(exc, "problem_mark", None)
+        line = f":{mark.line + 1}" if mark is not None and with_line else ""
+        raise error(f"{where}{line}: invalid YAML ({yaml_problem(exc)})") from None
     except RecursionError:
         raise error(f"{where}: the YAML document is nested too deeply") from None
     finally:
@@ -345,7 +347,7 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
         raise ConfigError(f"{path}: config file not found")
     if path.stat().st_size > YAML_MAX_BYTES:
         raise ConfigError(f"{path}: larger than {YAML_MAX_BYTES >> 20} MiB; not a config file")
-    raw = load_yaml(path.read_bytes(), str(path))
+    raw = load_yaml(path.read_bytes(), str(path), with_line=True)
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
