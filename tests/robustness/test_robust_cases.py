@@ -105,13 +105,17 @@ def c_apply_output_parent_deletes_frames(d):
 def c_region_escapes_in_config(d):
     def edit(c):
         c["select"]["regions"] = {"../../../escaped-region": "all"}
+        c["pose"]["masks"] = {"../../../escaped-region": "target/regions/mouth.txt"}
     return Case(_run(d, edit), ("bad.yaml", "select.regions", "escaped-region"))
 
 
 def c_region_absolute_in_keys(d):
+    region = str(d.parent / "abs-region")
+
     def edit(k):
-        k["regions"] = {str(d.parent / "abs-region"): k["regions"]["mouth"]}
-    return Case(_pose_keys(d, _keys(d, edit), f"x={d / 'target/regions/mouth.txt'}"), ("badkeys.json", "abs-region"))
+        k["regions"] = {region: k["regions"]["mouth"]}
+    return Case(_pose_keys(d, _keys(d, edit), f"{region}={d / 'target/regions/mouth.txt'}"),
+                ("badkeys.json", "abs-region"))
 
 
 def c_output_key_escapes(d):
@@ -190,6 +194,7 @@ def c_weights_meta_list(d):
 def c_integer_region_key(d):
     def edit(c):
         c["select"]["regions"] = {5: "all"}
+        c["pose"]["masks"] = {5: "target/regions/mouth.txt"}
     return Case(_run(d, edit), ("bad.yaml", "select.regions", "5"))
 
 
