@@ -216,8 +216,9 @@ def load_yaml(text, where: str, error=ConfigError, with_line: bool = False):
             text = text.decode("utf-8")
         except UnicodeDecodeError as exc:
             raise error(f"{where}: not UTF-8 text (byte {exc.start} is {text[exc.start:exc.start + 1]!r})") from None
-    loader = yaml.SafeLoader(text)
+    loader = None
     try:
+        loader = yaml.SafeLoader(text)
         node = loader.get_single_node()
         if node is None:
             return None
@@ -252,7 +253,8 @@ def load_yaml(text, where: str, error=ConfigError, with_line: bool = False):
     except RecursionError:
         raise error(f"{where}: the YAML document is nested too deeply") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def yaml_problem(exc) -> str:
