@@ -366,7 +366,7 @@ def _ledger_path(folder: Path, owner: str) -> Path:
 
 
 def read_output_manifest(folder, owner: str) -> dict[str, dict | None]:
-    """Relative name to ``{"size", "mtime_ns"}`` (or None: planned by a run that did not finish)."""
+    """Relative name to ``{"size", "sha256"}`` (or None: planned by a run that did not finish)."""
     path = _ledger_path(Path(folder), owner)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -414,7 +414,7 @@ class TrackedOutputs:
             return False
         if not p.is_file() or p.is_symlink():
             return False
-        return rec is None or (st.st_size == rec.get("size") and st.st_mtime_ns == rec.get("mtime_ns"))
+        return rec is None or (st.st_size == rec.get("size") and sha256_file(p) == rec.get("sha256"))
 
     def commit(self) -> list[Path]:
         """Remove files of earlier runs that this one did not write (if unchanged since); record this run's."""
@@ -434,8 +434,7 @@ class TrackedOutputs:
         for p in self.written:
             rel = self._rel(p)
             if rel is not None and p.is_file():
-                st = p.stat()
-                files[rel] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+                files[rel] = {"size": p.stat().st_size, "sha256": sha256_file(p)}
         self._save(dict(sorted(files.items())))
         return removed
 
