@@ -86,19 +86,101 @@ def progress(length, label):
         yield bar
 
 
+#: Parameters of the stage commands that name outputs (everything else that is a path is an input).
+OUTPUT_PARAMS = ("output", "csv", "overlay", "template", "evaluate", "plot", "contact_sheet", "metrics", "objs",
+                 "outdir")
+#: Commands whose ``--output``/OUTDIR is a folder (the command writes inside it).
+DIR_OUTPUT_COMMANDS = ("apply", "pose-keys", "auto-pose", "annotate", "synth")
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as the one-line message the CLI prints."""
+    if isinstance(exc, OSError) and getattr(exc, "filename", None):
+        return f"{exc.filename}: {exc.strerror or exc}"
+    if isinstance(exc, MemoryError):
+        return "out of memory" + (f" ({exc})" if str(exc) else "") + "; is an input far larger than expected?"
+    msg = " ".join(str(exc).split())
+    if isinstance(exc, (RetargetError, ValueError, OSError)) and msg:
+        return msg
+    return (f"internal error ({type(exc).__name__}{': ' + msg[:300] if msg else ''}); "
+            "rerun with -vv for the traceback")
+
+
+def _input_files(value) -> list:
+    """The files a path-valued argument stands for (a folder's files, a glob's matches, REGION=FILE's file)."""
+    import glob
+    from pathlib import Path
+
+    if isinstance(value, (tuple, list)):
+        return [f for v in value for f in _input_files(v)]
+    if not isinstance(value, str) or not value:
+        return []
+    if "=" in value and not Path(value).exists():
+        value = value.partition("=")[2]
+    p = Path(value)
+    if p.is_dir():
+        return sorted(f for f in p.iterdir() if f.is_file())[:100_000]
+    if any(c in value for c in "*?["):
+        return sorted(glob.glob(value))[:100_000]
+    return [p]
+
+
+class GuardedCommand(click.Command):
+    """A stage command whose writes pass the write guard (:func:`retarget_cli.io.atomic.guard_writes`).
+
+    Writes may go inside the folder of each output the user named (or into
+    the output folder itself) and never onto a file the command reads.
+    Temporary files a killed run left there are removed first.
+    """
+
+    def invoke(self, ctx):
+        if self.name == "run":  # the pipeline guards its own output_dir
+            return super().invoke(ctx)
+        from pathlib import Path
+
+        from .io.atomic import guard_writes, remove_stale_parts
+
+        roots, files, inputs, recursive = [], [], [], []
+        for name, value in ctx.params.items():
+            if value is None or isinstance(value, bool):
+                continue
+            if name in OUTPUT_PARAMS:
+                if not isinstance(value, str):
+                    continue
+                out = Path(value)
+                folder = name in ("objs", "outdir") or (name == "output" and self.name in DIR_OUTPUT_COMMANDS)
+                roots.append(out if folder else out.parent)
+                recursive.append(folder)
+                files.append(out)
+            elif isinstance(value, (str, tuple, list)):
+                inputs += _input_files(value)
+        with guard_writes(roots=roots, files=files, inputs=inputs,
+                          label="the folders of the outputs given on the command line"):
+            for root, rec in zip(roots, recursive):
+                remove_stale_parts(root, recursive=rec)
+            return super().invoke(ctx)
+
+
 class RetargetGroup(click.Group):
-    """Turns library errors into one-line messages with exit status 1."""
+    """Turns every error into a one-line message and a non-zero exit (``-vv`` adds the traceback).
+
+    Errors: exit status 1; Ctrl-C: exit status 130.
+    """
+
+    command_class = GuardedCommand
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
-        except (RetargetError, ValueError, OSError) as exc:
-            if isinstance(exc, OSError) and not getattr(exc, "filename", None):
-                raise
-            msg = str(exc)
-            if isinstance(exc, OSError):
-                msg = f"{exc.filename}: {exc.strerror}"
-            click.echo(f"error: {msg}", err=True)
+        except (click.exceptions.Exit, click.ClickException, click.exceptions.Abort):
+            raise
+        except KeyboardInterrupt:
+            log.debug("interrupted", exc_info=True)
+            click.echo("error: interrupted", err=True)
+            ctx.exit(130)
+        except Exception as exc:
+            log.debug("traceback of the error below", exc_info=True)
+            click.echo(f"error: {one_line(exc)}", err=True)
             ctx.exit(1)
 
 

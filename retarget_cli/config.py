@@ -10,7 +10,9 @@ names the key, the value and the allowed range.
 from __future__ import annotations
 
 import difflib
+import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +45,9 @@ class Param:
     words : tuple of str
         Values of an input that name no file (``track.init: auto``): passed
         through as they are, neither resolved as paths nor hashed.
+    validate : callable, optional
+        ``validate(value, where)`` checks the items of a list or mapping
+        (e.g. :func:`check_regions`) and raises :class:`ConfigError`.
     """
 
     name: str
@@ -56,6 +61,7 @@ class Param:
     nullable: bool = False
     link: str | None = None
     words: tuple = ()
+    validate: Callable | None = None
 
     @property
     def required(self) -> bool:
@@ -84,7 +90,12 @@ class Param:
         elif t is float:
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ConfigError(f"{where}: expected a number, got {value!r}")
-            value = float(value)
+            try:
+                value = float(value)
+            except OverflowError:
+                value = math.inf
+            if not math.isfinite(value):
+                raise ConfigError(f"{where}: expected a finite number ({self.describe_range()}), got {value!r}")
         elif t is str:
             if isinstance(value, (int, float)) and not isinstance(value, bool) and self.kind != "setting":
                 value = str(value)
@@ -106,7 +117,144 @@ class Param:
             (self.min is not None and value < self.min) or (self.max is not None and value > self.max)
         ):
             raise ConfigError(f"{where}: {value!r} is out of range; expected {self.describe_range()}")
+        if self.validate is not None:
+            self.validate(value, where)
         return value
+
+
+# --------------------------------------------------------------------------- item validators (Param.validate)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _name_error(where: str, name) -> ConfigError:
+    hint = " (quote it: '5')" if not isinstance(name, str) else ""
+    return ConfigError(f"{where}: {name!r} is not a valid region name{hint}; expected letters, digits, '_', '.' "
+                       "and '-' (no '..', no '/')")
+
+
+def check_region_name(name, where: str) -> str:
+    """A region name used in output paths: ``[A-Za-z0-9_.-]+`` without ``..``."""
+    from .io.atomic import NAME_RE
+
+    if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
+        raise _name_error(where, name)
+    return name
+
+
+def check_indices(value, where: str, limit: int = 100_000) -> None:
+    """A list of landmark ids: integers in [0, limit)."""
+    if not isinstance(value, list) or not all(_is_int(v) and 0 <= v < limit for v in value):
+        raise ConfigError(f"{where}: expected a list of landmark ids (integers >= 0), got {str(value)[:80]}")
+
+
+def check_regions(value, where: str) -> None:
+    """``select.regions``: name to ``all``, null, ids or ``{points, k}``."""
+    for name, spec in value.items():
+        check_region_name(name, where)
+        w = f"{where}.{name}"
+        if isinstance(spec, dict):
+            bad = sorted(map(str, set(spec) - {"points", "k"}))
+            if bad:
+                raise ConfigError(f"{w}: unknown key {bad[0]!r}; expected 'points' and/or 'k'")
+            if "k" in spec and (not _is_int(spec["k"]) or not 1 <= spec["k"] <= 1000):
+                raise ConfigError(f"{w}.k: expected an integer in [1, 1000], got {spec['k']!r}")
+            spec = spec.get("points")
+        if spec is None or spec == "all":
+            continue
+        check_indices(spec, w)
+        if not spec:
+            raise ConfigError(f"{w}: expected 'all', null, a non-empty list of landmark ids or {{points, k}}")
+
+
+def check_masks(value, where: str) -> None:
+    """Region name to a mask file path."""
+    for name, path in value.items():
+        check_region_name(name, where)
+        if not isinstance(path, str) or not path:
+            raise ConfigError(f"{where}.{name}: expected a mask file path, got {path!r}")
+
+
+def check_strings(value, where: str) -> None:
+    if not all(isinstance(v, str) and v for v in value):
+        raise ConfigError(f"{where}: expected a list of strings, got {str(value)[:80]}")
+
+
+def check_vector3(value, where: str) -> None:
+    if (len(value) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            or not all(math.isfinite(v) for v in value)):
+        raise ConfigError(f"{where}: expected [x, y, z] (three finite numbers), got {value!r}")
+
+
+# --------------------------------------------------------------------------- YAML with limits
+
+
+#: Limits on a YAML document: expanded node count (alias bombs), aliases and bytes.
+YAML_MAX_NODES = 1_000_000
+YAML_MAX_ALIASES = 1_000
+YAML_MAX_BYTES = 64 << 20
+
+
+def load_yaml(text, where: str, error=ConfigError, with_line: bool = False):
+    """``yaml.safe_load`` with limits: at most :data:`YAML_MAX_ALIASES` aliases and
+    :data:`YAML_MAX_NODES` nodes once aliases are expanded (a "billion laughs" document
+    is refused before it is built); *text* may be bytes (UTF-8 required).
+
+    Raises
+    ------
+    error
+        One line naming *where*, for invalid UTF-8, invalid YAML or a document over the limits.
+    """
+    import yaml
+
+    if isinstance(text, bytes):
+        if len(text) > YAML_MAX_BYTES:
+            raise error(f"{where}: larger than {YAML_MAX_BYTES >> 20} MiB; not a settings file")
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise error(f"{where}: not UTF-8 text (byte {exc.start} is {text[exc.start:exc.start + 1]!r})") from None
+    loader = None
+    try:
+        loader = yaml.SafeLoader(text)
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        memo: dict[int, int] = {}
+        aliases = [0]
+
+        def size(n) -> int:
+            key = id(n)
+            if key in memo:
+                aliases[0] += 1
+                if aliases[0] > YAML_MAX_ALIASES:
+                    raise error(f"{where}: more than {YAML_MAX_ALIASES} YAML aliases; refusing to expand them")
+                return memo[key]
+            memo[key] = 1  # a recursive document counts its cycle once
+            total = 1
+            if isinstance(n, yaml.SequenceNode):
+                total += sum(size(c) for c in n.value)
+            elif isinstance(n, yaml.MappingNode):
+                total += sum(size(k) + size(v) for k, v in n.value)
+            memo[key] = total
+            if total > YAML_MAX_NODES:
+                raise error(f"{where}: the YAML document expands to more than {YAML_MAX_NODES} values "
+                            "(an alias bomb?); refusing to load it")
+            return total
+
+        size(node)
+        return loader.construct_document(node)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f":{mark.line + 1}" if mark is not None and with_line else ""
+        raise error(f"{where}{line}: invalid YAML ({yaml_problem(exc)})") from None
+    except RecursionError:
+        raise error(f"{where}: the YAML document is nested too deeply") from None
+    finally:
+        if loader is not None:
+            loader.dispose()
 
 
 def yaml_problem(exc) -> str:
@@ -160,23 +308,22 @@ class Config:
     sections: dict = field(default_factory=dict)
 
 
-def parse_override(text: str) -> tuple[str, str, Any]:
-    """Parse ``stage.key=value`` (value in YAML syntax) from ``--set``.
+def parse_override(text: str) -> tuple[str | None, str, Any]:
+    """Parse ``stage.key=value`` or a top-level ``key=value`` (``seed=3``; value in YAML syntax) from ``--set``.
 
-    A top-level key (``output_dir=...``, ``seed=...``) comes back with stage ``""``.
+    Returns ``(stage, key, value)``; *stage* is None for a top-level key.
     """
-    import yaml
-
-    lhs = text.split("=", 1)[0].strip()
-    if "=" not in text or ("." not in lhs and lhs not in TOP_LEVEL):
-        raise ConfigError(f"--set {text!r}: expected STAGE.KEY=VALUE, e.g. select.k=8 (or output_dir=..., seed=...)")
+    if "=" not in text:
+        raise ConfigError(f"--set {text!r}: expected STAGE.KEY=VALUE or KEY=VALUE, e.g. select.k=8 or seed=3")
     lhs, rhs = text.split("=", 1)
-    stage, key = lhs.split(".", 1) if lhs.strip() not in TOP_LEVEL else ("", lhs)
-    try:
-        value = yaml.safe_load(rhs) if rhs.strip() else None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"--set {text!r}: value is not valid YAML ({exc})") from exc
-    return stage.strip(), key.strip(), value
+    if "." in lhs:
+        stage, key = (v.strip() for v in lhs.split(".", 1))
+    elif lhs.strip() in TOP_LEVEL:
+        stage, key = None, lhs.strip()
+    else:
+        raise ConfigError(f"--set {text!r}: expected STAGE.KEY=VALUE or one of {', '.join(TOP_LEVEL)}=VALUE")
+    value = load_yaml(rhs, f"--set {text!r}") if rhs.strip() else None
+    return stage, key, value
 
 
 def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
@@ -197,30 +344,33 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
         For a missing or malformed file, an unknown section or key, a wrong
         type or an out-of-range value; the message names file and key.
     """
-    import yaml
-
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark else str(path)
-        raise ConfigError(f"{where}: invalid YAML ({yaml_problem(exc)})") from exc
+    if path.stat().st_size > YAML_MAX_BYTES:
+        raise ConfigError(f"{path}: larger than {YAML_MAX_BYTES >> 20} MiB; not a config file")
+    raw = load_yaml(path.read_bytes(), str(path), with_line=True)
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(raw).__name__}")
+    bad = [k for k in raw if not isinstance(k, str)]
+    if bad:
+        raise ConfigError(f"{path}: {bad[0]!r} is not a section name; expected one of "
+                          f"{', '.join(sorted(set(TOP_LEVEL) | set(stages)))}")
     raw = {k: (dict(v) if isinstance(v, dict) else v) for k, v in raw.items()}
     for text in overrides:
         stage, key, value = parse_override(text)
-        if not stage:
+        if stage is None:
             raw[key] = value
             continue
         if stage not in stages:
             raise unknown_key_error(f"--set {text}", stage, stages)
-        section = raw.setdefault(stage, {}) or {}
+        section = raw.get(stage)
+        if section is None:
+            section = {}
+        if not isinstance(section, dict):
+            raise ConfigError(f"{path}: section {stage!r} must be a mapping of settings, got {section!r}")
         raw[stage] = section
         section[key] = value
     valid_top = set(TOP_LEVEL) | set(stages)
@@ -240,11 +390,17 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
         params = {p.name: p for p in stages[key]}
         checked = {}
         for k, v in value.items():
-            k = str(k)
+            if not isinstance(k, str):
+                raise unknown_key_error(f"{path}: {key}", repr(k), params)
             if k not in params:
                 raise unknown_key_error(f"{path}: {key}", k, params)
             checked[k] = params[k].check(v, f"{path}: {key}.{k}")
         sections[key] = checked
     base = path.resolve().parent
     out = top.get("output_dir", TOP_LEVEL["output_dir"].default)
-    return Config(path, base, (base / out).resolve(), top.get("seed", 0), sections)
+    if not out.strip():
+        raise ConfigError(f"{path}: output_dir: expected a folder name, got {out!r}")
+    output_dir = (base / out).resolve()
+    if output_dir.exists() and not output_dir.is_dir():
+        raise ConfigError(f"{path}: output_dir: {output_dir} exists and is not a folder; choose another output_dir")
+    return Config(path, base, output_dir, top.get("seed", 0), sections)

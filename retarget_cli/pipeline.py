@@ -18,10 +18,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from . import __version__, stages
-from .config import REQUIRED, Config, Param
+from .config import (
+    REQUIRED,
+    Config,
+    Param,
+    check_indices,
+    check_masks,
+    check_regions,
+    check_strings,
+    check_vector3,
+)
 from .decompose import FORMULATIONS, SOLVERS
-from .errors import ConfigError, InputError
-from .io.atomic import sha256_file, write_json
+from .errors import ConfigError, InputError, RetargetError
+from .io.atomic import guard_writes, remove_stale_parts, sha256_file, write_json
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +104,7 @@ STAGES: dict[str, Stage] = {
                       nullable=True),
                 Param("annotations", "setting", list, None,
                       "More annotated frames (.pts named like face_00120.pts, or CSV); each re-anchors the track.",
-                      nullable=True),
+                      nullable=True, validate=check_strings),
                 Param("init_frame", "setting", int, None,
                       "Frame of the init .pts when its name ends in no number (default 0).", min=0, nullable=True),
                 Param("start", "setting", int, 0, "First frame to track (0-based).", min=0),
@@ -132,7 +141,7 @@ STAGES: dict[str, Stage] = {
                 Param("anchor", "setting", bool, True, "Correct drift against the annotated frame."),
                 Param("rigid_points", "setting", list, None,
                       "Landmarks that define head motion (default: eye corners and nose for 68 points).",
-                      nullable=True),
+                      nullable=True, validate=check_indices),
                 *FILTER_PARAMS,
             ],
             stages.run_track,
@@ -168,7 +177,7 @@ STAGES: dict[str, Stage] = {
                       min=0, nullable=True),
                 Param("regions", "setting", dict, None,
                       "Region name to 'all', landmark indices, null (68-point preset: brows-eyes, mouth, face) "
-                      "or {points, k} (default: face: all).", nullable=True),
+                      "or {points, k} (default: face: all).", nullable=True, validate=check_regions),
             ],
             stages.run_select,
             uses_seed=True,
@@ -219,7 +228,8 @@ STAGES: dict[str, Stage] = {
                 Param("poses", "input", str, help="NPZ with 'curves' (T, E) and 'names' (E,)."),
                 Param("output", "output", str, "targets", "Directory for the key OBJs and targets.yaml."),
                 Param("masks", "setting", dict, None,
-                      "Region name to vertex-mask file (needed with several regions).", nullable=True),
+                      "Region name to vertex-mask file (needed with several regions).", nullable=True,
+                      validate=check_masks),
             ],
             stages.run_pose,
             extra_inputs=_pose_files,
@@ -251,15 +261,16 @@ STAGES: dict[str, Stage] = {
                       min=0, nullable=True),
                 Param("exclude", "setting", list, ["eyeLook*", "*pupil*"],
                       "Slider-name patterns (fnmatch, any case) kept at 0: by default gaze and pupils, which "
-                      "landmarks without pupils cannot see."),
+                      "landmarks without pupils cannot see.", validate=check_strings),
                 Param("skip_points", "setting", list, None,
                       "Landmarks left out of the fit (default for 68 points: the jaw contour but the chin).",
-                      nullable=True),
+                      nullable=True, validate=check_indices),
                 Param("rigid_points", "setting", list, None,
                       "Landmarks that give each key frame's head pose (default for 68 points: nose and eye "
-                      "corners).", nullable=True),
+                      "corners).", nullable=True, validate=check_indices),
                 Param("masks", "setting", dict, None,
-                      "Region name to vertex-mask file, overriding the masks derived from the rig.", nullable=True),
+                      "Region name to vertex-mask file, overriding the masks derived from the rig.", nullable=True,
+                      validate=check_masks),
                 Param("alpha", "setting", float, 0.001, "absolute fit: eq. 3's alpha.", min=0),
                 Param("mu", "setting", float, 0.0001, "absolute fit: eq. 3's mu.", min=0),
             ],
@@ -294,7 +305,7 @@ STAGES: dict[str, Stage] = {
                       "frame-0 landmark width).", min=1e-12, nullable=True),
                 Param("pivot", "setting", list, None,
                       "[x, y, z] in model units: centre of head roll and scale (default: centre of the "
-                      "neutral mesh's bounding box).", nullable=True),
+                      "neutral mesh's bounding box).", nullable=True, validate=check_vector3),
                 Param("vat", "setting", str, "offsets", "EXR texture holds offsets from the neutral or positions.",
                       choices=("offsets", "positions")),
             ],
@@ -417,10 +428,12 @@ def check_up_to_date(cfg: Config, name: str, kw: dict) -> tuple[bool, str]:
     if not path.is_file():
         return False, "never run"
     try:
-        man = json.loads(path.read_text())
-    except json.JSONDecodeError:
+        man = json.loads(path.read_text(encoding="utf-8"))
+    except ValueError:  # invalid JSON or not UTF-8
         return False, "manifest unreadable"
     stage = STAGES[name]
+    if not isinstance(man, dict):
+        return False, "manifest unreadable"
     if man.get("version") != __version__ or man.get("code") != code_fingerprint():
         return False, "retarget version or code changed"
     if man.get("settings") != _settings(stage, kw, cfg):
@@ -504,16 +517,90 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
     """
     names = select_stages(cfg, start, stop)
     resolved = {n: resolve(cfg, n) for n in names}
+    everything = dict(resolved)
+    for n in ORDER:
+        if n in cfg.sections and n not in everything:
+            try:
+                everything[n] = resolve(cfg, n)
+            except ConfigError:
+                pass
+    inputs = check_outputs(cfg, everything)
     report = []
-    for n in names:
-        kw = resolved[n]
-        ok, why = (False, "--force") if force else check_up_to_date(cfg, n, kw)
-        declared = [kw[p.name] for p in STAGES[n].params if p.kind == "output" and kw[p.name] is not None]
-        if ok:
-            log.info("%s: up to date, skipped", n)
-            report.append((n, "skipped", declared))
-            continue
-        log.info("%s: running (%s)", n, why)
-        run_stage(cfg, n, kw, progress, cache=cache)
-        report.append((n, "ran", declared))
+    with guard_writes(roots=[cfg.output_dir], inputs=inputs, label=f"output_dir of {cfg.path}"):
+        remove_stale_parts(cfg.output_dir)
+        for n in names:
+            kw = resolved[n]
+            ok, why = (False, "--force") if force else check_up_to_date(cfg, n, kw)
+            declared = [kw[p.name] for p in STAGES[n].params if p.kind == "output" and kw[p.name] is not None]
+            if ok:
+                log.info("%s: up to date, skipped", n)
+                report.append((n, "skipped", declared))
+                continue
+            log.info("%s: running (%s)", n, why)
+            run_stage(cfg, n, kw, progress, cache=cache)
+            report.append((n, "ran", declared))
     return report
+
+
+def _inside(path: Path, folders) -> bool:
+    return any(path == f or path.is_relative_to(f) for f in folders)
+
+
+def run_inputs(cfg: Config, resolved: dict) -> list[Path]:
+    """Every file the user gives the run (all stages'), resolved: no stage may write or delete one.
+
+    Inputs a stage takes from an earlier stage's output are not among them;
+    files a stage's input references (a rig's OBJs, a targets.yaml's keys)
+    are, unless they lie inside a declared output (key OBJs a run posed).
+    """
+    outs = [Path(kw[p.name]).resolve() for n, kw in resolved.items() for p in STAGES[n].params
+            if p.kind == "output" and kw.get(p.name) is not None]
+    files = [cfg.path.resolve()]
+    for n, kw in resolved.items():
+        stage, given = STAGES[n], cfg.sections.get(n, {})
+        for p in stage.params:
+            v = kw.get(p.name)
+            if p.kind != "input" or p.name not in given or v is None or v in p.words:
+                continue
+            try:
+                files += [Path(f).resolve() for f in stage.expand_input(p.name, Path(v))]
+            except (RetargetError, OSError, ValueError):
+                files.append(Path(v).resolve())
+        try:
+            extra = [Path(f).resolve() for f in stage.extra_inputs(kw)]
+        except (RetargetError, OSError, ValueError, KeyError, TypeError):
+            extra = []  # the stage reports an unreadable input itself
+        files += [f for f in extra if not _inside(f, outs)]
+    return list(dict.fromkeys(files))
+
+
+def check_outputs(cfg: Config, resolved: dict) -> list[Path]:
+    """Check every declared output before any stage runs: inside ``output_dir``, not an input of the run.
+
+    Returns
+    -------
+    list of Path
+        The run's inputs (:func:`run_inputs`), for the write guard.
+
+    Raises
+    ------
+    ConfigError
+        Naming the config key of the output.
+    """
+    inputs = run_inputs(cfg, resolved)
+    protected = set(inputs)
+    root = cfg.output_dir.resolve()
+    for n, kw in resolved.items():
+        given = cfg.sections.get(n, {})
+        for p in STAGES[n].params:
+            if p.kind != "output" or kw.get(p.name) is None:
+                continue
+            out = Path(kw[p.name]).resolve()
+            value = given.get(p.name, p.default)
+            if not _inside(out, [root]):
+                raise ConfigError(f"{cfg.path}: {n}.{p.name}: {value!r} lies outside output_dir ({root}); "
+                                  "outputs are paths inside output_dir")
+            if out in protected:
+                raise ConfigError(f"{cfg.path}: {n}.{p.name}: {value!r} is an input of this run; "
+                                  "choose another output name")
+    return inputs

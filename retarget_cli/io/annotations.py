@@ -18,6 +18,9 @@ from .atomic import write_text
 
 #: Pixel-centre coordinate of the top-left pixel in ``.pts`` files.
 PTS_ORIGIN = 1.0
+#: Most landmarks an annotation may have, and largest frame number (memory-bomb guards).
+MAX_POINTS = 100_000
+MAX_FRAME = 100_000_000
 
 
 def read_pts(path: str | os.PathLike) -> np.ndarray:
@@ -36,14 +39,20 @@ def read_pts(path: str | os.PathLike) -> np.ndarray:
     """
     path = Path(path)
     try:
+        if path.stat().st_size > 64 * MAX_POINTS:
+            raise InputError(f"{path}: too large for an annotation of at most {MAX_POINTS} points")
         text = path.read_text(encoding="utf-8", errors="replace")
     except FileNotFoundError:
         raise InputError(f"{path}: annotation file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder; expected a .pts file") from None
     m = re.search(r"n_points\s*:\s*(\d+)", text)
     body = re.search(r"\{(.*)\}", text, re.S)
     if not m or not body:
         raise InputError(f"{path}: not an iBUG .pts file (expected 'n_points: N' and a '{{ ... }}' block)")
-    n = int(m.group(1))
+    n = int(m.group(1)[:12])
+    if not 1 <= n <= MAX_POINTS:
+        raise InputError(f"{path}: n_points must be in [1, {MAX_POINTS}], got {m.group(1)[:12]}")
     try:
         vals = np.array(body.group(1).split(), dtype=np.float64)
     except ValueError as exc:
@@ -100,39 +109,53 @@ def read_csv_landmarks(path: str | os.PathLike) -> dict[int, np.ndarray]:
         fh = path.open(newline="", encoding="utf-8")
     except FileNotFoundError:
         raise InputError(f"{path}: landmarks CSV not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder; expected a frame,point,x,y CSV") from None
     rows: dict[int, dict[int, tuple[float, float]]] = {}
-    with fh:
-        reader = csv.reader(fh)
-        header = [h.strip().lower() for h in next(reader, [])]
-        if header[:4] != ["frame", "point", "x", "y"]:
-            raise InputError(f"{path}: expected the header 'frame,point,x,y', got {','.join(header)!r}")
-        for line, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            try:
-                f, p, x, y = int(row[0]), int(row[1]), float(row[2]), float(row[3])
-            except (ValueError, IndexError):
-                raise InputError(f"{path}: line {line}: expected integers frame,point and numbers x,y, "
-                                 f"got {','.join(row)!r}") from None
-            if f < 0 or p < 0 or not (np.isfinite(x) and np.isfinite(y)):
-                raise InputError(f"{path}: line {line}: frame and point must be >= 0 and x, y finite")
-            if p in rows.setdefault(f, {}):
-                raise InputError(f"{path}: line {line}: frame {f} lists point {p} twice")
-            rows[f][p] = (x, y)
+    try:
+        with fh:
+            _read_csv_rows(path, csv.reader(fh), rows)
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text (byte {exc.start}); expected a frame,point,x,y CSV") from None
+    except csv.Error as exc:
+        raise InputError(f"{path}: not a readable CSV ({exc})") from None
     if not rows:
         raise InputError(f"{path}: no landmark rows")
     out, first = {}, None
     for f in sorted(rows):
         n = len(rows[f])
         if sorted(rows[f]) != list(range(n)):
-            missing = sorted(set(range(max(rows[f]) + 1)) - set(rows[f]))
-            raise InputError(f"{path}: frame {f} lacks point {missing[0]} (points must be numbered 0..L-1)")
+            missing = next(i for i in range(n + 1) if i not in rows[f])
+            raise InputError(f"{path}: frame {f} lacks point {missing} (points must be numbered 0..L-1)")
         if first is None:
             first = (f, n)
         elif n != first[1]:
             raise InputError(f"{path}: frame {f} has {n} points but frame {first[0]} has {first[1]}")
         out[f] = np.array([rows[f][p] for p in range(n)], dtype=np.float64)
     return out
+
+
+def _read_csv_rows(path, reader, rows) -> None:
+    """Fill *rows* (frame -> point -> (x, y)) from a ``frame,point,x,y`` CSV reader."""
+    header = [h.strip().lower() for h in next(reader, [])]
+    if header[:4] != ["frame", "point", "x", "y"]:
+        raise InputError(f"{path}: expected the header 'frame,point,x,y', got {','.join(header)[:80]!r}")
+    for line, row in enumerate(reader, start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        try:
+            f, p, x, y = int(row[0]), int(row[1]), float(row[2]), float(row[3])
+        except (ValueError, IndexError):
+            raise InputError(f"{path}: line {line}: expected integers frame,point and numbers x,y, "
+                             f"got {','.join(row)[:80]!r}") from None
+        if f < 0 or p < 0 or not (np.isfinite(x) and np.isfinite(y)):
+            raise InputError(f"{path}: line {line}: frame and point must be >= 0 and x, y finite")
+        if p >= MAX_POINTS or f > MAX_FRAME:
+            raise InputError(f"{path}: line {line}: point {p} / frame {f} is too large (points < {MAX_POINTS}, "
+                             f"frames <= {MAX_FRAME})")
+        if p in rows.setdefault(f, {}):
+            raise InputError(f"{path}: line {line}: frame {f} lists point {p} twice")
+        rows[f][p] = (x, y)
 
 
 def write_csv_landmarks(path: str | os.PathLike, points, frames=None) -> None:
@@ -175,6 +198,8 @@ def read_annotations(paths, *, frame: int | None = None) -> tuple[dict[int, np.n
                 if len(paths) > 1:
                     raise InputError(f"{p}: no frame number in the file name (expected e.g. face_00120.pts)")
                 f = 0
+            if f > MAX_FRAME:
+                raise InputError(f"{p}: frame {f} (from the file name) is larger than {MAX_FRAME}")
             got = {f: read_pts(p)}
         else:
             raise InputError(f"{p}: unsupported annotation type {p.suffix!r}; expected .pts or .csv")

@@ -1,22 +1,34 @@
-"""Atomic, deterministic file writing.
+"""Atomic, deterministic, guarded file writing.
 
 Every output is written to a temporary file in the destination directory and
 renamed over the destination only once it is complete, so a crash or Ctrl-C
 never leaves a half-written file that a rerun could mistake for finished work.
 (Files are not fsync'ed: rename is atomic against crashes and signals; after a
 power loss the stage manifests' sizes and hashes catch a truncated file.)
+
+The write guard (:func:`guard_writes`, :func:`check_write`) is the one check
+every written or deleted file passes: resolved, it must lie inside an output
+folder (or be a file the user named), and it must not be an input of the run.
+The output manifest of a folder (:func:`tracked_outputs`) lists the files a
+command wrote there, so that clearing stale outputs removes only those.
+Temporary ``.part`` files left by a killed run are removed by
+:func:`remove_stale_parts` at the start of the next.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import hashlib
 import io
 import json
+import logging
 import os
-import tempfile
+import re
+import secrets
 import zipfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
@@ -24,14 +36,26 @@ import numpy as np
 
 from ..errors import InputError
 
+log = logging.getLogger(__name__)
+
 #: Fixed timestamp for zip members, so that NPZ files are byte-identical
 #: across runs (``numpy.savez`` stamps the current time).
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
+#: Name of a temporary file of :func:`atomic_open`: ``.<name>.<8 hex or mkstemp chars>.part``
+#: (videos: ``.part.<suffix>``, as OpenCV picks the container by the suffix).
+PART_RE = re.compile(r"^\..+\.[a-z0-9_]{8}\.part(\.[A-Za-z0-9]{1,5})?$")
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     """Open a temporary file next to *path*; rename it onto *path* on success.
+
+    The destination passes :func:`check_write` first. The temporary file is
+    named before it is created, inside the ``try``, so an exception (Ctrl-C
+    included) at any moment removes it; a SIGKILL leaves a ``.part`` file that
+    :func:`remove_stale_parts` removes at the start of the next run.
 
     Parameters
     ----------
@@ -49,17 +73,26 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     if mode not in ("wb", "w"):
         raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
     path = Path(path)
+    check_write(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    tmp = None
     try:
+        while True:
+            tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.part"
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o644)
+                break
+            except FileExistsError:
+                continue
         kwargs = {} if mode == "wb" else {"encoding": "utf-8", "newline": "\n"}
         with os.fdopen(fd, mode, **kwargs) as fh:
             yield fh
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
         raise
 
 
@@ -116,8 +149,16 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
     write_bytes(path, buf.getvalue())
 
 
-def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
+#: Largest array a data file may hold once loaded (bytes); guards against zip bombs and huge headers.
+MAX_ARRAY_BYTES = int(os.environ.get("RETARGET_MAX_ARRAY_BYTES", 4 << 30))
+
+
+def load_npz(path: str | os.PathLike, *, max_bytes: int | None = None) -> dict[str, np.ndarray]:
     """Read every member of an ``.npz`` file into a dict (no pickles).
+
+    Each member's ``.npy`` header is checked before its data is read: a
+    malformed header, an object dtype or an array larger than *max_bytes*
+    (default :data:`MAX_ARRAY_BYTES`) is an error naming the file and member.
 
     Raises
     ------
@@ -125,16 +166,50 @@ def load_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
         If the file is missing or is not a readable ``.npz`` archive.
     """
     path = Path(path)
+    limit = MAX_ARRAY_BYTES if max_bytes is None else max_bytes
     if not path.is_file():
         raise InputError(f"{path}: file not found")
     with open(path, "rb") as fh:
         if fh.read(4) != b"PK\x03\x04":
             raise InputError(f"{path}: not an .npz archive (no zip header)")
+    out = {}
     try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise InputError(f"{path}: not a readable .npz file ({exc})") from exc
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                if info.is_dir():
+                    continue
+                key = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+                where = f"{path}: member {key!r}"
+                with zf.open(info) as fh:
+                    try:
+                        version = np.lib.format.read_magic(fh)
+                        reader = {(1, 0): np.lib.format.read_array_header_1_0,
+                                  (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+                        if reader is None:
+                            raise ValueError(f"unsupported .npy version {version}")
+                        shape, _, dtype = reader(fh)
+                    except Exception as exc:  # numpy raises ValueError, SyntaxError, TypeError...
+                        raise InputError(f"{where}: not valid .npy data ({' '.join(str(exc).split())[:200]})") \
+                            from None
+                    if dtype.hasobject:
+                        raise InputError(f"{where}: holds Python objects (pickles are refused)")
+                    n = 1
+                    for d in shape:
+                        n *= int(d)
+                    if n * max(dtype.itemsize, 1) > limit:
+                        raise InputError(f"{where}: array of shape {shape} ({dtype}) is larger than the "
+                                         f"{limit / 2**30:.3g} GiB limit")
+                with zf.open(info) as fh:
+                    try:
+                        out[key] = np.lib.format.read_array(fh, allow_pickle=False)
+                    except Exception as exc:
+                        raise InputError(f"{where}: not valid .npy data ({' '.join(str(exc).split())[:200]})") \
+                            from None
+    except InputError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, NotImplementedError, RuntimeError) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({' '.join(str(exc).split())[:200]})") from None
+    return out
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
@@ -152,9 +227,242 @@ def check_not_input(output: str | os.PathLike, inputs) -> None:
     Raises
     ------
     InputError
-        If *output* resolves to the same file as any input.
+        If *output* resolves to the same file as any input, or the active
+        :func:`guard_writes` forbids it; the inputs are added to that guard.
     """
+    inputs = [i for i in inputs if i is not None]
+    guard = _GUARD.get()
+    if guard is not None:  # every later write of the run is checked against these inputs too
+        guard.protect(i for i in inputs if os.path.exists(i) and _resolve(i) not in guard.files)
     out = Path(output).resolve()
     for inp in inputs:
-        if inp is not None and Path(inp).resolve() == out:
+        if Path(inp).resolve() == out:
             raise InputError(f"{output}: output would overwrite the input {inp}; choose another output path")
+    check_write(output)
+
+
+# --------------------------------------------------------------------------- the write guard
+
+
+#: Region and key names used in paths: letters, digits, ``_``, ``.``, ``-`` (no ``..``).
+NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+def check_name(name, where: str) -> str:
+    """*name* if it is safe as one path component (``[A-Za-z0-9_.-]+``, no ``..``), else an InputError."""
+    if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
+        raise InputError(f"{where}: {name!r} is not a valid name; expected letters, digits, '_', '.' and '-' "
+                         "(no '..', no '/')")
+    return name
+
+
+def _resolve(path) -> Path:
+    return Path(os.path.abspath(Path(path).expanduser())).resolve()
+
+
+def _file_id(path: Path):
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+
+@dataclass
+class WriteGuard:
+    """Where a run may write: inside *roots* or onto *files*, never onto *inputs* (all resolved)."""
+
+    roots: tuple = ()
+    files: tuple = ()
+    inputs: set = field(default_factory=set)
+    input_ids: set = field(default_factory=set)
+    #: Shown in errors: what the roots are (``output_dir of config.yaml``).
+    label: str = "the output folder"
+
+    def protect(self, paths) -> None:
+        """Add *paths* to the inputs no write may touch."""
+        for p in paths:
+            if p is None:
+                continue
+            r = _resolve(p)
+            self.inputs.add(r)
+            fid = _file_id(r)
+            if fid is not None:
+                self.input_ids.add(fid)
+
+    def check(self, path) -> Path:
+        p = _resolve(path)
+        fid = _file_id(p)
+        if p in self.inputs or (fid is not None and fid in self.input_ids):
+            raise InputError(f"{path}: refusing to write over an input of this run; choose another output path")
+        if p in self.files or any(p == r or p.is_relative_to(r) for r in self.roots):
+            return p
+        where = ", ".join(str(r) for r in self.roots) or "the output paths given"
+        raise InputError(f"{path}: refusing to write outside {self.label} ({where})")
+
+
+_GUARD: contextvars.ContextVar[WriteGuard | None] = contextvars.ContextVar("retarget_write_guard", default=None)
+
+
+@contextlib.contextmanager
+def guard_writes(*, roots=(), files=(), inputs=(), label: str = "the output folder") -> Iterator[WriteGuard]:
+    """Check every write and delete inside the block against the rules of :class:`WriteGuard`.
+
+    Parameters
+    ----------
+    roots : iterable of path-like
+        Folders (recursively) writes may go into.
+    files : iterable of path-like
+        Single files writes may go to wherever they are (paths the user named).
+    inputs : iterable of path-like
+        Files of the run that are never written or deleted.
+    """
+    guard = WriteGuard(tuple(_resolve(r) for r in roots if r is not None),
+                       tuple(_resolve(f) for f in files if f is not None), label=label)
+    guard.protect(inputs)
+    token = _GUARD.set(guard)
+    try:
+        yield guard
+    finally:
+        _GUARD.reset(token)
+
+
+def check_write(path) -> None:
+    """Raise :class:`InputError` if the active :func:`guard_writes` forbids writing or deleting *path*."""
+    guard = _GUARD.get()
+    if guard is not None:
+        guard.check(path)
+
+
+def remove_file(path) -> None:
+    """Delete *path* (a file this tool wrote) after :func:`check_write`; a missing file is fine."""
+    check_write(path)
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(path)
+
+
+def remove_stale_parts(folder, *, recursive: bool = True) -> list[Path]:
+    """Remove the ``.part`` temporary files a killed run left in *folder* (names matching :data:`PART_RE`)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    found = folder.rglob(".*.part*") if recursive else folder.glob(".*.part*")
+    removed = []
+    for p in sorted(found):
+        if PART_RE.match(p.name) and p.is_file() and not p.is_symlink():
+            with contextlib.suppress(OSError):
+                remove_file(p)
+                removed.append(p)
+    if removed:
+        log.info("removed %d temporary file(s) left by an interrupted run in %s", len(removed), folder)
+    return removed
+
+
+# --------------------------------------------------------------------------- output manifests
+
+
+def _ledger_path(folder: Path, owner: str) -> Path:
+    return folder / f".retarget-{check_name(owner, 'owner')}.json"
+
+
+def read_output_manifest(folder, owner: str) -> dict[str, dict | None]:
+    """Relative name to ``{"size", "sha256"}`` (or None: planned by a run that did not finish)."""
+    path = _ledger_path(Path(folder), owner)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        files = data["files"]
+        return {str(k): (v if isinstance(v, dict) else None) for k, v in files.items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+
+
+class TrackedOutputs:
+    """Files one command writes into a folder; see :func:`tracked_outputs`."""
+
+    def __init__(self, folder: Path, owner: str):
+        self.folder, self.owner = Path(folder), owner
+        self.before = read_output_manifest(self.folder, owner)
+        self.written: list[Path] = []
+
+    def _rel(self, p) -> str | None:
+        try:
+            return Path(os.path.abspath(p)).relative_to(Path(os.path.abspath(self.folder))).as_posix()
+        except ValueError:
+            return None
+
+    def plan(self, paths: Iterable) -> None:
+        """Record *paths* as about to be written (so a killed run's files are known to the next)."""
+        files = dict(self.before)
+        for p in paths:
+            rel = self._rel(p)
+            if rel is not None:
+                files.setdefault(rel, None)
+        self._save(files)
+
+    def add(self, path) -> Path:
+        self.written.append(Path(path))
+        return Path(path)
+
+    def _save(self, files: dict) -> None:
+        write_json(_ledger_path(self.folder, self.owner), {"files": files})
+
+    def _ours(self, rel: str, rec) -> bool:
+        p = self.folder / rel
+        try:
+            st = p.lstat()
+        except OSError:
+            return False
+        if not p.is_file() or p.is_symlink():
+            return False
+        return rec is None or (st.st_size == rec.get("size") and sha256_file(p) == rec.get("sha256"))
+
+    def commit(self) -> list[Path]:
+        """Remove files of earlier runs that this one did not write (if unchanged since); record this run's."""
+        keep = {self._rel(p) for p in self.written}
+        removed = []
+        for rel, rec in sorted(self.before.items()):
+            if rel in keep or ".." in Path(rel).parts or Path(rel).is_absolute():
+                continue
+            if self._ours(rel, rec):
+                remove_file(self.folder / rel)
+                removed.append(self.folder / rel)
+            elif (self.folder / rel).exists():
+                log.warning("%s: left in place (changed since retarget wrote it)", self.folder / rel)
+        if removed:
+            log.info("%s: removed %d output(s) of an earlier run", self.folder, len(removed))
+        files = {}
+        for p in self.written:
+            rel = self._rel(p)
+            if rel is not None and p.is_file():
+                files[rel] = {"size": p.stat().st_size, "sha256": sha256_file(p)}
+        self._save(dict(sorted(files.items())))
+        return removed
+
+    def rollback(self) -> None:
+        """Remove the files this run wrote (a failed run leaves no partial set behind)."""
+        for p in self.written:
+            with contextlib.suppress(OSError, InputError):
+                remove_file(p)
+        with contextlib.suppress(OSError, InputError, ValueError):
+            files = {k: v for k, v in self.before.items() if (self.folder / k).exists()}
+            self._save(files)
+
+
+@contextlib.contextmanager
+def tracked_outputs(folder, owner: str, planned: Iterable = ()) -> Iterator[TrackedOutputs]:
+    """Track the files a command writes into *folder* (call ``.add(path)`` after each write).
+
+    On success, the files of earlier runs of *owner* that this run did not
+    write, and that nobody changed since, are removed, and the folder's
+    output manifest ``.retarget-<owner>.json`` lists this run's files. On an
+    exception (Ctrl-C included) the files this run wrote are removed, so a
+    failed run leaves no partial set (key OBJs without their targets.yaml).
+    """
+    rec = TrackedOutputs(Path(folder), owner)
+    rec.plan(planned)
+    try:
+        yield rec
+    except BaseException:
+        rec.rollback()
+        raise
+    rec.commit()

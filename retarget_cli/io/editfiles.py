@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..config import closest, unknown_key_error, yaml_problem
+from ..config import closest, unknown_key_error
 from ..errors import ConfigError, InputError
 from .atomic import load_npz, savez, write_text
 
@@ -47,7 +47,9 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
             raise InputError(f"{path}: 'curves' must be (T, {len(names)}) for {len(names)} names, got {W.shape}")
         frames = np.asarray(data.get("frames", np.arange(len(W))), dtype=np.int64)
     elif path.suffix.lower() == ".csv":
-        lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if ln.strip()]
+        from .stagefiles import read_text
+
+        lines = [ln for ln in read_text(path, "animation CSV").splitlines() if ln.strip()]
         if not lines:
             raise InputError(f"{path}: empty CSV")
         header = [h.strip() for h in lines[0].split(",")]
@@ -161,14 +163,10 @@ def _frame(value, where, frames):
 
 
 def _load_edits_yaml(path: Path):
-    import yaml
+    from ..config import load_yaml
+    from .stagefiles import read_text
 
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: edits file not found") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML ({yaml_problem(exc)})") from exc
+    data = load_yaml(read_text(path, "edits"), str(path))
     _keys(data, ("rig", "edits"), str(path))
     if "rig" in data and not isinstance(data["rig"], str):
         raise ConfigError(f"{path}: rig: expected the path of a rig.yaml, got {data['rig']!r}")

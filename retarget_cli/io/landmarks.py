@@ -96,6 +96,14 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
     savez(path, arrays)
 
 
+def _numeric(data: dict, key: str, path) -> np.ndarray:
+    """``data[key]`` if it holds real numbers (ints or floats), else an InputError naming the file and key."""
+    a = data[key]
+    if a.dtype.kind not in "iuf" or a.dtype.names is not None:
+        raise InputError(f"{path}: {key!r} must hold numbers (float or int), got dtype {a.dtype}")
+    return a
+
+
 def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     """Read a ``landmarks.npz`` file, completing optional keys.
 
@@ -115,43 +123,84 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     data = load_npz(path)
     if "points" not in data:
         raise InputError(f"{path}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
-    points = data["points"].astype(np.float32)
+    points = _numeric(data, "points", path).astype(np.float32)
     if points.ndim != 3 or points.shape[2] != 2 or points.shape[0] == 0 or points.shape[1] == 0:
         raise InputError(f"{path}: 'points' must have shape (T, L, 2) with T, L >= 1, got {points.shape}")
     T, L, _ = points.shape
     conf = data.get("confidence")
     if conf is None:
         conf = np.where(np.isfinite(points).all(-1), 1.0, 0.0).astype(np.float32)
-    elif conf.shape != (T, L):
-        raise InputError(f"{path}: 'confidence' must have shape {(T, L)}, got {conf.shape}")
+    else:
+        conf = _numeric(data, "confidence", path)
+        if conf.shape != (T, L):
+            raise InputError(f"{path}: 'confidence' must have shape {(T, L)}, got {conf.shape}")
+        bad = ~(np.isfinite(conf) & (conf >= 0) & (conf <= 1))
+        if bad.any():
+            t, i = (int(v) for v in np.argwhere(bad)[0])
+            raise InputError(f"{path}: 'confidence' must be finite and in [0, 1]; frame {t} landmark {i} has "
+                             f"{conf[t, i]!r}")
     if ("head" in data) != ("stabilized" in data):
         raise InputError(f"{path}: 'head' and 'stabilized' must be given together or not at all")
     if "head" in data:
-        head, stab = data["head"], data["stabilized"]
+        head, stab = _numeric(data, "head", path), _numeric(data, "stabilized", path)
         if head.shape != (T, 2, 3):
             raise InputError(f"{path}: 'head' must have shape {(T, 2, 3)}, got {head.shape}")
         if stab.shape != (T, L, 2):
             raise InputError(f"{path}: 'stabilized' must have shape {(T, L, 2)}, got {stab.shape}")
+        if not np.isfinite(head).all():
+            t = int(np.flatnonzero(~np.isfinite(head).reshape(T, -1).all(1))[0])
+            raise InputError(f"{path}: 'head' must be finite; frame {t} is not")
     else:
         head, stab = estimate_head(points, conf, rigid_points=rigid_points)
     raw = data.get("points_raw")
-    if raw is not None and raw.shape != (T, L, 2):
-        raise InputError(f"{path}: 'points_raw' must have shape {(T, L, 2)} like 'points', got {raw.shape}")
+    if raw is not None:
+        if raw.dtype.kind != "f" or raw.shape != (T, L, 2):
+            raise InputError(f"{path}: 'points_raw' must be floats of shape {(T, L, 2)} like 'points', got "
+                             f"{raw.dtype} of shape {raw.shape}")
+    fps = 30.0
+    if "fps" in data:
+        f = _numeric(data, "fps", path)
+        if f.size != 1 or f.ndim > 1 or not np.isfinite(f).all() or not float(f.ravel()[0]) > 0:
+            raise InputError(f"{path}: 'fps' must be one finite number > 0, got {f.ravel()[:4].tolist()} "
+                             f"(shape {f.shape})")
+        fps = float(f.ravel()[0])
+    frame_size = np.zeros(2, dtype=np.int64)
+    if "frame_size" in data:
+        fs = _numeric(data, "frame_size", path)
+        if fs.shape != (2,) or not np.isfinite(fs).all() or np.any(fs < 0) or np.any(fs % 1 != 0) \
+                or np.any(fs > 1 << 20):
+            raise InputError(f"{path}: 'frame_size' must be [width, height] (integers >= 0), got {fs.tolist()}")
+        frame_size = fs.astype(np.int64)
+    frames = data.get("frames")
+    if frames is not None:
+        if frames.dtype.kind not in "iu" or frames.shape != (T,):
+            raise InputError(f"{path}: 'frames' must be {T} integers (one per row of 'points'), got "
+                             f"{frames.dtype} of shape {frames.shape}")
+        frames = frames.astype(np.int64)
+    names = data.get("names")
+    if names is not None and (names.dtype.kind not in "US" or names.shape != (L,)):
+        raise InputError(f"{path}: 'names' must be {L} strings (one per landmark), got {names.dtype} of shape "
+                         f"{names.shape}")
     meta = {}
     if "meta" in data:
+        m = data["meta"]
+        if m.dtype.kind not in "US" or m.size != 1:
+            raise InputError(f"{path}: 'meta' must be one JSON string, got {m.dtype} of shape {m.shape}")
         try:
-            meta = json.loads(str(data["meta"]))
-        except json.JSONDecodeError as exc:
-            raise InputError(f"{path}: 'meta' is not a JSON string ({exc})") from exc
+            meta = json.loads(str(m.ravel()[0]))
+        except (json.JSONDecodeError, RecursionError) as exc:
+            raise InputError(f"{path}: 'meta' is not a JSON string ({exc})") from None
+        if not isinstance(meta, dict):
+            raise InputError(f"{path}: 'meta' must be a JSON object, got {type(meta).__name__}")
     return Landmarks(
         points=points,
         confidence=conf.astype(np.float32),
         head=np.asarray(head, dtype=np.float32),
         stabilized=np.asarray(stab, dtype=np.float32),
-        fps=float(data["fps"]) if "fps" in data else 30.0,
-        frame_size=np.asarray(data.get("frame_size", np.zeros(2)), dtype=np.int64),
-        names=data.get("names"),
-        frames=data.get("frames"),
+        fps=fps,
+        frame_size=frame_size,
+        names=names,
+        frames=frames,
         meta=meta,
         points_raw=None if raw is None else raw.astype(np.float32),
     )

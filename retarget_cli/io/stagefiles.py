@@ -11,9 +11,29 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..config import yaml_problem
 from ..errors import InputError
-from .atomic import dumps_json, load_npz, savez, write_json, write_text
+from .atomic import check_name, dumps_json, load_npz, savez, write_json, write_text
+
+#: Largest JSON/YAML/text data file read whole (bytes).
+MAX_TEXT_BYTES = 256 << 20
+
+
+def read_text(path: Path, what: str) -> str:
+    """A UTF-8 text file's content, or an InputError naming the file (missing, too large, not UTF-8)."""
+    path = Path(path)
+    try:
+        if path.stat().st_size > MAX_TEXT_BYTES:
+            raise InputError(f"{path}: larger than {MAX_TEXT_BYTES >> 20} MiB; not a {what} file")
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: {what} file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder; expected a {what} file") from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text (byte {exc.start} is {data[exc.start:exc.start + 1]!r}); "
+                         f"expected a {what} file") from None
 
 # --------------------------------------------------------------------------- keys.json
 
@@ -54,19 +74,20 @@ def read_keys(path: str | os.PathLike) -> Keys:
     """
     path = Path(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: keys file not found") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from exc
+        data = json.loads(read_text(path, "keys"))
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
     if not isinstance(data, dict) or not isinstance(data.get("regions"), dict) or not data["regions"]:
         raise InputError(f"{path}: expected {{'regions': {{name: {{'points': [...], 'frames': [...]}}}}}}")
     regions = {}
     for name, reg in data["regions"].items():
+        check_name(name, f"{path}: region")
         for key in ("points", "frames"):
             vals = reg.get(key) if isinstance(reg, dict) else None
-            if not isinstance(vals, list) or not vals or not all(isinstance(v, int) and v >= 0 for v in vals):
-                raise InputError(f"{path}: region {name!r} key {key!r} must be a non-empty list of integers >= 0")
+            if not isinstance(vals, list) or not vals or not all(
+                    isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 31 for v in vals):
+                raise InputError(f"{path}: region {name!r} key {key!r} must be a non-empty list of integers >= 0 "
+                                 f"(not true/false), got {str(vals)[:60]}")
         if len(set(reg["frames"])) != len(reg["frames"]):
             raise InputError(f"{path}: region {name!r} lists a key frame twice")
         regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]),
@@ -120,13 +141,35 @@ def load_weights(path) -> tuple[dict, dict]:
     """
     path = Path(path)
     data = load_npz(path)
-    meta = json.loads(str(data.pop("meta"))) if "meta" in data else {}
+    meta = {}
+    if "meta" in data:
+        m = data.pop("meta")
+        try:
+            if m.dtype.kind not in "US" or m.size != 1:
+                raise ValueError(f"dtype {m.dtype}, shape {m.shape}")
+            meta = json.loads(str(m.ravel()[0]))
+        except (ValueError, RecursionError) as exc:
+            raise InputError(f"{path}: 'meta' must be one JSON string ({exc})") from None
+        if not isinstance(meta, dict):
+            raise InputError(f"{path}: 'meta' must be a JSON object, got {type(meta).__name__}")
+        fps = meta.get("fps")
+        if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float))
+                                or not np.isfinite(fps) or fps <= 0):
+            raise InputError(f"{path}: meta 'fps' must be a finite number > 0, got {fps!r}")
     regions = {}
     for name in sorted(k for k in data if not k.endswith(WEIGHT_SUFFIXES)):
+        check_name(name, f"{path}: region")
         w = data[name]
         frames = data.get(f"{name}_frames")
         if frames is None or w.ndim != 2 or frames.shape != (w.shape[1],):
             raise InputError(f"{path}: region {name!r} needs '{name}' (T, K) and '{name}_frames' (K,)")
+        if w.dtype.kind not in "iuf" or frames.dtype.kind not in "iu":
+            raise InputError(f"{path}: region {name!r}: '{name}' must hold numbers and '{name}_frames' integers, "
+                             f"got {w.dtype} and {frames.dtype}")
+        if not np.isfinite(w).all():
+            raise InputError(f"{path}: region {name!r}: weights must be finite")
+        if np.any(frames < 0):
+            raise InputError(f"{path}: region {name!r}: '{name}_frames' must be frame numbers >= 0")
         res = data.get(f"{name}_residual", np.zeros(w.shape[0]))
         regions[name] = (w, frames, res)
     if not regions:
@@ -187,14 +230,9 @@ class Targets:
 
 
 def _load_yaml(path: Path, what: str):
-    import yaml
+    from ..config import load_yaml
 
-    try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: {what} file not found") from None
-    except yaml.YAMLError as exc:
-        raise InputError(f"{path}: invalid YAML ({yaml_problem(exc)})") from exc
+    return load_yaml(read_text(path, what), str(path), error=InputError)
 
 
 def read_targets(path: str | os.PathLike) -> Targets:
@@ -288,14 +326,19 @@ def read_vertex_mask(path: Path, n_vertices: int) -> np.ndarray:
     -------
     ndarray, shape (N,), float64 in [0, 1]
     """
-    text = Path(path).read_text(encoding="utf-8") if Path(path).is_file() else None
+    text = read_text(path, "region mask") if Path(path).is_file() else None
     if text is None:
         raise InputError(f"{path}: region mask file not found")
     try:
         vals = json.loads(text) if text.lstrip().startswith("[") else [float(t) for t in text.split()]
-    except ValueError as exc:
-        raise InputError(f"{path}: expected vertex ids or per-vertex weights ({exc})") from exc
-    vals = np.asarray(vals, dtype=np.float64)
+        if not isinstance(vals, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                 for v in vals):
+            raise ValueError("expected numbers")
+        vals = np.asarray(vals, dtype=np.float64)
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"{path}: expected vertex ids or per-vertex weights ({exc})") from None
+    if vals.ndim != 1 or not np.isfinite(vals).all():
+        raise InputError(f"{path}: expected finite vertex ids or per-vertex weights")
     if vals.size == n_vertices and (np.any(vals % 1 != 0) or vals.max(initial=0) <= 1):
         if np.any((vals < 0) | (vals > 1)):
             raise InputError(f"{path}: per-vertex weights must lie in [0, 1]")

@@ -6,7 +6,7 @@ import contextlib
 import logging
 import os
 import queue
-import tempfile
+import secrets
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .atomic import check_write
 
 log = logging.getLogger(__name__)
 
@@ -213,12 +214,13 @@ def atomic_video_writer(path: str | os.PathLike, fps: float, frame_size: tuple[i
     import cv2
 
     path = Path(path)
+    check_write(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() in (".mp4", ".m4v", ".mov") else "MJPG"))
-    writer = cv2.VideoWriter(tmp, fourcc, float(fps), tuple(int(v) for v in frame_size))
+    tmp = str(path.parent / f".{path.name}.{secrets.token_hex(4)}.part{path.suffix}")
+    writer = None
     try:
+        fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() in (".mp4", ".m4v", ".mov") else "MJPG"))
+        writer = cv2.VideoWriter(tmp, fourcc, float(fps), tuple(int(v) for v in frame_size))
         if not writer.isOpened():
             raise InputError(f"{path}: OpenCV cannot write this video type")
         yield writer
@@ -228,7 +230,8 @@ def atomic_video_writer(path: str | os.PathLike, fps: float, frame_size: tuple[i
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
-        writer.release()
+        if writer is not None:
+            writer.release()
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise

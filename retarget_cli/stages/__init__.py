@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.atomic import check_not_input, sha256_file, write_text
+from ..io.atomic import check_name, check_not_input, sha256_file, tracked_outputs, write_text
 from ..io.vertexmap import read_vertex_map  # noqa: F401  (re-exported; run_auto_pose uses it)
 from .filtering import FILTER_DEFAULTS
 
@@ -428,6 +428,7 @@ def region_specs(regions, n_points: int, k: int | None = None) -> dict[str, tupl
     regions = regions or {"face": "all"}
     out = {}
     for name, spec in regions.items():
+        check_name(name, "regions")
         rk = k
         if isinstance(spec, dict):
             bad = sorted(set(spec) - {"points", "k"})
@@ -724,24 +725,33 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=N
                 raise InputError(f"{keys}: key frame {f} is outside {poses} ({len(curves)} frames)")
     mask_files = _check_masks(kf, keys, masks, base_dir)
     out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
     planned = [out / f"{name}/key_{f:05d}.obj" for name, reg in kf.regions.items() for f in reg["frames"]]
     inputs = [keys, rig_path, poses, *spec.files(), *mask_files.values()]
     for o in [*planned, out / "targets.yaml"]:
         check_not_input(o, inputs)
+    if mask_files:
+        from ..io.obj import count_vertices
+        from ..io.stagefiles import read_vertex_mask
+
+        n_vertices = count_vertices(_require(spec.neutral, "neutral OBJ of the rig"))
+        for mask in mask_files.values():
+            read_vertex_mask(mask, n_vertices)
     rig = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
     cols = [rig.index[n] for n in names]
-    written, regions = [], {}
-    for name, reg in kf.regions.items():
-        regions[name] = {"keys": {}}
-        for f in reg["frames"]:
-            rel = f"{name}/key_{f:05d}.obj"
-            w = np.zeros(rig.n_sliders)
-            w[cols] = curves[f]
-            write_obj(out / rel, rig.template, rig.evaluate(w))
-            regions[name]["keys"][f] = rel
-            written.append(out / rel)
-    written.append(_write_targets_yaml(out, kf, keys, regions, masks, base_dir, rig_path, "pose-keys"))
-    return written
+    regions = {}
+    with tracked_outputs(out, "pose-keys", planned=[*planned, out / "targets.yaml"]) as written:
+        for name, reg in kf.regions.items():
+            regions[name] = {"keys": {}}
+            for f in reg["frames"]:
+                rel = f"{name}/key_{f:05d}.obj"
+                w = np.zeros(rig.n_sliders)
+                w[cols] = curves[f]
+                write_obj(written.add(out / rel), rig.template, rig.evaluate(w))
+                regions[name]["keys"][f] = rel
+        written.add(_write_targets_yaml(out, kf, keys, regions, masks, base_dir, rig_path, "pose-keys"))
+    return written.written
 
 
 def _check_masks(kf, keys, masks, base_dir) -> dict:
@@ -791,18 +801,13 @@ def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
-    written = []
-    with progress(len(W), "objs") as bar:
+    planned = [out / f"frame_{int(f):05d}.obj" for f in frames]
+    with tracked_outputs(out, "edit", planned=planned) as written, progress(len(W), "objs") as bar:
         for start in range(0, len(W), 64):
             for f, pos in zip(frames[start:start + 64], rig.evaluate(W[start:start + 64])):
-                write_obj(out / f"frame_{int(f):05d}.obj", rig.template, pos)
-                written.append(out / f"frame_{int(f):05d}.obj")
+                write_obj(written.add(out / f"frame_{int(f):05d}.obj"), rig.template, pos)
             bar.update(min(64, len(W) - start))
-    keep = {p.name for p in written}
-    for stale in out.iterdir():
-        if FRAME_RE.match(stale.name) and stale.name not in keep:
-            stale.unlink()
-    return written
+    return written.written
 
 
 def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_progress, cache_dir=None) -> list[Path]:

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.atomic import check_not_input, write_text
-from . import FRAME_RE, _no_progress, _require
+from ..io.atomic import TrackedOutputs, check_not_input, write_text
+from . import _no_progress, _require
 
 log = logging.getLogger(__name__)
 
@@ -239,7 +239,9 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         head = _head_transforms(landmarks, T, base, scale, pivot)
     out.mkdir(parents=True, exist_ok=True)
     vat_values = np.empty((T, N, 3), np.float32) if "exr" in formats else None
-    written = []
+    ledger = TrackedOutputs(out, "apply")  # the output manifest of the folder: what apply wrote there
+    ledger.plan([out / f"frame_{t:05d}.obj" for t in range(T)] if "obj" in formats else [])
+    written = ledger.written
     chunk = 64
     if vat_values is not None or "obj" in formats:
         with progress(T, "apply") as bar:
@@ -256,12 +258,6 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
                         write_obj(path, template, p)
                         written.append(path)
                 bar.update(sl.stop - sl.start)
-    if "obj" in formats:
-        # Remove frames left over from a longer previous run (only files this stage names).
-        for stale in out.iterdir():
-            m = FRAME_RE.match(stale.name)
-            if m and int(m.group(1)) >= T:
-                stale.unlink()
     if "curves" in formats:
         rig, curves = rig_out
         frames = np.arange(T)
@@ -294,6 +290,7 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         write_glb(out / APPLY_FILES["glb"], base=base, faces=None, targets=mt, target_names=names, weights=mw,
                   fps=fps, node_transforms=head, name=template.path.stem, surface=obj_surface(template))
         written.append(out / APPLY_FILES["glb"])
+    ledger.commit()  # removes what an earlier apply wrote and this one did not (frames past T, other formats)
     log.info("wrote %d frames of %d vertices to %s (%s; driven by %s)", T, N, out, ", ".join(formats),
              "the rig" if use_rig else "the key shapes")
     return written

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.atomic import check_not_input, write_text
+from ..io.atomic import check_not_input, tracked_outputs, write_text
 from ..io.vertexmap import read_vertex_map
 from . import _require
 
@@ -188,30 +188,35 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         for ri, name in enumerate(names):
             region_sliders[name] = [r.names[j] for j in np.flatnonzero(owner == ri)]
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
-    written, regions = [], {}
-    for ri, name in enumerate(names):
-        owned = np.isin(r.names, region_sliders[name])
-        regions[name] = {"keys": {}, "sliders": region_sliders[name]}
-        for f in kf.regions[name]["frames"]:
-            rel = f"{name}/key_{f:05d}.obj"
-            write_obj(out / rel, r.template, r.evaluate(np.where(owned, poses[f], 0.0)))
-            regions[name]["keys"][f] = rel
-            written.append(out / rel)
-        if name in mask_files:
-            regions[name]["vertices"] = os.path.relpath(mask_files[name].resolve(), out.resolve())
-        elif derived is not None:
-            rel = f"masks/{name}.txt"
-            write_text(out / rel, _mask_text(derived[ri]))
-            regions[name]["vertices"] = rel
-            written.append(out / rel)
-    write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames,
-                    meta={"fit": fit, "neutral_frame": neutral_frame})
-    written.append(out / "sliders.csv")
-    nrel = os.path.relpath(spec.neutral.resolve(), out.resolve())
-    rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
-    write_targets(out / "targets.yaml", regions, neutral=nrel, rig=rrel, sliders="sliders.csv",
-                  comment=f"Written by retarget auto-pose ({fit} fit, neutral frame {neutral_frame}).")
-    written.append(out / "targets.yaml")
+    planned = [out / f"{name}/key_{f:05d}.obj" for name in names for f in kf.regions[name]["frames"]]
+    planned += [out / f"masks/{name}.txt" for name in names] + [out / "sliders.csv", out / "targets.yaml"]
+    regions = {}
+    # a failure part-way removes the files written so far; a rerun with other keys removes the old keys' OBJs
+    with tracked_outputs(out, "auto-pose", planned=planned) as ledger:
+        written = ledger.written
+        for ri, name in enumerate(names):
+            owned = np.isin(r.names, region_sliders[name])
+            regions[name] = {"keys": {}, "sliders": region_sliders[name]}
+            for f in kf.regions[name]["frames"]:
+                rel = f"{name}/key_{f:05d}.obj"
+                write_obj(out / rel, r.template, r.evaluate(np.where(owned, poses[f], 0.0)))
+                regions[name]["keys"][f] = rel
+                written.append(out / rel)
+            if name in mask_files:
+                regions[name]["vertices"] = os.path.relpath(mask_files[name].resolve(), out.resolve())
+            elif derived is not None:
+                rel = f"masks/{name}.txt"
+                write_text(out / rel, _mask_text(derived[ri]))
+                regions[name]["vertices"] = rel
+                written.append(out / rel)
+        write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames,
+                        meta={"fit": fit, "neutral_frame": neutral_frame})
+        written.append(out / "sliders.csv")
+        nrel = os.path.relpath(spec.neutral.resolve(), out.resolve())
+        rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
+        write_targets(out / "targets.yaml", regions, neutral=nrel, rig=rrel, sliders="sliders.csv",
+                      comment=f"Written by retarget auto-pose ({fit} fit, neutral frame {neutral_frame}).")
+        written.append(out / "targets.yaml")
     return written
 
 

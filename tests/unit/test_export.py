@@ -205,8 +205,8 @@ def test_exports_are_deterministic(scene):
     tmp, _, _ = scene
     _run(tmp, tmp / "a", landmarks=tmp / "landmarks.npz", head_motion="2d")
     _run(tmp, tmp / "b", landmarks=tmp / "landmarks.npz", head_motion="2d")
-    names = sorted(p.name for p in (tmp / "a").iterdir())
-    assert names == sorted(p.name for p in (tmp / "b").iterdir()) and len(names) == T + 4
+    names = sorted(p.name for p in (tmp / "a").iterdir())  # with apply's output manifest .retarget-apply.json
+    assert names == sorted(p.name for p in (tmp / "b").iterdir()) and len(names) == T + 5
     for n in names:
         assert (tmp / "a" / n).read_bytes() == (tmp / "b" / n).read_bytes(), n
 
@@ -217,7 +217,7 @@ def test_cli_apply_formats_and_errors(scene):
     r = CliRunner().invoke(main, [*args, "--format", "csv,glb", "--head-motion", "2d",
                                   "--landmarks", str(tmp / "landmarks.npz"), "--pivot", "0,0,1"])
     assert r.exit_code == 0, r.output
-    assert sorted(p.name for p in (tmp / "cli").iterdir()) == ["animation.glb", "weights.csv"]
+    assert sorted(p.name for p in (tmp / "cli").iterdir()) == [".retarget-apply.json", "animation.glb", "weights.csv"]
     r = CliRunner().invoke(main, [*args, "--format", "obj,fbx"])
     assert r.exit_code == 1 and "formats" in r.stderr and "fbx" in r.stderr
     r = CliRunner().invoke(main, [*args, "--pivot", "1,2"])

@@ -1,0 +1,5 @@
+"""``python -m retarget_cli``: the ``retarget`` command."""
+
+from .entry import main
+
+main()

@@ -1,0 +1,54 @@
+"""The ``retarget`` console script: the CLI behind a handler that catches what the CLI cannot.
+
+This module imports nothing heavy, so that a Ctrl-C while the CLI's modules load
+(numpy, OpenCV, numba take a few tenths of a second) still gives one line and
+exit status 130 instead of a traceback; any other exception that escapes the
+CLI is one line and exit status 1 (``-vv`` shows its traceback).
+"""
+
+from __future__ import annotations
+
+import sys
+
+
+def _fail(exc: BaseException) -> int:
+    if isinstance(exc, KeyboardInterrupt) or type(exc).__name__ == "Abort":
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    if "-vv" in sys.argv[1:3] or sys.argv[1:3].count("-v") >= 2 or "--verbose" in sys.argv[1:2]:
+        import traceback
+
+        traceback.print_exception(exc)
+    try:
+        from .cli import one_line
+
+        msg = one_line(exc)
+    except BaseException:
+        msg = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+    print(f"error: {msg}", file=sys.stderr)
+    return 1
+
+
+def main(argv=None) -> None:
+    """Run the CLI; exit with its status (130 on Ctrl-C, 1 on an error)."""
+    try:
+        import click
+
+        from .cli import main as cli
+
+        try:
+            code = cli.main(args=argv, prog_name="retarget", standalone_mode=False)
+        except click.ClickException as exc:
+            exc.show()
+            code = exc.exit_code
+        except click.exceptions.Exit as exc:
+            code = exc.exit_code
+    except SystemExit:
+        raise
+    except BaseException as exc:
+        code = _fail(exc)
+    sys.exit(code if isinstance(code, int) else 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

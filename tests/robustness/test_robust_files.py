@@ -1,0 +1,156 @@
+"""What a run leaves behind (issue #17): temporary files, partial key sets, stale outputs; Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from retarget_cli.cli import main
+
+
+def _cli(*args):
+    res = CliRunner().invoke(main, ["-q", *map(str, args)])
+    assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
+    return res
+
+
+def test_stale_part_files_are_removed_by_the_next_run(take):
+    frames = take / "out" / "frames"
+    part = frames / ".frame_00006.obj.k3x9q0ab.part"  # what a SIGKILL mid-write leaves (mkstemp's name)
+    part.write_bytes(b"v 1 2")
+    lookalike = frames / "notes.part"  # not a temporary file of retarget: kept
+    lookalike.write_text("mine")
+    res = _cli("run", take / "config.yaml")
+    assert res.exit_code == 0, res.output
+    assert not part.exists() and lookalike.read_text() == "mine"
+
+
+def test_stale_part_files_are_removed_by_a_single_command(take):
+    out = take / "out" / "frames2"
+    out.mkdir()
+    part = out / ".animation.glb.0a1b2c3d.part"
+    part.write_bytes(b"")
+    res = _cli("apply", take / "out/weights.npz", take / "out/targets/targets.yaml", "-o", out)
+    assert res.exit_code == 0, res.output
+    assert not part.exists() and (out / "frame_00000.obj").is_file()
+
+
+def test_interrupt_right_after_the_temp_file_is_created_removes_it(tmp_path, monkeypatch):
+    from retarget_cli.io.atomic import write_text
+
+    real_open = os.open
+
+    def open_then_interrupt(path, *a, **k):
+        fd = real_open(path, *a, **k)
+        if str(path).endswith(".part"):
+            os.close(fd)
+            raise KeyboardInterrupt
+        return fd
+
+    monkeypatch.setattr(os, "open", open_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        write_text(tmp_path / "x.txt", "data")
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
+
+
+def _pose_args(take, keys, out):
+    return ["pose-keys", keys, take / "rig.yaml", "--poses", take / "truth.npz",
+            "--mask", f"brows-eyes={take / 'target/regions/brows-eyes.txt'}",
+            "--mask", f"mouth={take / 'target/regions/mouth.txt'}", "-o", out]
+
+
+def test_pose_keys_failing_midway_leaves_no_orphan_key_objs(take, monkeypatch):
+    import retarget_cli.io.obj as obj
+
+    real, calls = obj.write_obj, []
+
+    def fail_on_the_fifth(*a, **k):
+        calls.append(1)
+        if len(calls) == 5:
+            raise OSError(28, "No space left on device", str(a[0]))
+        return real(*a, **k)
+
+    monkeypatch.setattr(obj, "write_obj", fail_on_the_fifth)
+    out = take / "out" / "t2"
+    res = _cli(*_pose_args(take, take / "out/keys.json", out))
+    assert res.exit_code == 1 and "No space left" in res.stderr
+    assert len(calls) == 5
+    assert not list(out.rglob("*.obj")) and not (out / "targets.yaml").exists()
+
+
+def test_rerun_with_other_keys_removes_the_old_keys_objs(take):
+    import json
+
+    out = take / "out" / "t2"
+    assert _cli(*_pose_args(take, take / "out/keys.json", out)).exit_code == 0
+    first = {p.relative_to(out).as_posix() for p in out.rglob("*.obj")}
+    keys = json.loads((take / "out/keys.json").read_text())
+    for reg in keys["regions"].values():
+        reg["frames"] = reg["frames"][:3]
+    (take / "fewer.json").write_text(json.dumps(keys))
+    mine = out / "mouth" / "notes.obj"  # a file retarget did not write: never removed
+    mine.write_text("v 0 0 0\n")
+    assert _cli(*_pose_args(take, take / "fewer.json", out)).exit_code == 0
+    second = {p.relative_to(out).as_posix() for p in out.rglob("*.obj")}
+    want = {f"{n}/key_{f:05d}.obj" for n, r in keys["regions"].items() for f in r["frames"]}
+    assert len(first) > len(want) and second == want | {"mouth/notes.obj"}
+
+
+def test_apply_clears_only_frames_it_wrote(take):
+    frames = take / "out" / "frames"
+    user = frames / "frame_99999.obj"  # named like an output, but the user's
+    user.write_text("v 0 0 0\n")
+    w = dict(np.load(take / "out/weights.npz"))
+    for k in list(w):
+        if k != "meta":
+            w[k] = w[k][:10] if not k.endswith("_frames") else w[k]
+    np.savez(take / "short.npz", **w)
+    res = _cli("apply", take / "short.npz", take / "out/targets/targets.yaml", "-o", frames)
+    assert res.exit_code == 0, res.output
+    left = sorted(p.name for p in frames.glob("frame_*.obj"))
+    assert left == [f"frame_{t:05d}.obj" for t in range(10)] + ["frame_99999.obj"]
+
+
+def _retarget() -> list[str]:
+    script = Path(sys.executable).parent / "retarget"
+    return [str(script)] if script.is_file() else [sys.executable, "-m", "retarget_cli"]
+
+
+def _wait_for_numpy(proc, timeout=30.0) -> bool:
+    """Wait until the child has mapped numpy: it is then importing the CLI's modules (inside the entry's handler)."""
+    maps = Path(f"/proc/{proc.pid}/maps")
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and proc.poll() is None:
+        try:
+            if "numpy" in maps.read_text():
+                return True
+        except OSError:
+            return False
+        time.sleep(0.002)
+    return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs /proc to see when the CLI starts importing")
+@pytest.mark.parametrize("delay", [0.0, 0.1, 0.3, 0.8])
+def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(take, delay):
+    """SIGINT while the CLI's modules are still being imported (delay 0) or while stages run."""
+    proc = subprocess.Popen([*_retarget(), "run", str(take / "config.yaml"), "--force"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    assert _wait_for_numpy(proc), "the command never imported numpy"
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    if proc.returncode == 0:
+        pytest.skip("the run finished before the signal")
+    assert "Traceback" not in err, err
+    assert proc.returncode == 130, (proc.returncode, err)
+    assert err.strip().splitlines()[-1] == "error: interrupted", err
