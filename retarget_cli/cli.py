@@ -134,7 +134,7 @@ class GuardedCommand(click.Command):
     """
 
     def invoke(self, ctx):
-        if self.name == "run":  # the pipeline guards its own output_dir
+        if self.name in ("run", "batch"):  # the pipeline guards each run's output_dir; batch its batch folder
             return super().invoke(ctx)
         from pathlib import Path
 
@@ -730,7 +730,10 @@ def batch(shots, jobs, scheduler, retries, only, force, emit_commands, report, o
     names = {r["name"] for r in results}
     merged = [next(r for r in results if r["name"] == s.name) if s.name in names else earlier[s.name]
               for s in plan.shots if s.name in names or s.name in earlier]
-    written = engine.write_summary(plan.output_dir, plan.path, merged)
+    from .io.atomic import guard_writes
+
+    with guard_writes(roots=[plan.output_dir], inputs=[plan.path], label=f"the batch folder {plan.output_dir}"):
+        written = engine.write_summary(plan.output_dir, plan.path, merged)
     click.echo(format_table(results))
     for p in written:
         click.echo(str(p))
