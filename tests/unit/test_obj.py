@@ -241,6 +241,10 @@ VARIANTS = {
     "short v": PLAIN.replace(b"v 1 1 0", b"v 1 1"),
     "not a number": PLAIN.replace(b"v 1 1 0", b"v 1 x 0"),
     "not finite": PLAIN.replace(b"v 1 1 0", b"v 1 nan 0"),
+    "exponents and signs in v": PLAIN.replace(b"v 1 1 0", b"v +1.5E+2 -2.5e-13 .5"),
+    "underscore in v": PLAIN.replace(b"v 1 1 0", b"v 1_0 1 0"),
+    "two dots in v": PLAIN.replace(b"v 1 1 0", b"v 1.2.3 1 0"),
+    "bare exponent in v": PLAIN.replace(b"v 1 1 0", b"v 1e 1 0"),
     "no v": b"f 1 2 3\n",
 }
 
