@@ -225,6 +225,7 @@ def _print_outputs(paths):
 @click.option("--overlay", type=click.Path(dir_okay=False), default=None,
               help="Also write an mp4 with the landmarks (green = confident, red = lost) and the head frame.")
 @setting("track", "method")
+@setting("track", "fuse")
 @setting("track", "model", type=click.Path(dir_okay=False))
 @setting("track", "window")
 @setting("track", "levels")

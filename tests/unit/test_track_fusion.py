@@ -114,3 +114,22 @@ def test_default_tracker_follows_a_synthetic_blink_that_lk_misses(tmp_path):
     lk, _ = closure(init=str(tmp_path / "default.init_00040.pts"), method="lk", filter="none")
     assert fused >= 0.45, fused
     assert lk < 0.1, lk
+
+
+@needs_dlib
+def test_track_cli_no_fuse_keeps_the_raw_detections(tmp_path):
+    """`retarget track --no-fuse --filter none` gives the detector's own points; the default fuses them."""
+    from click.testing import CliRunner
+
+    from retarget_cli.cli import main
+    from retarget_cli.io.landmarks import load_landmarks
+
+    runs = {}
+    for name, extra in (("raw", ["--no-fuse"]), ("fused", [])):
+        out = tmp_path / f"{name}.npz"
+        r = CliRunner().invoke(main, ["track", str(SAMPLE / "face.mp4"), "--method", "detect", "--end", "20",
+                                      "--filter", "none", "-o", str(out), *extra])
+        assert r.exit_code == 0, r.output
+        runs[name] = load_landmarks(out)
+    assert runs["raw"].meta["parameters"]["fuse"] is False and runs["fused"].meta["parameters"]["fuse"] is True
+    assert not np.allclose(runs["raw"].points[1:], runs["fused"].points[1:], atol=1e-3)
