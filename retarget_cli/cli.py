@@ -16,7 +16,7 @@ import click
 
 from . import __version__
 from .config import Param
-from .errors import RetargetError
+from .errors import INTERRUPTED_EXIT_STATUS, RetargetError
 
 log = logging.getLogger("retarget_cli")
 
@@ -94,16 +94,26 @@ DIR_OUTPUT_COMMANDS = ("apply", "pose-keys", "auto-pose", "annotate", "synth")
 
 
 def one_line(exc: BaseException) -> str:
-    """An exception as the one-line message the CLI prints."""
+    """An exception as the one-line message the CLI prints.
+
+    The tool's own errors (:class:`~retarget_cli.errors.RetargetError`), an
+    ``OSError`` naming a file and running out of memory are the user's to fix and
+    print their message; anything else is a bug and says so.
+    """
     if isinstance(exc, OSError) and getattr(exc, "filename", None):
         return f"{exc.filename}: {exc.strerror or exc}"
     if isinstance(exc, MemoryError):
         return "out of memory" + (f" ({exc})" if str(exc) else "") + "; is an input far larger than expected?"
     msg = " ".join(str(exc).split())
-    if isinstance(exc, (RetargetError, ValueError, OSError)) and msg:
+    if isinstance(exc, RetargetError) and msg:
         return msg
     return (f"internal error ({type(exc).__name__}{': ' + msg[:300] if msg else ''}); "
             "rerun with -vv for the traceback")
+
+
+def exit_status(exc: BaseException) -> int:
+    """The exit status for *exc*: its own for the tool's errors, else 1."""
+    return getattr(exc, "exit_status", 1) if isinstance(exc, RetargetError) else 1
 
 
 def _input_files(value) -> list:
@@ -177,11 +187,11 @@ class RetargetGroup(click.Group):
         except KeyboardInterrupt:
             log.debug("interrupted", exc_info=True)
             click.echo("error: interrupted", err=True)
-            ctx.exit(130)
+            ctx.exit(INTERRUPTED_EXIT_STATUS)
         except Exception as exc:
             log.debug("traceback of the error below", exc_info=True)
             click.echo(f"error: {one_line(exc)}", err=True)
-            ctx.exit(1)
+            ctx.exit(exit_status(exc))
 
 
 @click.group(cls=RetargetGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -41,7 +41,7 @@ import logging
 import numpy as np
 
 from ._validate import check_array
-from .errors import ShapeError
+from .errors import ParameterError, ShapeError
 
 log = logging.getLogger(__name__)
 
@@ -161,24 +161,24 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     if B.shape[1] != D:
         raise ShapeError(f"keys: expected shape (K, {D}) to match frames, got {B.shape}")
     if solver not in SOLVERS:
-        raise ValueError(f"solver: expected one of {SOLVERS}, got {solver!r}")
+        raise ParameterError(f"solver: expected one of {SOLVERS}, got {solver!r}")
     if formulation not in FORMULATIONS:
-        raise ValueError(f"formulation: expected one of {FORMULATIONS}, got {formulation!r}")
+        raise ParameterError(f"formulation: expected one of {FORMULATIONS}, got {formulation!r}")
     if formulation == "convex" and solver in NO_CONVEX:
-        raise ValueError(f"solver {solver!r} does not support formulation 'convex' "
+        raise ParameterError(f"solver {solver!r} does not support formulation 'convex' "
                          f"(use one of {tuple(s for s in SOLVERS if s not in NO_CONVEX)})")
     if smooth_space not in SMOOTH_SPACES:
-        raise ValueError(f"smooth_space: expected one of {SMOOTH_SPACES}, got {smooth_space!r}")
+        raise ParameterError(f"smooth_space: expected one of {SMOOTH_SPACES}, got {smooth_space!r}")
     shape_space = smooth_space == "shape" and solver in ("temporal", "temporal-causal")
     if alpha is None:
         alpha = (DEFAULT_SHAPE_ALPHA if shape_space else DEFAULT_ALPHA).get(solver, 0.0)
     if not np.isfinite(alpha) or alpha < 0:
-        raise ValueError(f"alpha: expected a finite number >= 0, got {alpha!r}")
+        raise ParameterError(f"alpha: expected a finite number >= 0, got {alpha!r}")
     if upper is not None and not upper > 0:
-        raise ValueError(f"upper: expected a number > 0, got {upper!r}")
+        raise ParameterError(f"upper: expected a number > 0, got {upper!r}")
     if formulation == "delta":
         if neutral is None:
-            raise ValueError("neutral: formulation 'delta' needs the neutral shape S_0 (D,)")
+            raise ParameterError("neutral: formulation 'delta' needs the neutral shape S_0 (D,)")
         n0 = check_array(neutral, "neutral", ndim=1)
         if n0.shape != (D,):
             raise ShapeError(f"neutral: expected shape ({D},), got {n0.shape}")
@@ -189,7 +189,7 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
         if C.shape != (T, D):
             raise ShapeError(f"confidence: expected shape ({T}, {D}) like frames, got {C.shape}")
         if np.any(C < 0):
-            raise ValueError("confidence: weights must be >= 0")
+            raise ParameterError("confidence: weights must be >= 0")
         if np.all(C == 1):
             C = None
 
@@ -358,7 +358,7 @@ def interpolate_lost(weights, lost) -> np.ndarray:
     if lost.shape != (len(W),):
         raise ShapeError(f"lost: expected shape ({len(W)},), got {lost.shape}")
     if lost.all():
-        raise ValueError("every frame is lost; nothing to interpolate from")
+        raise ParameterError("every frame is lost; nothing to interpolate from")
     if not lost.any():
         return W.copy()
     t = np.arange(len(W))
@@ -508,9 +508,9 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,)).copy()
     hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,)).copy()
     if np.any(lo > hi):
-        raise ValueError("bounds: lower must not exceed upper")
+        raise ParameterError("bounds: lower must not exceed upper")
     if sum_to is not None and not (lo.sum() <= sum_to <= hi.sum()):
-        raise ValueError(f"sum_to: {sum_to} cannot be reached within the bounds")
+        raise ParameterError(f"sum_to: {sum_to} cannot be reached within the bounds")
     X = np.empty((T, K))
     if T == 0 or K == 0:
         return X
@@ -628,9 +628,9 @@ def box_qp_weighted(Htri, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: 
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,)).copy()
     hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,)).copy()
     if np.any(lo > hi):
-        raise ValueError("bounds: lower must not exceed upper")
+        raise ParameterError("bounds: lower must not exceed upper")
     if sum_to is not None and not (lo.sum() <= sum_to <= hi.sum()):
-        raise ValueError(f"sum_to: {sum_to} cannot be reached within the bounds")
+        raise ParameterError(f"sum_to: {sum_to} cannot be reached within the bounds")
     X = np.empty((T, K))
     if T == 0 or K == 0:
         return X
@@ -1145,7 +1145,7 @@ def _active_set_one(H, q, lo, hi, eq=None, x0=None, max_iter=None) -> np.ndarray
         if lim[j] < step:
             step, block = max(lim[j], 0.0), j
         if not np.isfinite(step):
-            raise ValueError("the quadratic programme is unbounded below (keys without curvature and no bound)")
+            raise ParameterError("the quadratic programme is unbounded below (keys without curvature and no bound)")
         x = x + step * p
         at_min = block < 0
         if block >= 0:

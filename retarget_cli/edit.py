@@ -44,7 +44,7 @@ import numpy as np
 
 from ._validate import check_array
 from .decompose import small_blas
-from .errors import ShapeError
+from .errors import ParameterError, ShapeError
 from .rig import BlendshapeRig, parse_axes
 
 log = logging.getLogger(__name__)
@@ -148,7 +148,7 @@ class LinearPins:
         if c.shape != (r,) or np.any(c < 0):
             raise ShapeError(f"weights: expected shape ({r},) of values >= 0, got {c.shape}")
         if not (alpha >= 0 and mu >= 0 and alpha + mu > 0):
-            raise ValueError(f"alpha, mu: expected alpha >= 0, mu >= 0 and alpha + mu > 0, got {alpha}, {mu}")
+            raise ParameterError(f"alpha, mu: expected alpha >= 0, mu >= 0 and alpha + mu > 0, got {alpha}, {mu}")
         self.B, self.alpha, self.mu = B, float(alpha), float(mu)
         self.BtC = (B * c[:, None]).T
         with small_blas():
@@ -290,12 +290,12 @@ def _attenuation_system(rig, rows, alpha):
     """M, alpha, the :class:`BoxQP` of ``H = P + αQ`` (bounded variant) and P."""
     rows = np.unique(np.asarray(rows, dtype=np.int64))
     if rows.size == 0:
-        raise ValueError("attenuation: select at least one coordinate")
+        raise ParameterError("attenuation: select at least one coordinate")
     n_all = 3 * rig.n_vertices
     if alpha is None:
         alpha = (n_all - rows.size) / rows.size
     if not alpha >= 0:
-        raise ValueError(f"alpha: expected a number >= 0, got {alpha}")
+        raise ParameterError(f"alpha: expected a number >= 0, got {alpha}")
     S = rig.block(rows)
     Q = S.T @ S
     P = rig.gram() - Q
@@ -442,7 +442,7 @@ def ease_profile(frames, start: int, end: int, ease_in: int = 0, ease_out: int =
 def _frame_index(frames: np.ndarray, frame: int, where: str) -> int:
     hit = np.flatnonzero(frames == frame)
     if hit.size == 0:
-        raise ValueError(f"{where}: frame {frame} is not in the animation (frames {frames[0]}-{frames[-1]})")
+        raise ParameterError(f"{where}: frame {frame} is not in the animation (frames {frames[0]}-{frames[-1]})")
     return int(hit[0])
 
 
@@ -579,7 +579,7 @@ def fit_orthographic(X, Y, weights=None, *, iterations: int = 100, tol: float = 
         raise ShapeError(f"X, Y: expected shapes (L, 3) and (L, 2), got {X.shape} and {Y.shape}")
     c = np.ones(len(X)) if weights is None else np.asarray(weights, dtype=np.float64)
     if c.shape != (len(X),) or np.count_nonzero(c > 0) < 3:
-        raise ValueError("fit_orthographic: need at least 3 points with weight > 0")
+        raise ParameterError("fit_orthographic: need at least 3 points with weight > 0")
     mx = c @ X / c.sum()
     my = c @ Y / c.sum()
     Xc, Yc = X - mx, Y - my

@@ -1,21 +1,67 @@
-"""Exception hierarchy.
+"""Every error class of ``retarget``, each knowing its exit status.
 
-Library code raises these (or ``ValueError``); the CLI turns them into a
-one-line message and exit status 1.
+Library code raises these; the CLI (:class:`retarget_cli.cli.RetargetGroup`)
+turns a :class:`RetargetError` into one line on stderr and exits with its
+:attr:`~RetargetError.exit_status`. Any other exception is a bug: the CLI says
+so in one line (``internal error ...``) and ``-vv`` shows its traceback.
+
+The classes that report a bad value also derive from :class:`ValueError`, so
+callers of the Python API may catch either.
 """
+
+from __future__ import annotations
 
 
 class RetargetError(Exception):
     """Base class for every error ``retarget`` reports to a user."""
 
+    #: The process exit status the CLI uses for this error.
+    exit_status = 1
 
-class InputError(RetargetError):
+
+class InputError(RetargetError, ValueError):
     """An input file is missing, unreadable or does not follow its contract."""
 
 
-class ConfigError(RetargetError):
+class ConfigError(RetargetError, ValueError):
     """A configuration file or option is invalid."""
+
+
+class ParameterError(RetargetError, ValueError):
+    """An argument of a library function is outside what the function accepts."""
 
 
 class ShapeError(RetargetError, ValueError):
     """An array argument has the wrong shape, dtype or values."""
+
+
+class TruncatedInputError(InputError):
+    """Decoding stopped early; ``last_frame`` is the last frame read (-1 if none)."""
+
+    def __init__(self, message, last_frame):
+        super().__init__(message)
+        self.last_frame = last_frame
+
+
+class FaceLostError(InputError):
+    """The face was lost: too few landmarks tracked for several frames.
+
+    Attributes
+    ----------
+    frame : int
+        Index (in the frames given) of the first frame of the lost run.
+    points, confidence : ndarray
+        What was tracked before the face was lost, shapes (frame, L, 2) and (frame, L).
+    """
+
+    def __init__(self, message, frame, points, confidence):
+        super().__init__(message)
+        self.frame, self.points, self.confidence = frame, points, confidence
+
+
+class MissingExtraError(RetargetError):
+    """An optional extra (``pip install 'retarget[NAME]'``) is needed and not installed."""
+
+
+#: Exit status of Ctrl-C (128 + SIGINT), as shells report it.
+INTERRUPTED_EXIT_STATUS = 130

@@ -50,7 +50,7 @@ from functools import cached_property
 import numpy as np
 
 from ._validate import check_array
-from .errors import ShapeError
+from .errors import ParameterError, ShapeError
 
 log = logging.getLogger(__name__)
 
@@ -376,7 +376,7 @@ def quartic_argmin(q, r, s, lo, hi) -> np.ndarray:
     """
     q, r, s, lo, hi = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (q, r, s, lo, hi)))
     if np.any(s < 0):
-        raise ValueError("s: the quartic coefficient must be >= 0")
+        raise ParameterError("s: the quartic coefficient must be >= 0")
     cands = [lo, hi]
     quartic = s > 0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -724,13 +724,13 @@ def solve(rig: QuadraticRig, targets, *, solver: str = DEFAULT_SOLVER, alpha: fl
     if X.shape[1:] != (rig.n_vertices, 3):
         raise ShapeError(f"targets: expected shape (T, {rig.n_vertices}, 3) to match the rig, got {X.shape}")
     if solver not in SOLVERS:
-        raise ValueError(f"solver: expected one of {', '.join(SOLVERS)}, got {solver!r}")
+        raise ParameterError(f"solver: expected one of {', '.join(SOLVERS)}, got {solver!r}")
     if not (np.isfinite(alpha) and alpha >= 0):
-        raise ValueError(f"alpha: expected a number >= 0, got {alpha!r}")
+        raise ParameterError(f"alpha: expected a number >= 0, got {alpha!r}")
     if not (np.isfinite(tol) and tol > 0):
-        raise ValueError(f"tol: expected a number > 0, got {tol!r}")
+        raise ParameterError(f"tol: expected a number > 0, got {tol!r}")
     if int(max_iter) < 1:
-        raise ValueError(f"max_iter: expected an integer >= 1, got {max_iter!r}")
+        raise ParameterError(f"max_iter: expected an integer >= 1, got {max_iter!r}")
     max_iter = int(max_iter)
     if init is not None:
         init = np.asarray(init, dtype=np.float64)

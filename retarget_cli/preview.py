@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, ParameterError
 from .io.runfiles import RunFiles, read_run_weights
 
 log = logging.getLogger(__name__)
@@ -48,12 +48,12 @@ def parse_frames(spec: str | None, n_frames: int) -> range:
             lo = int(a) if a.strip() else None
             hi = int(b) if b.strip() else None
         except ValueError:
-            raise ValueError(f"--frames: expected a:b with integers, got {spec!r}") from None
+            raise ParameterError(f"--frames: expected a:b with integers, got {spec!r}") from None
         if not sep:
             hi = (lo + 1) if lo != -1 else None
         rng = range(n_frames)[slice(lo, hi)]
     if len(rng) == 0:
-        raise ValueError(f"--frames {spec}: selects no frame of the {n_frames}-frame take")
+        raise ParameterError(f"--frames {spec}: selects no frame of the {n_frames}-frame take")
     return rng
 
 
@@ -167,7 +167,7 @@ class FrameSource:
         if self._it is None:
             return None
         if t < self._pos:
-            raise ValueError(f"frames must be requested in order: asked {t} after {self._pos}")
+            raise ParameterError(f"frames must be requested in order: asked {t} after {self._pos}")
         frame = None
         try:
             while self._pos <= t:
@@ -336,9 +336,9 @@ def write_preview(run: RunFiles, output: str | os.PathLike, *, frames: str | Non
     from .io.video import atomic_video_writer
 
     if not 32 <= int(height) <= 2160:
-        raise ValueError(f"--size: expected a panel height in [32, 2160] pixels, got {height}")
+        raise ParameterError(f"--size: expected a panel height in [32, 2160] pixels, got {height}")
     if fps is not None and not 0 < fps <= 240:
-        raise ValueError(f"--fps: expected a value in (0, 240], got {fps}")
+        raise ParameterError(f"--fps: expected a value in (0, 240], got {fps}")
     data = RunData(run)
     if data.n_frames == 0:
         raise InputError(f"{run.root}: no frames to preview")
@@ -435,7 +435,7 @@ def write_render(source, output, *, size=(512, 512), fps: float = 30.0, camera=N
         raise InputError(f"{out}: {len(files)} meshes need a video output ({', '.join(VIDEO_OUT)}), "
                          "or name one OBJ file")
     if not 0 < fps <= 240:
-        raise ValueError(f"--fps: expected a value in (0, 240], got {fps}")
+        raise ParameterError(f"--fps: expected a value in (0, 240], got {fps}")
     check_not_input(out, files)
     first = read_obj(files[0])
     renderer = MeshRenderer(first.faces(), first.vertices, camera=camera or Camera(), size=size, shading=shading)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validate import check_array
-from .errors import ShapeError
+from .errors import ParameterError, ShapeError
 
 #: Largest number of pixel tests broadcast at once (bounds the temporary memory).
 _CHUNK = 1 << 18
@@ -68,11 +68,11 @@ class Camera:
 
     def __post_init__(self):
         if not 0 <= self.fov < 170:
-            raise ValueError(f"camera fov: expected 0 (orthographic) or a value in (0, 170) degrees, got {self.fov}")
+            raise ParameterError(f"camera fov: expected 0 (orthographic) or a value in (0, 170) degrees, got {self.fov}")
         if self.distance is not None and not self.distance > 1.0:
-            raise ValueError(f"camera distance: expected > 1 bounding radius (or None), got {self.distance}")
+            raise ParameterError(f"camera distance: expected > 1 bounding radius (or None), got {self.distance}")
         if not 0 < self.fill <= 2:
-            raise ValueError(f"camera fill: expected a value in (0, 2], got {self.fill}")
+            raise ParameterError(f"camera fill: expected a value in (0, 2], got {self.fill}")
 
 
 def _rotation(yaw: float, pitch: float) -> np.ndarray:
@@ -369,7 +369,7 @@ class View:
             raise ShapeError(f"vertices: expected shape (N, 3) with N > 0, got {vertices.shape}")
         W, H = (int(s) for s in size)
         if W < 1 or H < 1:
-            raise ValueError(f"size: expected positive width and height, got {size}")
+            raise ParameterError(f"size: expected positive width and height, got {size}")
         lo, hi = vertices.min(0), vertices.max(0)
         centre = (lo + hi) / 2
         radius = float(np.sqrt(((vertices - centre) ** 2).sum(1).max())) or 1.0
@@ -468,7 +468,7 @@ class MeshRenderer:
     def __init__(self, faces, reference, *, camera: Camera = Camera(), size=(512, 512), shading: str = "gouraud",
                  color=(150, 170, 215), background=(40, 36, 32), light: Light = Light()):
         if shading not in ("gouraud", "flat"):
-            raise ValueError(f"shading: expected 'gouraud' or 'flat', got {shading!r}")
+            raise ParameterError(f"shading: expected 'gouraud' or 'flat', got {shading!r}")
         self.tris = triangulate(faces)
         reference = check_array(reference, "reference", ndim=2)
         if self.tris.size and self.tris.max() >= len(reference):

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ._validate import check_array
-from .errors import InputError, ShapeError
+from .errors import InputError, ParameterError, ShapeError
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ def parse_axes(axes) -> tuple[int, ...]:
         return (0, 1, 2)
     letters = list(axes) if isinstance(axes, str) else list(axes)
     if not letters or any(a not in AXES for a in letters) or len(set(letters)) != len(letters):
-        raise ValueError(f"axes: expected a non-empty combination of x, y, z such as 'xy', got {axes!r}")
+        raise ParameterError(f"axes: expected a non-empty combination of x, y, z such as 'xy', got {axes!r}")
     return tuple(sorted(AXES[a] for a in letters))
 
 
@@ -104,7 +104,7 @@ class BlendshapeRig:
             raise ShapeError(f"names: expected {n} slider names, got {len(names)}")
         if len(set(names)) != n:
             dup = next(x for x in names if names.count(x) > 1)
-            raise ValueError(f"names: slider {dup!r} appears twice")
+            raise ParameterError(f"names: slider {dup!r} appears twice")
         self.names = names
         self.index = {name: i for i, name in enumerate(names)}
         self.lower = np.zeros(n) if lower is None else check_array(lower, "lower", ndim=1)
@@ -120,7 +120,7 @@ class BlendshapeRig:
         #: RMS over sliders of each shape's largest vertex displacement (rig units).
         self.scale = float(np.sqrt(np.mean(live**2))) if live.size else 1.0
         if storage not in ("auto", "dense", "sparse"):
-            raise ValueError(f"storage: expected 'auto', 'dense' or 'sparse', got {storage!r}")
+            raise ParameterError(f"storage: expected 'auto', 'dense' or 'sparse', got {storage!r}")
         self.sparse = storage == "sparse" or (storage == "auto" and self.density < SPARSE_BELOW)
         self.D = sp.csr_array(Dd) if self.sparse else Dd
         self.template = template

@@ -39,7 +39,7 @@ import logging
 import numpy as np
 
 from ._validate import check_array
-from .errors import InputError, ShapeError
+from .errors import InputError, ParameterError, ShapeError
 
 log = logging.getLogger(__name__)
 
@@ -232,7 +232,7 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
     lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n,)).copy()
     hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (n,)).copy()
     if np.any(lo > 0) or np.any(hi < 0):
-        raise ValueError("fit_sliders: every slider range must contain 0 (the rest pose)")
+        raise ParameterError("fit_sliders: every slider range must contain 0 (the rest pose)")
     c = np.ones(r) if weights is None else check_array(weights, "weights", ndim=1)
     if c.shape != (r,) or np.any(c < 0):
         raise ShapeError(f"weights: expected shape ({r},) of values >= 0, got {c.shape}")

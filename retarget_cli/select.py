@@ -30,7 +30,7 @@ import logging
 import numpy as np
 
 from ._validate import check_array
-from .errors import ShapeError
+from .errors import ParameterError, ShapeError
 
 log = logging.getLogger(__name__)
 
@@ -543,7 +543,7 @@ def select_keys(features, k: int | None, *, method: str = "pca-extremes", includ
         Key frame indices, sorted ascending.
     """
     if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+        raise ParameterError(f"method: expected one of {METHODS}, got {method!r}")
     if method == "convex-hull":
         frames = convex_hull_keys(features, include=include)
         if k is not None and k != len(frames):

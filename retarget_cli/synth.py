@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ShapeError
+from .errors import ParameterError, ShapeError
 from .track.head import RIGID_68, apply_similarity, fit_similarity
 
 logger = logging.getLogger(__name__)
@@ -106,9 +106,9 @@ _MIRROR_68 = np.array(
 
 def _check_int(name: str, value, minimum: int) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name}: expected an int >= {minimum}, got {value!r}")
+        raise ParameterError(f"{name}: expected an int >= {minimum}, got {value!r}")
     if value < minimum:
-        raise ValueError(f"{name}: expected an int >= {minimum}, got {value}")
+        raise ParameterError(f"{name}: expected an int >= {minimum}, got {value}")
     return int(value)
 
 
@@ -120,9 +120,9 @@ def _check_fps(fps) -> float:
     try:
         fps = float(fps)
     except (TypeError, ValueError):
-        raise ValueError(f"fps: expected a positive number, got {fps!r}") from None
+        raise ParameterError(f"fps: expected a positive number, got {fps!r}") from None
     if not np.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps: expected a positive finite number, got {fps}")
+        raise ParameterError(f"fps: expected a positive finite number, got {fps}")
     return fps
 
 
@@ -130,7 +130,7 @@ def _check_size(size) -> tuple[int, int]:
     try:
         w, h = size
     except (TypeError, ValueError):
-        raise ValueError(f"size: expected (width, height), got {size!r}") from None
+        raise ParameterError(f"size: expected (width, height), got {size!r}") from None
     w = _check_int("size[0] (width)", w, 64)
     h = _check_int("size[1] (height)", h, 64)
     return w, h
@@ -489,7 +489,7 @@ def head_motion(n_frames: int, *, size=(320, 320), seed: int = 0, fps: float = 3
     seed = _check_seed(seed)
     fps = _check_fps(fps)
     if not (isinstance(speed, (int, float)) and speed > 0):
-        raise ValueError(f"speed: expected a number > 0, got {speed!r}")
+        raise ParameterError(f"speed: expected a number > 0, got {speed!r}")
     rng = np.random.default_rng([seed, _STREAM_HEAD])
     t = np.arange(n_frames) / fps * speed
     roll = np.deg2rad(15.0) * _smooth_signal(rng, t, 0.05, 0.35)
@@ -970,11 +970,11 @@ def render_frames(points, *, size, seed: int = 0, fps: float = 30.0, noise: floa
     if not np.all(np.isfinite(points)):
         raise ShapeError("points: every coordinate must be finite")
     if not noise >= 0 or not blur >= 0 or not light >= 0:
-        raise ValueError(f"noise, blur and light must be >= 0, got {noise}, {blur}, {light}")
+        raise ParameterError(f"noise, blur and light must be >= 0, got {noise}, {blur}, {light}")
     if jpeg is not None and not 1 <= int(jpeg) <= 100:
-        raise ValueError(f"jpeg: expected a quality in [1, 100], got {jpeg}")
+        raise ParameterError(f"jpeg: expected a quality in [1, 100], got {jpeg}")
     if not dots >= 0:
-        raise ValueError(f"dots: expected a radius >= 0, got {dots}")
+        raise ParameterError(f"dots: expected a radius >= 0, got {dots}")
     return _render_iter(points, (w, h), seed, fps, dict(noise=noise, blur=blur, jpeg=jpeg, light=light, dots=dots))
 
 

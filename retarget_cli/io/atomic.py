@@ -34,7 +34,7 @@ from typing import IO
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
         *path* is left untouched.
     """
     if mode not in ("wb", "w"):
-        raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
+        raise ParameterError(f"mode must be 'wb' or 'w', got {mode!r}")
     path = Path(path)
     check_write(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -139,7 +139,7 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
         for name, value in arrays.items():
             arr = np.asanyarray(value)
             if arr.dtype == object:
-                raise ValueError(f"array {name!r} has dtype object; refusing to pickle")
+                raise ParameterError(f"array {name!r} has dtype object; refusing to pickle")
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
             info.compress_type = method
             info.external_attr = 0o644 << 16
@@ -186,7 +186,7 @@ def load_npz(path: str | os.PathLike, *, max_bytes: int | None = None) -> dict[s
                         reader = {(1, 0): np.lib.format.read_array_header_1_0,
                                   (2, 0): np.lib.format.read_array_header_2_0}.get(version)
                         if reader is None:
-                            raise ValueError(f"unsupported .npy version {version}")
+                            raise ParameterError(f"unsupported .npy version {version}")
                         shape, _, dtype = reader(fh)
                     except Exception as exc:  # numpy raises ValueError, SyntaxError, TypeError...
                         raise InputError(f"{where}: not valid .npy data ({' '.join(str(exc).split())[:200]})") \

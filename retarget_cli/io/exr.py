@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import InputError, ShapeError
+from ..errors import InputError, ParameterError, ShapeError
 from .atomic import write_bytes, write_json
 
 #: Values the texture can hold.
@@ -57,7 +57,7 @@ def write_vat(path: str | os.PathLike, values, *, fps: float, mode: str, sidecar
     import OpenEXR
 
     if mode not in VAT_MODES:
-        raise ValueError(f"mode: expected one of {', '.join(VAT_MODES)}, got {mode!r}")
+        raise ParameterError(f"mode: expected one of {', '.join(VAT_MODES)}, got {mode!r}")
     values = np.asarray(values, dtype=np.float32)
     if values.ndim != 3 or values.shape[2] != 3 or values.shape[0] < 1 or values.shape[1] < 1:
         raise ShapeError(f"values: expected shape (T, N, 3), got {values.shape}")

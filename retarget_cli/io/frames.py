@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, TruncatedInputError  # noqa: F401  (TruncatedInputError re-exported)
 from .video import VIDEO_SUFFIXES, VideoReader, to_gray
 
 log = logging.getLogger(__name__)
@@ -30,12 +30,6 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 _PRINTF = re.compile(r"%(0?\d*)d")
 
 
-class TruncatedInputError(InputError):
-    """Decoding stopped early; ``last_frame`` is the last frame read (-1 if none)."""
-
-    def __init__(self, message, last_frame):
-        super().__init__(message)
-        self.last_frame = last_frame
 
 
 def is_sequence(spec) -> bool:

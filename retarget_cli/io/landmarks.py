@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 from ..track.head import estimate_head
 from .atomic import load_npz, savez
 
@@ -80,17 +80,17 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
     }
     for key, shape in (("confidence", (T, L)), ("head", (T, 2, 3)), ("stabilized", (T, L, 2))):
         if arrays[key].shape != shape:
-            raise ValueError(f"{key}: expected shape {shape}, got {arrays[key].shape}")
+            raise ParameterError(f"{key}: expected shape {shape}, got {arrays[key].shape}")
     if lm.names is not None:
         arrays["names"] = np.asarray(lm.names, dtype=str)
     if lm.frames is not None:
         arrays["frames"] = np.asarray(lm.frames, dtype=np.int64)
         if arrays["frames"].shape != (T,):
-            raise ValueError(f"frames: expected shape {(T,)}, got {arrays['frames'].shape}")
+            raise ParameterError(f"frames: expected shape {(T,)}, got {arrays['frames'].shape}")
     if lm.points_raw is not None:
         arrays["points_raw"] = np.asarray(lm.points_raw, dtype=np.float32)
         if arrays["points_raw"].shape != (T, L, 2):
-            raise ValueError(f"points_raw: expected shape {(T, L, 2)}, got {arrays['points_raw'].shape}")
+            raise ParameterError(f"points_raw: expected shape {(T, L, 2)}, got {arrays['points_raw'].shape}")
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)

@@ -25,7 +25,7 @@ import re
 
 import numpy as np
 
-from ..errors import InputError, ShapeError
+from ..errors import InputError, ParameterError, ShapeError
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +165,7 @@ def parse_timecode(text: str, fps: float) -> float:
     """
     m = re.fullmatch(r"(\d+):(\d{2}):(\d{2}):(\d+)(?:\.(\d+))?", text.strip())
     if m is None:
-        raise ValueError(f"not a HH:MM:SS:FF.mmm timecode: {text!r}")
+        raise ParameterError(f"not a HH:MM:SS:FF.mmm timecode: {text!r}")
     h, mi, s, ff = (int(g) for g in m.groups()[:4])
     sub = float("0." + m.group(5)) if m.group(5) else 0.0
     return h * 3600 + mi * 60 + s + (ff + sub) / fps

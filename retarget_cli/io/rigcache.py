@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 from .atomic import savez
 from .obj import ObjMesh, check_same_topology, count_vertices, read_obj
 
@@ -127,11 +127,11 @@ def _template_from(arrays: dict, path: Path, vertices: np.ndarray) -> ObjMesh:
     uniq = _split(arrays["tails"], arrays["tail_lengths"])
     index = arrays["tail_index"]
     if len(index) != len(vertices) or (len(index) and int(index.max()) >= len(uniq)):
-        raise ValueError("tail index does not match the vertices")
+        raise ParameterError("tail index does not match the vertices")
     tails = [uniq[i] for i in index.tolist()]
     runs = [tuple(r) for r in arrays["runs"].tolist()]
     if len(segments) != len(runs) + 1 or (runs and runs[-1][1] != len(vertices)):
-        raise ValueError("segments and runs do not match")
+        raise ParameterError("segments and runs do not match")
     meta = json.loads(str(arrays["meta"]))
     return ObjMesh(path, vertices, segments, runs, tails, str(meta["topology"]), int(meta["n_faces"]))
 
@@ -142,10 +142,10 @@ def _read_cache(file: Path, key: str, n_meshes: int, neutral: Path):
         with np.load(file, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
         if str(arrays["key"]) != key or int(arrays["version"]) != CACHE_VERSION:
-            raise ValueError("key or version differs")
+            raise ParameterError("key or version differs")
         V = arrays["vertices"]
         if V.dtype != np.float64 or V.ndim != 3 or V.shape[0] != n_meshes or V.shape[2] != 3:
-            raise ValueError(f"vertices have shape {V.shape}")
+            raise ParameterError(f"vertices have shape {V.shape}")
         return _template_from(arrays, neutral, V[0]), V
     except Exception as exc:  # noqa: BLE001  (any unreadable cache is rebuilt, never an error)
         log.warning("rig cache %s is unusable (%s); rebuilding it", file, exc)

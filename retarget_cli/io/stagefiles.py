@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 from .atomic import check_name, dumps_json, load_npz, savez, write_json, write_text
 
 #: Largest JSON/YAML/text data file read whole (bytes).
@@ -146,7 +146,7 @@ def load_weights(path) -> tuple[dict, dict]:
         m = data.pop("meta")
         try:
             if m.dtype.kind not in "US" or m.size != 1:
-                raise ValueError(f"dtype {m.dtype}, shape {m.shape}")
+                raise ParameterError(f"dtype {m.dtype}, shape {m.shape}")
             meta = json.loads(str(m.ravel()[0]))
         except (ValueError, RecursionError) as exc:
             raise InputError(f"{path}: 'meta' must be one JSON string ({exc})") from None
@@ -333,7 +333,7 @@ def read_vertex_mask(path: Path, n_vertices: int) -> np.ndarray:
         vals = json.loads(text) if text.lstrip().startswith("[") else [float(t) for t in text.split()]
         if not isinstance(vals, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                                  for v in vals):
-            raise ValueError("expected numbers")
+            raise ParameterError("expected numbers")
         vals = np.asarray(vals, dtype=np.float64)
     except (ValueError, RecursionError) as exc:
         raise InputError(f"{path}: expected vertex ids or per-vertex weights ({exc})") from None

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 from ..io.atomic import check_name, check_not_input, sha256_file, tracked_outputs, write_text
 from ..io.vertexmap import read_vertex_map  # noqa: F401  (re-exported; run_auto_pose uses it)
 from .filtering import FILTER_DEFAULTS
@@ -88,7 +88,7 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
     for a in extra:
         _require(a, "annotation file")
     if method not in ("auto", "lk", "eigenpoints", "markers", "facemark", "detect"):
-        raise ValueError(f"method: expected 'auto', 'detect', 'lk', 'eigenpoints', 'markers' or 'facemark', "
+        raise ParameterError(f"method: expected 'auto', 'detect', 'lk', 'eigenpoints', 'markers' or 'facemark', "
                          f"got {method!r}")
     if method == "auto":
         from ..track.detect import detector_installed

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, ParameterError
 from ..io.atomic import TrackedOutputs, check_not_input, write_text
 from . import _no_progress, _require
 
@@ -40,9 +40,9 @@ def _check_formats(formats) -> list[str]:
     formats = list(formats or [])
     bad = [f for f in formats if f not in APPLY_FORMATS]
     if bad or not formats:
-        raise ValueError(f"formats: expected a non-empty list of {', '.join(APPLY_FORMATS)}, got {formats!r}")
+        raise ParameterError(f"formats: expected a non-empty list of {', '.join(APPLY_FORMATS)}, got {formats!r}")
     if len(set(formats)) != len(formats):
-        raise ValueError(f"formats: {formats!r} names a format twice")
+        raise ParameterError(f"formats: {formats!r} names a format twice")
     return formats
 
 
@@ -68,7 +68,7 @@ def _head_transforms(landmarks, T: int, neutral: np.ndarray, scale, pivot) -> np
     centre = (lo + hi) / 2
     P = centre if pivot is None else np.asarray(pivot, dtype=np.float64)
     if P.shape != (3,):
-        raise ValueError(f"pivot: expected [x, y, z] in model units, got {pivot!r}")
+        raise ParameterError(f"pivot: expected [x, y, z] in model units, got {pivot!r}")
     c = ref.mean(0) + (P[:2] - centre[:2]) * [1.0, -1.0] / scale
     log.info("head motion: %.4g model units per pixel, pivot %s", scale, np.round(P, 4).tolist())
     return head_motion_transforms(lm.head.astype(np.float64), units_per_pixel=scale, pivot=P, image_pivot=c)
@@ -200,11 +200,11 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
     formats = _check_formats(formats)
     if head_motion not in ("none", "2d"):
-        raise ValueError(f"head_motion: expected 'none' or '2d', got {head_motion!r}")
+        raise ParameterError(f"head_motion: expected 'none' or '2d', got {head_motion!r}")
     if vat not in ("offsets", "positions"):
-        raise ValueError(f"vat: expected 'offsets' or 'positions', got {vat!r}")
+        raise ParameterError(f"vat: expected 'offsets' or 'positions', got {vat!r}")
     if drive not in DRIVES:
-        raise ValueError(f"drive: expected one of {', '.join(DRIVES)}, got {drive!r}")
+        raise ParameterError(f"drive: expected one of {', '.join(DRIVES)}, got {drive!r}")
     regions, meta = load_weights(weights)
     fps = float(meta.get("fps") or 30.0)
     tg = read_targets(targets)

@@ -27,7 +27,7 @@ import logging
 
 import numpy as np
 
-from ..errors import ShapeError
+from ..errors import ParameterError, ShapeError
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ def _check(points, confidence):
         if C.shape != (T, L):
             raise ShapeError(f"confidence: expected shape ({T}, {L}) like points, got {C.shape}")
         if np.any(~np.isfinite(C)) or np.any(C < 0):
-            raise ValueError("confidence: expected finite values >= 0")
+            raise ParameterError("confidence: expected finite values >= 0")
     C = np.where(np.isfinite(P).all(-1), C, 0.0)
     return P, C
 
@@ -96,7 +96,7 @@ def motion_model(model: str, q: float):
         F = np.array([[1.0, 1.0, 0.5], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])
         Q = np.array([[1 / 20, 1 / 8, 1 / 6], [1 / 8, 1 / 3, 1 / 2], [1 / 6, 1 / 2, 1.0]])
     else:
-        raise ValueError(f"model: expected one of {MODELS}, got {model!r}")
+        raise ParameterError(f"model: expected one of {MODELS}, got {model!r}")
     return F, q * q * Q
 
 
@@ -252,10 +252,10 @@ def rts_smooth(points, confidence=None, *, model: str = "ca", process_noise: flo
     """
     P, C = _check(points, confidence)
     if not process_noise > 0 or not measurement_noise > 0 or not prior_var > 0:
-        raise ValueError(f"process_noise, measurement_noise and prior_var must be > 0, got "
+        raise ParameterError(f"process_noise, measurement_noise and prior_var must be > 0, got "
                          f"{process_noise}, {measurement_noise}, {prior_var}")
     if not robust >= 0:
-        raise ValueError(f"robust: expected a number >= 0, got {robust}")
+        raise ParameterError(f"robust: expected a number >= 0, got {robust}")
     T, L, _ = P.shape
     F, Q = motion_model(model, process_noise)
     n = F.shape[0]
@@ -327,7 +327,7 @@ def one_euro(points, confidence=None, *, fps: float = 30.0, min_cutoff: float = 
     """
     P, C = _check(points, confidence)
     if not fps > 0 or not min_cutoff > 0 or not d_cutoff > 0 or not beta >= 0:
-        raise ValueError(f"fps, min_cutoff and d_cutoff must be > 0 and beta >= 0, got {fps}, {min_cutoff}, "
+        raise ParameterError(f"fps, min_cutoff and d_cutoff must be > 0 and beta >= 0, got {fps}, {min_cutoff}, "
                          f"{d_cutoff}, {beta}")
     T, L, _ = P.shape
     te = 1.0 / fps
@@ -385,4 +385,4 @@ def filter_points(points, confidence=None, *, method: str = "rts", fps: float = 
         return one_euro(points, confidence, fps=fps, min_cutoff=min_cutoff, beta=beta, d_cutoff=d_cutoff)
     if method == "none":
         return np.array(points, dtype=np.float64)
-    raise ValueError(f"filter: expected one of {FILTERS}, got {method!r}")
+    raise ParameterError(f"filter: expected one of {FILTERS}, got {method!r}")

@@ -33,7 +33,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from ..decompose import small_blas
-from ..errors import InputError, ShapeError
+from ..errors import FaceLostError, InputError, ShapeError  # noqa: F401  (FaceLostError re-exported)
 from ..io.video import to_gray as _gray
 from .head import default_rigid_points, fit_similarity
 from .prior import ShapePrior
@@ -61,20 +61,6 @@ _RIGID_WEIGHT = 3.0     # pull of rigid points to the head similarity in the reg
 # seeds 1-2 (not used to choose it) it is no worse anywhere.
 _FIRST_REFERENCE = 0.7
 
-class FaceLostError(InputError):
-    """The face was lost: too few landmarks tracked for several frames.
-
-    Attributes
-    ----------
-    frame : int
-        Index (in the frames given) of the first frame of the lost run.
-    points, confidence : ndarray
-        What was tracked before the face was lost, shapes (frame, L, 2) and (frame, L).
-    """
-
-    def __init__(self, message, frame, points, confidence):
-        super().__init__(message)
-        self.frame, self.points, self.confidence = frame, points, confidence
 
 
 def flow_forward_backward(src, dst, points, lk: dict, guess=None, lk_init: dict | None = None, back_guess=None,
