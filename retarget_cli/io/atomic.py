@@ -221,6 +221,15 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def digest_files(paths) -> str:
+    """One sha256 over several files' names and contents."""
+    h = hashlib.sha256()
+    for p in sorted(map(str, paths)):
+        h.update(p.encode())
+        h.update(sha256_file(p).encode())
+    return h.hexdigest()
+
+
 def check_not_input(output: str | os.PathLike, inputs) -> None:
     """Refuse to write *output* if it is one of the *inputs* (never overwrite a user's input).
 

@@ -20,6 +20,9 @@ from ..errors import InputError, ParameterError
 from ..track.head import estimate_head
 from .atomic import load_npz, savez
 
+#: A landmark whose confidence is at or below this is lost in that frame.
+LOST_CONFIDENCE = 1e-3
+
 
 @dataclass
 class Landmarks:

@@ -32,7 +32,8 @@ DEFAULT_NAMES = {
     "curve": ("select_curve.csv", "curve.csv"),
 }
 
-_FRAME_RE = re.compile(r"frame_(\d+)\.obj$")
+#: An OBJ of a frame sequence (``apply`` and ``edit`` write ``frame_%05d.obj``, by frame number).
+FRAME_RE = re.compile(r"frame_(\d+)\.obj$")
 
 
 @dataclass
@@ -69,7 +70,7 @@ class RunFiles:
             return []
         found = []
         for p in self.frames.iterdir():
-            m = _FRAME_RE.match(p.name)
+            m = FRAME_RE.match(p.name)
             if m:
                 found.append((int(m.group(1)), p))
         return [p for _, p in sorted(found)]

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import InputError, ParameterError
 from ..io.atomic import TrackedOutputs, check_not_input, write_text
-from . import _no_progress, _require
+from ._common import _no_progress, _require
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.atomic import check_not_input, tracked_outputs, write_text
 from ..io.vertexmap import read_vertex_map
-from . import _require
+from ._common import _require
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,88 @@
+"""File handling of ``edit``: an animation and ``edits.yaml`` in, edited weights (and OBJs) out."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.atomic import check_not_input, sha256_file, tracked_outputs
+from ..io.runfiles import FRAME_RE
+from ._common import _no_progress, _require
+
+log = logging.getLogger(__name__)
+
+
+def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path]:
+    """Write ``frame_%05d.obj`` (named by frame number) for each pose; remove stale frames of earlier runs."""
+    from ..io.obj import write_obj
+
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    planned = [out / f"frame_{int(f):05d}.obj" for f in frames]
+    with tracked_outputs(out, "edit", planned=planned) as written, progress(len(W), "objs") as bar:
+        for start in range(0, len(W), 64):
+            for f, pos in zip(frames[start:start + 64], rig.evaluate(W[start:start + 64])):
+                write_obj(written.add(out / f"frame_{int(f):05d}.obj"), rig.template, pos)
+            bar.update(min(64, len(W) - start))
+    return written.written
+
+
+def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_progress, cache_dir=None) -> list[Path]:
+    """Apply ``edits.yaml`` (pins and attenuations over frame ranges) to rig weights over time.
+
+    The rig is *rig* or else the ``rig:`` named in ``edits.yaml``. Writes the
+    edited weights to *output* (CSV or NPZ, by extension) and, with *objs*,
+    the posed OBJ sequence (``frame_%05d.obj``, by frame number). The
+    animation and the edits are checked (against ``rig.yaml`` and the
+    neutral's vertex count) before the rig's OBJs are read; *cache_dir* keeps
+    the parsed rig (:meth:`~retarget_cli.rig.BlendshapeRig.load`).
+    """
+    from ..config import closest
+    from ..edit import apply_edits
+    from ..io.editfiles import edits_rig, read_animation, read_edits, write_animation
+    from ..io.obj import count_vertices
+    from ..io.stagefiles import read_rig
+    from ..rig import BlendshapeRig
+
+    animation, edits = _require(animation, "animation"), _require(edits, "edits file")
+    rig = rig or edits_rig(edits)
+    if rig is None:
+        raise InputError(f"{edits}: no rig given; add 'rig: path/to/rig.yaml' to the file or pass --rig")
+    rig_path = _require(rig, "rig file")
+    spec = read_rig(rig_path)
+    inputs = [animation, edits, rig_path, *spec.files()]
+    check_not_input(output, inputs)
+    names, W_in, frames, times = read_animation(animation)
+    if objs:
+        objs_dir = Path(objs).resolve()
+        clash = [p for p in inputs if Path(p).resolve().parent == objs_dir and FRAME_RE.match(Path(p).name)]
+        if clash:
+            raise InputError(f"{objs}: writing the frames there would overwrite or remove the input {clash[0]}; "
+                             "choose another --objs folder")
+    unknown = [n for n in names if n not in spec.shapes]
+    if unknown:
+        hint = closest(unknown[0], list(spec.shapes))
+        raise InputError(f"{animation}: slider {unknown[0]!r} is not a shape of {rig_path}"
+                         + (f"; did you mean {hint!r}?" if hint else ""))
+    _require(spec.neutral, "neutral OBJ of the rig")
+    todo = read_edits(edits, n_vertices=count_vertices(spec.neutral), frames=frames,
+                      expressions=[str(e) for e in spec.library])
+    r = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
+    order = names + [n for n in r.names if n not in names]
+    W = np.zeros((len(W_in), r.n_sliders))
+    W[:, [r.index[n] for n in names]] = W_in
+    try:
+        W = apply_edits(r, W, frames, todo)
+    except ValueError as exc:
+        raise InputError(f"{edits}: {exc}") from exc
+    write_animation(output, order, W[:, [r.index[n] for n in order]], frames, times,
+                    meta={"edits": Path(edits).name, "edits_sha256": sha256_file(edits), "rig": Path(rig_path).name})
+    written = [Path(output)]
+    if objs:
+        written += _write_frames(Path(objs), r, W, frames, progress)
+    log.info("applied %d edits to %d frames", len(todo), len(W))
+    return written

@@ -1,0 +1,103 @@
+"""File handling of ``pose-keys``: the rig posed at each key frame's known slider values, ``targets.yaml`` out."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.atomic import check_not_input, tracked_outputs
+from ._common import _require
+
+log = logging.getLogger(__name__)
+
+
+def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=None) -> list[Path]:
+    """Pose the rig at each key frame's known slider values; write target OBJs and ``targets.yaml``.
+
+    *masks* maps region names to vertex-mask files (relative to *base_dir*),
+    copied into ``targets.yaml`` so ``apply`` can blend the regions.
+    Every argument is checked before the rig's OBJs are read; *cache_dir*
+    keeps the parsed rig (:meth:`~retarget_cli.rig.BlendshapeRig.load`).
+
+    This is the automatic "artist" for takes whose slider values are known
+    (synthetic takes, or a performance recorded on a rig).
+    """
+    from ..io.atomic import load_npz
+    from ..io.obj import write_obj
+    from ..io.stagefiles import read_keys, read_rig
+    from ..rig import BlendshapeRig
+
+    keys, rig_path, poses = _require(keys, "keys file"), _require(rig, "rig file"), _require(poses, "poses file")
+    kf, spec = read_keys(keys), read_rig(rig_path)
+    data = load_npz(poses)
+    if "curves" not in data or "names" not in data:
+        raise InputError(f"{poses}: expected 'curves' (T, E) and 'names' (E,)")
+    curves, names = data["curves"], [str(n) for n in data["names"]]
+    if curves.ndim != 2 or curves.shape[1] != len(names):
+        raise InputError(f"{poses}: 'curves' must have shape (T, {len(names)}) for its {len(names)} names, "
+                         f"got {curves.shape}")
+    missing = [n for n in names if n not in spec.shapes]
+    if missing:
+        raise InputError(f"{poses}: slider {missing[0]!r} is not a shape of {rig_path}")
+    for reg in kf.regions.values():
+        for f in reg["frames"]:
+            if f >= len(curves):
+                raise InputError(f"{keys}: key frame {f} is outside {poses} ({len(curves)} frames)")
+    mask_files = _check_masks(kf, keys, masks, base_dir)
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    planned = [out / f"{name}/key_{f:05d}.obj" for name, reg in kf.regions.items() for f in reg["frames"]]
+    inputs = [keys, rig_path, poses, *spec.files(), *mask_files.values()]
+    for o in [*planned, out / "targets.yaml"]:
+        check_not_input(o, inputs)
+    if mask_files:
+        from ..io.obj import count_vertices
+        from ..io.stagefiles import read_vertex_mask
+
+        n_vertices = count_vertices(_require(spec.neutral, "neutral OBJ of the rig"))
+        for mask in mask_files.values():
+            read_vertex_mask(mask, n_vertices)
+    rig = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
+    cols = [rig.index[n] for n in names]
+    regions = {}
+    with tracked_outputs(out, "pose-keys", planned=[*planned, out / "targets.yaml"]) as written:
+        for name, reg in kf.regions.items():
+            regions[name] = {"keys": {}}
+            for f in reg["frames"]:
+                rel = f"{name}/key_{f:05d}.obj"
+                w = np.zeros(rig.n_sliders)
+                w[cols] = curves[f]
+                write_obj(written.add(out / rel), rig.template, rig.evaluate(w))
+                regions[name]["keys"][f] = rel
+        written.add(_write_targets_yaml(out, kf, keys, regions, masks, base_dir, rig_path, "pose-keys"))
+    return written.written
+
+
+def _check_masks(kf, keys, masks, base_dir) -> dict:
+    """Region masks named in *masks* (relative to *base_dir*): regions of *keys*, one per region when
+    there are several, files that exist. Returns region name to mask path."""
+    masks = masks or {}
+    unknown = sorted(set(masks) - set(kf.regions))
+    if unknown:
+        raise InputError(f"masks: region {unknown[0]!r} is not a region of {keys} ({', '.join(kf.regions)})")
+    if len(kf.regions) > 1:
+        absent = [r for r in kf.regions if r not in masks]
+        if absent:
+            raise InputError(f"masks: region {absent[0]!r} needs a vertex mask when {keys} has several regions")
+    return {name: _require(Path(base_dir or ".") / mask, "region mask") for name, mask in masks.items()}
+
+
+def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path, command) -> Path:
+    """Add the region masks to *regions* and write ``out/targets.yaml`` (neutral = the rig's)."""
+    from ..io.stagefiles import read_rig, write_targets
+
+    for name, mask in _check_masks(kf, keys, masks, base_dir).items():
+        regions[name]["vertices"] = os.path.relpath(mask.resolve(), out.resolve())
+    nrel = os.path.relpath(read_rig(rig_path).neutral.resolve(), out.resolve())
+    write_targets(out / "targets.yaml", regions, neutral=nrel, comment=f"Written by retarget {command}.")
+    return out / "targets.yaml"

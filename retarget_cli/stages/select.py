@@ -1,0 +1,122 @@
+"""File handling of ``select``: ``landmarks.npz`` in, ``keys.json`` (and a ``targets.yaml`` template) out."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.atomic import check_not_input, write_text
+from ..regions import region_specs
+from ._common import _no_progress, _require
+
+log = logging.getLogger(__name__)
+
+#: First line of the targets template ``select`` writes; a file without it is never overwritten.
+TEMPLATE_MARK = "# targets.yaml template written by retarget select.\n"
+
+
+def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12, regions=None,
+               neutral_frame=0, kmeans_components=2, evaluate=None, plot=None, evaluate_k=40,
+               contact_sheet=None, video=None, seed=0, progress=_no_progress) -> list[Path]:
+    """Choose key frames per region; write ``keys.json`` and a ``targets.yaml`` template.
+
+    With *evaluate*, also the error curve of every method (CSV), a JSON summary
+    of the winner at each region's k (*evaluate* with suffix ``.json``) and,
+    with *plot*, the curves as a picture (Fig. 6 of Chuang & Bregler 2002).
+    With *contact_sheet*, the key frames cropped from *video* with their landmarks.
+    """
+    from ..io.landmarks import load_landmarks
+    from ..io.stagefiles import write_keys, write_targets
+    from ..select import curve_winner, evaluation_curve, key_error, select_keys
+
+    landmarks = _require(landmarks, "landmarks file")
+    outs = [o for o in (output, template, evaluate, plot, contact_sheet) if o]
+    for o in outs:
+        check_not_input(o, [landmarks] + ([video] if video else []))
+    if evaluate and Path(evaluate).with_suffix(".json") in [Path(o) for o in (output, template, plot, contact_sheet) if o]:
+        raise InputError(f"{evaluate}: its summary {Path(evaluate).with_suffix('.json')} would overwrite another output")
+    if plot and not evaluate:
+        raise InputError(f"{plot}: a plot needs the evaluation (--evaluate curve.csv)")
+    if contact_sheet and not video:
+        raise InputError(f"{contact_sheet}: a contact sheet needs the video (--video, or select.video)")
+    lm = load_landmarks(landmarks)
+    stab = lm.stabilized.astype(np.float64)
+    include = () if neutral_frame is None else (neutral_frame,)
+    if neutral_frame is not None and neutral_frame >= lm.n_frames:
+        raise InputError(f"neutral_frame: frame {neutral_frame} is outside the take ({lm.n_frames} frames in {landmarks})")
+    specs = region_specs(regions, lm.n_points, k)
+    result, tmpl, curves, chosen_k = {}, {}, {}, {}
+    with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
+        for name, (idx, rk) in specs.items():
+            X = stab[:, idx].reshape(lm.n_frames, -1)
+            # Frames where a landmark of the region is lost (NaN) can be neither keys
+            # nor scored by eq. 5; decompose interpolates their weights later.
+            keep = np.flatnonzero(np.isfinite(X).all(1))
+            if keep.size == 0:
+                raise InputError(f"{landmarks}: region {name!r}: every frame has lost (NaN) landmarks")
+            if keep.size < lm.n_frames:
+                log.warning("%s: region %s: %d frames with lost landmarks are left out of key selection",
+                            landmarks, name, lm.n_frames - keep.size)
+            bad_inc = [f for f in include if f not in set(keep.tolist())]
+            if bad_inc:
+                raise InputError(f"{landmarks}: region {name!r}: neutral frame {bad_inc[0]} has lost (NaN) landmarks; "
+                                 "choose another neutral_frame")
+            local = {int(f): i for i, f in enumerate(keep)}
+            Xk = X[keep]
+            inc = tuple(local[int(f)] for f in include)
+            try:
+                frames = keep[select_keys(Xk, rk, method=method, include=inc, seed=seed, components=kmeans_components)]
+                bar.update(1)
+                if evaluate:
+                    rows = evaluation_curve(Xk, max(evaluate_k, len(frames)), k=len(frames), include=inc,
+                                            seed=seed, progress=bar.update)
+                    curves[name] = [{**r, "frames": [int(keep[f]) for f in r["frames"]]} for r in rows]
+            except ValueError as exc:
+                raise InputError(f"{landmarks}: region {name!r}: {exc}") from exc
+            err = key_error(Xk, [local[int(f)] for f in frames])
+            chosen_k[name] = len(frames)
+            result[name] = {"points": idx, "method": method, "frames": [int(f) for f in frames], "error": round(err, 6)}
+            tmpl[name] = {"keys": {int(f): f"target/{name}/key_{int(f):05d}.obj" for f in frames}}
+            log.info("region %s: keys %s, E = %.4g (eq. 5)", name, result[name]["frames"], err)
+    write_keys(output, landmarks, result)
+    written = [Path(output)]
+    if template:
+        t = Path(template)
+        if t.exists() and not t.read_text(encoding="utf-8", errors="replace").startswith(TEMPLATE_MARK):
+            raise InputError(f"{t}: exists and was not written by 'retarget select'; "
+                             "refusing to overwrite it (choose another --template path)")
+        write_targets(t, tmpl, comment=TEMPLATE_MARK[2:] + (
+            "Sculpt one OBJ per key frame (same topology for all), matching the actor's\n"
+            "expression in that frame. Paths are relative to this file. Copy this file\n"
+            "before editing: select rewrites it."))
+        written.append(t)
+    if evaluate:
+        from ..io.atomic import write_json
+        from ..select_report import curve_csv, write_curve_plot
+
+        write_text(evaluate, curve_csv(curves))
+        summary = {"method": method, "regions": {}}
+        for name, rows in curves.items():
+            try:
+                summary["regions"][name] = curve_winner(rows, chosen_k[name])
+            except ValueError:  # chosen k below 2: nothing evaluated there
+                summary["regions"][name] = {"k": chosen_k[name], "winner": None}
+            summary["regions"][name]["selected_error"] = result[name]["error"]
+            log.info("region %s: at k = %d the lowest E is %s", name, chosen_k[name], summary["regions"][name]["winner"])
+        summary_path = Path(evaluate).with_suffix(".json")
+        write_json(summary_path, summary)
+        written += [Path(evaluate), summary_path]
+        if plot:
+            write_curve_plot(plot, curves, chosen_k)
+            written.append(Path(plot))
+    if contact_sheet:
+        from ..select_report import write_contact_sheet
+
+        video = _require(video, "video file")
+        write_contact_sheet(contact_sheet, video, lm.points,
+                            {n: (r["points"], r["frames"]) for n, r in result.items()})
+        written.append(Path(contact_sheet))
+    return written

@@ -1,0 +1,62 @@
+"""File handling of ``solve-rig``: a rig with correctives and meshes in, slider weights out (inverse rig)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from ..io.atomic import check_not_input
+from ._common import _no_progress
+
+log = logging.getLogger(__name__)
+
+
+def run_solve_rig(*, rig, meshes, output, solver, alpha, tol, max_iter, metrics=None,
+                  progress=_no_progress, cache_dir=None) -> tuple[list[Path], dict]:
+    """Fit slider weights of a rig with correctives to a mesh sequence (Racković et al. 2023, eq. 8).
+
+    The output paths, ``rig.yaml``, the rig's vertex counts and the meshes
+    to fit are checked before the rig's OBJs are parsed; *cache_dir* keeps
+    the parsed rig (:func:`~retarget_cli.io.rigfiles.read_quadratic_rig`).
+
+    Returns
+    -------
+    written : list of Path
+    summary : dict
+        Means over frames of rmse, cardinality, objective, iterations and seconds, plus sizes.
+    """
+    from ..inverse_rig import CARDINALITY_THRESHOLD, solve
+    from ..io.rigfiles import (
+        check_quadratic_rig,
+        read_meshes,
+        read_quadratic_rig,
+        save_inverse_weights,
+        write_metrics_csv,
+    )
+
+    rig_files, n_vertices = check_quadratic_rig(rig)
+    inputs = [*rig_files, meshes]
+    check_not_input(output, inputs)
+    if metrics is not None:
+        check_not_input(metrics, inputs + [output])
+    X, sources = read_meshes(meshes, n_vertices)
+    qrig, _ = read_quadratic_rig(rig, cache_dir=cache_dir)
+    log.info("solve-rig: %d frames, %d vertices, %d shapes, %d correctives, solver %s",
+             len(X), qrig.n_vertices, qrig.n_shapes, qrig.n_pairs, solver)
+    with progress(len(X), "solve-rig") as bar:
+        res = solve(qrig, X, solver=solver, alpha=alpha, tol=tol, max_iter=max_iter, callback=bar.update)
+    summary = {
+        "frames": len(X), "vertices": qrig.n_vertices, "shapes": qrig.n_shapes, "correctives": qrig.n_pairs,
+        "rmse": float(res.rmse.mean()), "cardinality": float(res.cardinality.mean()),
+        "objective": float(res.objective.mean()), "iterations": float(res.iterations.mean()),
+        "seconds_per_frame": float(res.seconds.mean()),
+    }
+    meta = {"solver": solver, "alpha": alpha, "tol": tol, "max_iter": max_iter,
+            "cardinality_threshold": CARDINALITY_THRESHOLD, "rig": Path(rig).name,
+            "summary": {k: v for k, v in summary.items() if k != "seconds_per_frame"}}
+    save_inverse_weights(output, res, qrig.names, sources, meta)
+    written = [Path(output)]
+    if metrics is not None:
+        write_metrics_csv(metrics, res, sources)
+        written.append(Path(metrics))
+    return written, summary

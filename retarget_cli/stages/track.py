@@ -1,0 +1,379 @@
+"""File handling of ``track``, ``train-tracker`` and ``import``: video and annotations in, ``landmarks.npz`` out."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, ParameterError
+from ..io.atomic import check_not_input, digest_files, sha256_file
+from ._common import _no_progress, _require
+from .filtering import FILTER_DEFAULTS
+
+log = logging.getLogger(__name__)
+
+
+def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
+              rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
+              fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, base_dir=None,
+              progress=_no_progress, filter=FILTER_DEFAULTS["filter"], filter_model=FILTER_DEFAULTS["filter_model"],
+              filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
+              filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
+              filter_robust=FILTER_DEFAULTS["filter_robust"], filter_min_cutoff=FILTER_DEFAULTS["filter_min_cutoff"],
+              filter_beta=FILTER_DEFAULTS["filter_beta"], filter_d_cutoff=FILTER_DEFAULTS["filter_d_cutoff"],
+              ) -> list[Path]:
+    """Track landmarks through *video* (a video file or an image-sequence pattern).
+
+    *init* and *annotations* are ``.pts`` or ``frame,point,x,y`` CSV files; a
+    ``.pts`` file's frame is the number ending its name (else *init_frame*).
+    Frame numbers are 0-based positions in the source; the first tracked
+    frame (*start*) must be annotated. *init* ``None`` or ``"auto"``: the
+    pretrained detector annotates the first tracked frame (unless
+    *annotations* do), and the annotation it used is written beside *output*
+    as ``<output stem>.init_<frame:05d>.pts`` for review. Method ``detect``
+    places the landmarks on every frame with the detector joined with optical
+    flow (*fuse*; annotated frames are kept as given); ``auto`` is ``detect``
+    where its extra is installed, else ``lk``. Writes the ``landmarks.npz`` contract to *output*
+    (plus ``frames``, the source frame numbers) and, if asked, an *overlay*
+    video. *model* is the Facemark model file of method ``facemark`` (see
+    :func:`run_train_tracker`). The ``filter`` and ``filter_*`` arguments are the landmark filter settings
+    (``filter``, ``filter_*``; :mod:`retarget_cli.stages.filtering`): the
+    points are filtered before the head motion is estimated, and the tracker's
+    own points are kept as ``points_raw``. Annotated frames keep their given
+    points and anchor the filter.
+    """
+    from ..io.annotations import read_annotations
+    from ..io.frames import FrameSource, TruncatedInputError
+    from ..io.landmarks import Landmarks, save_landmarks
+    from ..track.head import apply_similarity, estimate_head, invert_similarity
+    from ..track.head import smooth_head as smooth_head_fn
+    from ..track.lk import FaceLostError, check_inside, track_lk
+    from .detect import detect_frame, init_pts_path, is_auto, write_pts_once
+    from .filtering import apply_filter
+
+    fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
+    auto = is_auto(init)
+    if not auto:
+        init = _require(init, "annotation file")
+    extra = [Path(base_dir or ".") / a for a in (annotations or [])]
+    for a in extra:
+        _require(a, "annotation file")
+    if method not in ("auto", "lk", "eigenpoints", "markers", "facemark", "detect"):
+        raise ParameterError(f"method: expected 'auto', 'detect', 'lk', 'eigenpoints', 'markers' or 'facemark', "
+                         f"got {method!r}")
+    if method == "auto":
+        from ..track.detect import detector_installed
+
+        method = "detect" if detector_installed() else "lk"
+        log.info("method auto: tracking with %s%s", method,
+                 "" if method == "detect" else " (install the extra 'detect' for the pretrained detector)")
+    given = extra if auto else [init, *extra]
+    ann, src = read_annotations(given, frame=init_frame) if given else ({}, {})
+    need_auto = auto and start not in ann
+    detector = None
+    if need_auto or method == "detect":
+        from ..track.detect import Detector
+
+        detector = Detector()  # fails here, before any decoding, when the extra is not installed
+    if ann and method == "detect" and len(next(iter(ann.values()))) != Detector.n_points:
+        raise InputError(f"{src[next(iter(ann))]}: method detect places {Detector.n_points} points but the "
+                         f"annotation has {len(next(iter(ann.values())))}")
+    fitter = None
+    if method == "facemark":
+        from ..io.facemark import load_facemark
+
+        if not model:
+            raise InputError("method facemark needs a model file (--model, or track.model); "
+                             "train one with 'retarget train-tracker'")
+        fitter = load_facemark(model)
+        n_ann = len(next(iter(ann.values()))) if ann else 68
+        if fitter.n_points != n_ann:
+            raise InputError(f"{model}: the Facemark model was trained for {fitter.n_points} points but "
+                             f"{init} has {n_ann}")
+    elif model:
+        log.warning("model %s is used by method facemark only; ignored by %s", model, method)
+    # lk and detect track grayscale frames: convert them in the decoding thread
+    with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=method in ("lk", "detect")) as source:
+        check_not_input(output, source.files() + given)
+        if overlay:
+            check_not_input(overlay, source.files() + given)
+        init_out = init_pts_path(output, start) if need_auto else None
+        if init_out is not None:
+            check_not_input(init_out, source.files() + given + [output] + ([overlay] if overlay else []))
+        W, H = source.frame_size
+        it = iter(source)
+        ahead = []
+        if need_auto and method != "detect":
+            ahead.append(next(it))  # an undecodable video raises TruncatedInputError (an InputError) here
+            ann[start] = detect_frame(ahead[0], detector=detector, where=f"{source.path}: frame {start}")
+            src[start] = init_out
+            write_pts_once(init_out, ann[start])
+            log.info("%s: frame %d annotated by the detector; wrote %s", source.path, start, init_out)
+        if start not in ann and method != "detect":
+            raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
+                             f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
+        index = {}
+        for f, P in ann.items():
+            try:
+                check_inside(P, (W, H), f"frame {f}")
+            except ValueError as exc:
+                raise InputError(f"{src[f]}: {exc}") from None
+            if f < start or (end is not None and f >= end):
+                log.info("%s: frame %d is outside the tracked range, ignored", src[f], f)
+            elif (f - start) % step:
+                raise InputError(f"{src[f]}: frame {f} is not tracked with start {start} and step {step}")
+            else:
+                index[(f - start) // step] = P
+        stopped = []
+
+        def frames():
+            try:
+                yield from ahead
+                yield from it
+            except TruncatedInputError as exc:
+                stopped.append(exc)
+
+        n_expected = None
+        if source.frame_count:
+            last = source.frame_count if end is None else min(end, source.frame_count)
+            n_expected = max(0, (last - start + step - 1) // step)
+        with progress(n_expected, "track") as bar:
+            try:
+                if method == "eigenpoints":
+                    from ..track.eigenpoints import track_eigenpoints
+
+                    if downscale != 1:
+                        log.warning("downscale applies to the lk tracker only; eigenpoints uses its own window")
+                    points, conf = track_eigenpoints(frames(), index, rigid_points=rigid_points,
+                                                     progress=lambda t: bar.update(1))
+                elif method == "detect":
+                    from ..track.detect import track_detect
+
+                    points, conf = track_detect(frames(), index, detector=detector, downscale=downscale,
+                                                fuse=fuse, progress=lambda t: bar.update(1))
+                elif method == "markers":
+                    from ..track.markers import track_markers
+
+                    points, conf = track_markers(frames(), index, progress=lambda t: bar.update(1))
+                elif method == "facemark":
+                    from ..track.facemark import track_facemark
+
+                    if downscale != 1:
+                        log.warning("downscale applies to the lk tracker only; facemark fits at full resolution")
+                    points, conf = track_facemark(frames(), index, model=fitter, rigid_points=rigid_points,
+                                                  progress=lambda t: bar.update(1))
+                else:
+                    points, conf = track_lk(frames(), index, window=window, levels=levels,
+                                            fb_threshold=fb_threshold, anchor=anchor, rigid_points=rigid_points,
+                                            downscale=downscale, progress=lambda t: bar.update(1))
+            except FaceLostError as exc:
+                where = source.frames[exc.frame] if exc.frame < len(source.frames) else exc.frame
+                msg = f"{source.path}: {str(exc).replace(f'frame {exc.frame}', f'frame {where}')}"
+                if not keep_partial or exc.frame < 1:
+                    raise InputError(msg + ("; rerun with --keep-partial to keep the frames before it"
+                                            if exc.frame >= 1 else "")) from None
+                log.warning("%s; keeping the %d frames tracked before it (--keep-partial)", msg, exc.frame)
+                points, conf = exc.points, exc.confidence
+            except ValueError as exc:
+                raise InputError(f"{init_out or init or video}: {exc}") from exc
+        if stopped:
+            if not keep_partial:
+                raise InputError(f"{stopped[0]}; rerun with --keep-partial to keep the {len(points)} frames "
+                                 f"tracked up to then")
+            log.warning("%s; keeping the %d frames tracked (--keep-partial)", stopped[0], len(points))
+        frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
+        files = source.files()
+    if need_auto and method == "detect":
+        write_pts_once(init_out, points[0])
+    points, raw, fmeta = apply_filter(points, conf, fps=source.fps, settings=fset, where=str(video),
+                                      anchors=[i for i in index if i < len(points)])
+    head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+    if smooth_head:
+        head = smooth_head_fn(head, smooth_head)
+        stab = apply_similarity(invert_similarity(head), points)
+    meta = {
+        "tracker": method,
+        "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
+                       "downscale": downscale, "start": start, "end": end, "step": step,
+                       "smooth_head": smooth_head, **({"fuse": fuse} if method == "detect" else {})},
+        "filter": fmeta,
+        "source": Path(video).name,
+        "source_sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
+        "annotation": [Path(p).name for p in given + ([init_out] if init_out else [])],
+        "annotated_frames": [int(f) for f in ann],
+        "init": "auto" if auto else Path(init).name,
+    }
+    if fitter is not None:
+        meta["model"], meta["model_sha256"] = Path(model).name, sha256_file(model)
+    save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
+                                     frames=frame_numbers, points_raw=raw))
+    written = [Path(output)] + ([init_out] if init_out else [])
+    log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
+    if overlay:
+        from ..io.overlay import write_overlay
+
+        with FrameSource(video, start=start, end=end, step=step, fps=fps) as again, \
+                progress(len(points), "overlay") as bar:
+            def upto():
+                try:
+                    yield from again
+                except TruncatedInputError:
+                    return
+            write_overlay(overlay, upto(), points, conf, head, fps=source.fps, frame_size=(W, H),
+                          progress=lambda t: bar.update(1))
+        written.append(Path(overlay))
+    return written
+
+
+def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None, stages=5, trees=4, depth=4,
+                      face_size=200, seed=0, progress=_no_progress) -> list[Path]:
+    """Train a Facemark LBF model from annotated frames of *video*; write it to *output* atomically.
+
+    *annotations* are ``.pts`` files (frame number ending the name) or
+    ``frame,point,x,y`` CSV files, as ``track`` reads them. The model file is
+    an OpenCV ``FacemarkLBF`` model (``cv::FileStorage`` YAML, gzip-compressed
+    when *output* ends in ``.gz``) for ``track --method facemark --model``.
+    """
+    from ..io.annotations import read_annotations
+    from ..io.facemark import save_lbf_model
+    from ..io.frames import FrameSource, TruncatedInputError
+    from ..track.facemark import train_lbf
+    from ..track.lk import check_inside
+
+    files = [_require(a, "annotation file") for a in (annotations or [])]
+    if not files:
+        raise InputError("train-tracker: give at least one annotation file (.pts or CSV)")
+    ann, src = read_annotations(files)
+    last = max(ann)
+    images = {}
+    with FrameSource(video, end=last + 1, fps=fps) as source:
+        check_not_input(output, source.files() + files)
+        W, H = source.frame_size
+        for f, P in ann.items():
+            if source.frame_count and f >= source.frame_count:
+                raise InputError(f"{src[f]}: frame {f} is past the last frame of {source.path} "
+                                 f"({source.frame_count - 1})")
+            try:
+                check_inside(P, (W, H), f"frame {f}")
+            except ValueError as exc:
+                raise InputError(f"{src[f]}: {exc}") from None
+        try:
+            for i, img in enumerate(source):
+                if i in ann:
+                    images[i] = img
+        except TruncatedInputError as exc:
+            missing = [f for f in ann if f not in images]
+            raise InputError(f"{exc}; annotated frame {missing[0]} ({src[missing[0]]}) could not be read") \
+                from None
+    missing = [f for f in ann if f not in images]
+    if missing:
+        raise InputError(f"{src[missing[0]]}: frame {missing[0]} is past the last frame of {video}")
+    keys = sorted(ann)
+    if len(keys) < 5:
+        log.warning("training from %d annotated frame(s); 5 or more that span the expressions work far better",
+                    len(keys))
+    with progress(stages, "train") as bar:
+        try:
+            model = train_lbf([images[f] for f in keys], np.stack([ann[f] for f in keys]), stages=stages,
+                              trees=trees, depth=depth, rigid_points=rigid_points, face_size=face_size, seed=seed,
+                              progress=lambda k: bar.update(1))
+        except ValueError as exc:
+            raise InputError(f"{files[0]}: {exc}") from exc
+    model.info["retarget_frames"] = [int(f) for f in keys]
+    model.info["retarget_source"] = Path(video).name
+    save_lbf_model(output, model)
+    log.info("trained a %d-point Facemark LBF model from %d annotated frames (%d samples); training error %.2f px",
+             model.n_points, len(keys), model.info["retarget_samples"], model.info["retarget_train_error_px"])
+    return [Path(output)]
+
+
+def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0, filter="none",
+               filter_model=FILTER_DEFAULTS["filter_model"], filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
+               filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
+               filter_robust=FILTER_DEFAULTS["filter_robust"], filter_min_cutoff=FILTER_DEFAULTS["filter_min_cutoff"],
+               filter_beta=FILTER_DEFAULTS["filter_beta"], filter_d_cutoff=FILTER_DEFAULTS["filter_d_cutoff"],
+               ) -> list[Path]:
+    """Bring landmarks from another tool into the ``landmarks.npz`` contract.
+
+    *source* is a ``frame,point,x,y`` CSV, an NPZ holding ``points`` (T, L, 2)
+    (``confidence``, ``fps``, ``frame_size``, ``frames`` optional), or a
+    folder of ``.pts`` files named with their frame number. Head motion and
+    stabilization are computed with :func:`~retarget_cli.track.head.estimate_head`
+    (the routine ``track`` uses), optionally smoothed in time. The landmark
+    filter settings (``filter``, ``filter_*``) are those of :func:`run_track`,
+    but *filter* defaults to ``none`` here (imported points stay as given;
+    the source's points are kept as ``points_raw`` when a filter is applied).
+    Filtering assumes consecutive frames.
+    """
+    from .filtering import apply_filter
+
+    fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
+    from ..io.annotations import read_annotations, read_csv_landmarks
+    from ..io.atomic import load_npz
+    from ..io.landmarks import Landmarks, save_landmarks
+    from ..track.head import apply_similarity, estimate_head, invert_similarity
+    from ..track.head import smooth_head as _smooth
+
+    src = _require(source, "landmarks source")
+    check_not_input(output, [src])
+    conf = None
+    size = frame_size
+    if src.is_dir():
+        files = sorted(src.glob("*.pts"))
+        if not files:
+            raise InputError(f"{src}: folder holds no .pts file")
+        by_frame, _ = read_annotations(files)
+        digest = digest_files(files)
+    elif src.suffix.lower() == ".csv":
+        by_frame = read_csv_landmarks(src)
+        digest = sha256_file(src)
+    elif src.suffix.lower() == ".npz":
+        data = load_npz(src)
+        if "points" not in data:
+            raise InputError(f"{src}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
+        P = np.asarray(data["points"], dtype=np.float64)
+        if P.ndim != 3 or P.shape[2] != 2 or 0 in P.shape:
+            raise InputError(f"{src}: 'points' must have shape (T, L, 2), got {P.shape}")
+        frames = np.asarray(data.get("frames", np.arange(len(P))), dtype=np.int64)
+        if frames.shape != (len(P),):
+            raise InputError(f"{src}: 'frames' must have shape {(len(P),)}, got {frames.shape}")
+        by_frame = dict(zip(frames.tolist(), P))
+        if "confidence" in data:
+            conf = np.asarray(data["confidence"], dtype=np.float64)
+            if conf.shape != P.shape[:2]:
+                raise InputError(f"{src}: 'confidence' must have shape {P.shape[:2]}, got {conf.shape}")
+        fps = fps or (float(data["fps"]) if "fps" in data else None)
+        if size is None and "frame_size" in data:
+            size = tuple(int(v) for v in np.asarray(data["frame_size"]).ravel()[:2])
+        digest = sha256_file(src)
+    else:
+        raise InputError(f"{src}: unsupported landmarks source; expected a .csv, a .npz or a folder of .pts files")
+    frames = np.array(sorted(by_frame), dtype=np.int64)
+    points = np.stack([by_frame[f] for f in frames])
+    finite = np.isfinite(points).all(-1)
+    conf = finite.astype(np.float64) if conf is None else np.where(finite, np.clip(conf, 0, 1), 0.0)
+    if not finite.all():
+        # a missing point keeps the contract's finite coordinates: carried from its nearest finite frame
+        for i in range(points.shape[1]):
+            ok = np.flatnonzero(finite[:, i])
+            if ok.size == 0:
+                raise InputError(f"{src}: landmark {i} has no finite coordinate in any frame")
+            near = ok[np.abs(np.arange(len(points))[:, None] - ok[None]).argmin(1)]
+            points[:, i] = points[near, i]
+    points, raw, fmeta = apply_filter(points, conf, fps=fps or 30.0, settings=fset, where=str(src))
+    try:
+        head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+    except ValueError as exc:
+        raise InputError(f"{src}: {exc}") from exc
+    if smooth_head:
+        head = _smooth(head, smooth_head)
+        stab = apply_similarity(invert_similarity(head), points)
+    meta = {"tracker": "import", "source": src.name, "source_sha256": digest,
+            "parameters": {"smooth_head": smooth_head, "rigid_points": rigid_points}, "filter": fmeta}
+    save_landmarks(output, Landmarks(points, conf, head, stab, fps or 30.0,
+                                     np.array(size if size else (0, 0)), None, meta, frames=frames,
+                                     points_raw=raw))
+    log.info("imported %d frames x %d points from %s", len(points), points.shape[1], src)
+    return [Path(output)]
