@@ -161,8 +161,8 @@ def variant_delta_direct(landmarks: Path, ctx: RigContext, work: Path, **_) -> n
     """The delta fit of ``auto-pose`` (same defaults) on every frame, no keys."""
     from retarget_cli.io.landmarks import load_landmarks
     from retarget_cli.io.stagefiles import read_rig
-    from retarget_cli.rigpose import delta_pose
     from retarget_cli.regions import REGION_PRESETS_68
+    from retarget_cli.rigpose import delta_pose
     from retarget_cli.stages.auto_pose import CONTOUR_68, DEFAULT_EXCLUDE, RIGID_68, excluded_sliders
 
     lm = load_landmarks(landmarks)

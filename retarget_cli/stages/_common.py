@@ -1,10 +1,13 @@
-"""Helpers every stage runner shares: an input that must exist, a progress bar that shows nothing."""
+"""What every stage module shares: the :class:`Stage` declaration, an input that must exist, a silent progress bar."""
 
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..config import Param
 from ..errors import InputError
 
 
@@ -22,3 +25,24 @@ def _require(path, what: str) -> Path:
     if not path.exists():
         raise InputError(f"{path}: {what} not found")
     return path
+
+
+@dataclass
+class Stage:
+    """A pipeline stage: its parameters and the runner that executes it."""
+
+    name: str
+    help: str
+    params: list
+    runner: Callable
+    extra_inputs: Callable = field(default=lambda kw: [])
+    #: Maps a declared input (param name, path) to the files it stands for (an image-sequence pattern).
+    expand_input: Callable = field(default=lambda name, path: [path])
+    uses_progress: bool = False
+    uses_seed: bool = False
+    uses_base_dir: bool = False
+    #: The runner takes ``cache_dir`` (the run's ``<output_dir>/.retarget/cache``, for parsed rigs).
+    uses_cache: bool = False
+
+    def param(self, name: str) -> Param:
+        return next(p for p in self.params if p.name == name)

@@ -19,11 +19,41 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Param, check_vector3
 from ..errors import InputError, ParameterError
 from ..io.atomic import TrackedOutputs, check_not_input, write_text
-from ._common import _no_progress, _require
+from ._common import Stage, _no_progress, _require
 
 log = logging.getLogger(__name__)
+
+#: Declared parameters of ``apply`` (YAML validation, CLI options, manifests, docs/config.md).
+PARAMS = [
+    Param("weights", "input", str, help="weights.npz.", link="decompose.output"),
+    Param("targets", "input", str, help="targets.yaml.",
+          link="auto_pose.output/targets.yaml|pose.output/targets.yaml"),
+    Param("landmarks", "input", str, None, "landmarks.npz, for its head motion (head_motion: 2d).",
+          nullable=True, link="track.output"),
+    Param("output", "output", str, "frames",
+          "Directory for frame_00000.obj, ..., weights.csv, animation.exr/.json, animation.glb."),
+    Param("formats", "setting", list, ["obj"],
+          "Exports: any of obj, csv, exr, glb, curves (the rig's slider curves: curves.csv, curves.npz; "
+          "needs keys posed on a rig), livelink (Live Link Face CSV; needs a rig), usd (animation.usd; "
+          "needs usd-core).", choices=("obj", "csv", "exr", "glb", "curves", "livelink", "usd")),
+    Param("drive", "setting", str, "auto",
+          "What drives the character: auto (the rig when targets.yaml names one, else the key shapes), "
+          "rig, or keys (blend the key OBJs with the region masks).", choices=("auto", "rig", "keys")),
+    Param("head_motion", "setting", str, "none",
+          "Head motion on the character: none, or 2d (roll, scale, translation in the image plane).",
+          choices=("none", "2d")),
+    Param("scale", "setting", float, None,
+          "Model units per image pixel for head translation (default: neutral mesh width / "
+          "frame-0 landmark width).", min=1e-12, nullable=True),
+    Param("pivot", "setting", list, None,
+          "[x, y, z] in model units: centre of head roll and scale (default: centre of the "
+          "neutral mesh's bounding box).", nullable=True, validate=check_vector3),
+    Param("vat", "setting", str, "offsets", "EXR texture holds offsets from the neutral or positions.",
+          choices=("offsets", "positions")),
+]
 
 #: Exports ``apply`` can write (``--format``); file names inside the output directory.
 APPLY_FORMATS = ("obj", "csv", "exr", "glb", "curves", "livelink", "usd")
@@ -297,3 +327,21 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
 
 
 __all__ = ["APPLY_FILES", "APPLY_FORMATS", "DRIVES", "rig_key_sliders", "run_apply"]
+
+
+def _targets_files(kw) -> list[Path]:
+    from ..io.stagefiles import read_targets
+
+    return read_targets(kw["targets"]).files()
+
+
+#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+STAGE = Stage(
+    "apply",
+    "Drive the target key shapes with the weights; write an OBJ sequence and other exports.",
+    PARAMS,
+    run_apply,
+    extra_inputs=_targets_files,
+    uses_progress=True,
+    uses_cache=True,
+)

@@ -18,12 +18,50 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Param, check_indices, check_masks, check_strings
 from ..errors import InputError
 from ..io.atomic import check_not_input, tracked_outputs, write_text
 from ..io.vertexmap import read_vertex_map
-from ._common import _require
+from ._common import Stage, _require
+from .pose import _pose_files
 
 log = logging.getLogger(__name__)
+
+#: Declared parameters of ``auto_pose`` (YAML validation, CLI options, manifests, docs/config.md).
+PARAMS = [
+    Param("keys", "input", str, help="keys.json.", link="select.output"),
+    Param("landmarks", "input", str, help="landmarks.npz.", link="track.output"),
+    Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs (and 'landmarks:')."),
+    Param("landmark_vertices", "input", str, None,
+          "Rig vertex of each landmark (one id per line, or 'landmark vertex' pairs); default the "
+          "rig.yaml's 'landmarks:' list.", nullable=True),
+    Param("output", "output", str, "targets",
+          "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml."),
+    Param("fit", "setting", str, "delta",
+          "delta: the key frame's landmark displacement from neutral_frame (the actor's face shape "
+          "stays out of the sliders); absolute: the landmark positions (Lewis & Anjyo eq. 3).",
+          choices=("delta", "absolute")),
+    Param("neutral_frame", "setting", int, 0, "The actor's neutral frame (the rig's rest pose).", min=0),
+    Param("sparsity", "setting", float, None,
+          "L1 weight keeping unneeded sliders at 0, relative to the sliders' mean landmark energy "
+          "(null: 0.01).", min=0, nullable=True),
+    Param("ridge", "setting", float, None, "Ridge weight, relative likewise (null: 0.001).",
+          min=0, nullable=True),
+    Param("exclude", "setting", list, ["eyeLook*", "*pupil*"],
+          "Slider-name patterns (fnmatch, any case) kept at 0: by default gaze and pupils, which "
+          "landmarks without pupils cannot see.", validate=check_strings),
+    Param("skip_points", "setting", list, None,
+          "Landmarks left out of the fit (default for 68 points: the jaw contour but the chin).",
+          nullable=True, validate=check_indices),
+    Param("rigid_points", "setting", list, None,
+          "Landmarks that give each key frame's head pose (default for 68 points: nose and eye "
+          "corners).", nullable=True, validate=check_indices),
+    Param("masks", "setting", dict, None,
+          "Region name to vertex-mask file, overriding the masks derived from the rig.", nullable=True,
+          validate=check_masks),
+    Param("alpha", "setting", float, 0.001, "absolute fit: eq. 3's alpha.", min=0),
+    Param("mu", "setting", float, 0.0001, "absolute fit: eq. 3's mu.", min=0),
+]
 
 FITS = ("delta", "absolute")
 #: Sliders left at 0 by default: gaze and pupils, which 2D landmarks without pupils cannot observe
@@ -221,3 +259,16 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
 
 
 __all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "run_auto_pose"]
+
+
+#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+STAGE = Stage(
+    "auto_pose",
+    "Pose a rig at each key frame from its landmarks (the rig as the artist): key OBJs, their sliders, "
+    "region masks and a targets.yaml from which apply writes the rig's slider curves.",
+    PARAMS,
+    run_auto_pose,
+    extra_inputs=_pose_files,
+    uses_base_dir=True,
+    uses_cache=True,
+)

@@ -7,12 +7,47 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Param
+from ..decompose import FORMULATIONS, SOLVERS
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_text
 from ..io.landmarks import LOST_CONFIDENCE
-from ._common import _require
+from ._common import Stage, _require
 
 log = logging.getLogger(__name__)
+
+#: Declared parameters of ``decompose`` (YAML validation, CLI options, manifests, docs/config.md).
+PARAMS = [
+    Param("landmarks", "input", str, help="landmarks.npz.", link="track.output"),
+    Param("keys", "input", str, help="keys.json.", link="select.output"),
+    Param("output", "output", str, "weights.npz", "Weights per region."),
+    Param("csv", "output", str, None, "Also write the weights as CSV.", nullable=True),
+    Param("solver", "setting", str, "nnls",
+          "Solver: nnls (eq. 4), ls, bounded, ridge, ridge-clipped, temporal, temporal-causal, sparse, "
+          "sequential.", choices=SOLVERS),
+    Param("formulation", "setting", str, "whole",
+          "whole (eq. 3), convex (weights sum to 1) or delta (relative to neutral_frame).",
+          choices=FORMULATIONS),
+    Param("alpha", "setting", float, None,
+          "Regularisation of ridge, temporal, temporal-causal, sparse, relative to the keys' spread "
+          "(null: the solver's default).", min=0, nullable=True),
+    Param("upper", "setting", float, None,
+          "Upper bound on every weight (bounded and ridge-clipped use 1 when null).", min=1e-6,
+          nullable=True),
+    Param("neutral_frame", "setting", int, 0, "Neutral frame S_0 of formulation delta (must be a key).",
+          min=0),
+    Param("confidence", "setting", bool, True, "Weight each landmark by its tracking confidence."),
+    Param("lost_fraction", "setting", float, 0.5,
+          "A region is lost in a frame when more than this fraction of its landmarks is lost; "
+          "its weights there are interpolated.", min=0, max=1),
+    Param("smooth_space", "setting", str, "shape",
+          "What temporal and temporal-causal smooth: shape (the reconstructed landmarks, ||D2 W S||^2; "
+          "alpha is then absolute) or weights (||D2 W||^2).", choices=("shape", "weights")),
+    Param("robust", "setting", float, 2.0,
+          "temporal only: release the smoothness penalty around frames whose excess residual (over the "
+          "unsmoothed fit, in units of its median) exceeds this, so blinks keep their amplitude; 0: off.",
+          min=0),
+]
 
 
 def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulation="whole", alpha=None, upper=None,
@@ -123,3 +158,12 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
         write_text(csv, weights_csv(regions, lm.fps))
         written.append(Path(csv))
     return written
+
+
+#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+STAGE = Stage(
+    "decompose",
+    "Non-negative weights over the key shapes for every frame (eq. 4).",
+    PARAMS,
+    run_decompose,
+)

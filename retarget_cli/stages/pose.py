@@ -8,11 +8,23 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Param, check_masks
 from ..errors import InputError
 from ..io.atomic import check_not_input, tracked_outputs
-from ._common import _require
+from ._common import Stage, _require
 
 log = logging.getLogger(__name__)
+
+#: Declared parameters of ``pose`` (YAML validation, CLI options, manifests, docs/config.md).
+PARAMS = [
+    Param("keys", "input", str, help="keys.json.", link="select.output"),
+    Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs."),
+    Param("poses", "input", str, help="NPZ with 'curves' (T, E) and 'names' (E,)."),
+    Param("output", "output", str, "targets", "Directory for the key OBJs and targets.yaml."),
+    Param("masks", "setting", dict, None,
+          "Region name to vertex-mask file (needed with several regions).", nullable=True,
+          validate=check_masks),
+]
 
 
 def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=None) -> list[Path]:
@@ -101,3 +113,24 @@ def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path,
     nrel = os.path.relpath(read_rig(rig_path).neutral.resolve(), out.resolve())
     write_targets(out / "targets.yaml", regions, neutral=nrel, comment=f"Written by retarget {command}.")
     return out / "targets.yaml"
+
+
+def _pose_files(kw) -> list[Path]:
+    from ..io.stagefiles import read_rig
+
+    masks = [Path(kw["base_dir"]) / m for m in (kw.get("masks") or {}).values()]
+    spec = read_rig(kw["rig"])
+    extra = [spec.landmarks] if isinstance(spec.landmarks, Path) else []
+    return spec.files() + extra + masks
+
+
+#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+STAGE = Stage(
+    "pose",
+    "Pose a rig at each key frame's known slider values (automatic target key shapes).",
+    PARAMS,
+    run_pose,
+    extra_inputs=_pose_files,
+    uses_base_dir=True,
+    uses_cache=True,
+)

@@ -7,12 +7,41 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Param, check_regions
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_text
 from ..regions import region_specs
-from ._common import _no_progress, _require
+from ._common import Stage, _no_progress, _require
 
 log = logging.getLogger(__name__)
+
+#: Declared parameters of ``select`` (YAML validation, CLI options, manifests, docs/config.md).
+PARAMS = [
+    Param("landmarks", "input", str, help="landmarks.npz.", link="track.output"),
+    Param("video", "input", str, None, "Video, for the contact sheet.", nullable=True, link="track.video"),
+    Param("output", "output", str, "keys.json", "Key frames per region."),
+    Param("template", "output", str, "targets.template.yaml",
+          "targets.yaml template for the artist (never overwritten).", nullable=True),
+    Param("evaluate", "output", str, None,
+          "CSV of E (eq. 5) against k for every method and region; a JSON summary of the winner at "
+          "the chosen k is written beside it (suffix .json).", nullable=True),
+    Param("plot", "output", str, None, "Plot of the evaluation (PNG/SVG/PDF; needs matplotlib).",
+          nullable=True),
+    Param("contact_sheet", "output", str, None,
+          "Image of the key frames cropped from the video with their landmarks.", nullable=True),
+    Param("method", "setting", str, "greedy", "Selection method (convex-hull chooses its own k).",
+          choices=("pca-extremes", "kmeans", "convex-hull", "greedy", "greedy-swap")),
+    Param("k", "setting", int, 12, "Number of key shapes per region.", min=1, max=1000),
+    Param("kmeans_components", "setting", int, 2, "Principal components clustered by kmeans.",
+          min=1, max=10),
+    Param("evaluate_k", "setting", int, 40, "Largest k of the evaluation curve.", min=2, max=1000),
+    Param("neutral_frame", "setting", int, 0,
+          "Frame always kept as a key (the actor at rest); null to let the method choose all k.",
+          min=0, nullable=True),
+    Param("regions", "setting", dict, None,
+          "Region name to 'all', landmark indices, null (68-point preset: brows-eyes, mouth, face) "
+          "or {points, k} (default: face: all).", nullable=True, validate=check_regions),
+]
 
 #: First line of the targets template ``select`` writes; a file without it is never overwritten.
 TEMPLATE_MARK = "# targets.yaml template written by retarget select.\n"
@@ -120,3 +149,14 @@ def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12,
                             {n: (r["points"], r["frames"]) for n, r in result.items()})
         written.append(Path(contact_sheet))
     return written
+
+
+#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+STAGE = Stage(
+    "select",
+    "Choose key frames per region (Chuang & Bregler §4.2) and evaluate the methods by E (eq. 5).",
+    PARAMS,
+    run_select,
+    uses_seed=True,
+    uses_progress=True,
+)

@@ -7,12 +7,69 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Param, check_indices, check_strings
 from ..errors import InputError, ParameterError
 from ..io.atomic import check_not_input, digest_files, sha256_file
-from ._common import _no_progress, _require
-from .filtering import FILTER_DEFAULTS
+from ._common import Stage, _no_progress, _require
+from .filtering import FILTER_DEFAULTS, FILTER_PARAMS
 
 log = logging.getLogger(__name__)
+
+#: Declared parameters of ``track`` (YAML validation, CLI options, manifests, docs/config.md).
+PARAMS = [
+    Param("video", "input", str,
+          help="Video file (mp4, mov, avi, mkv, m4v) or image-sequence pattern (printf or glob; "
+               "png, jpg, exr)."),
+    Param("init", "input", str, None,
+          "Annotation of the first tracked frame: iBUG .pts or frame,point,x,y CSV, or auto (the "
+          "default): the pretrained detector annotates it and writes <output stem>.init_NNNNN.pts "
+          "beside the output (needs the extra detect).", nullable=True, words=("auto",)),
+    Param("output", "output", str, "landmarks.npz", "Landmarks file (landmarks.npz contract)."),
+    Param("overlay", "output", str, None,
+          "Also write an mp4 with the landmarks (coloured by confidence) and the head frame.",
+          nullable=True),
+    Param("annotations", "setting", list, None,
+          "More annotated frames (.pts named like face_00120.pts, or CSV); each re-anchors the track.",
+          nullable=True, validate=check_strings),
+    Param("init_frame", "setting", int, None,
+          "Frame of the init .pts when its name ends in no number (default 0).", min=0, nullable=True),
+    Param("start", "setting", int, 0, "First frame to track (0-based).", min=0),
+    Param("end", "setting", int, None, "Stop before this frame (default: the last).", min=1,
+          nullable=True),
+    Param("step", "setting", int, 1, "Track every step-th frame.", min=1, max=1000),
+    Param("downscale", "setting", float, 1.0,
+          "Track on frames scaled by this factor (coordinates stay at full resolution).",
+          min=0.05, max=1.0),
+    Param("fps", "setting", float, None, "Frame rate of an image sequence (default 30).",
+          min=0.01, nullable=True),
+    Param("smooth_head", "setting", int, 0,
+          "Temporal smoothing of the head track: Savitzky-Golay window in frames (0: none).",
+          min=0, max=301),
+    Param("keep_partial", "setting", bool, False,
+          "On a truncated video or a lost face, keep what was tracked up to then."),
+    Param("method", "setting", str, "auto",
+          "Tracker: detect (dlib's pretrained 68-point detector on every frame joined with optical "
+          "flow; needs the extra detect) or lk (Lucas-Kanade, one or more annotated frames) or "
+          "eigenpoints (the paper's tracker, trained on the annotated frames; give 5 or more) or "
+          "markers (painted dots on the landmarks) or facemark (OpenCV Facemark LBF with --model, see "
+          "train-tracker); auto: detect where the extra is installed, else lk.",
+          choices=("auto", "detect", "lk", "eigenpoints", "markers", "facemark")),
+    Param("fuse", "setting", bool, True,
+          "Method detect: join the detections with optical flow (a Kalman filter along the flow and "
+          "a smoother over the take); false keeps each frame's detection as it is."),
+    Param("model", "input", str, None,
+          "Facemark LBF model file for method facemark (written by 'retarget train-tracker').",
+          nullable=True),
+    Param("window", "setting", int, 21, "Lucas-Kanade window side in pixels (odd).", min=5, max=101),
+    Param("levels", "setting", int, 3, "Pyramid levels.", min=0, max=8),
+    Param("fb_threshold", "setting", float, 1.0, "Forward-backward error scale in pixels.",
+          min=0.01, max=100),
+    Param("anchor", "setting", bool, True, "Correct drift against the annotated frame."),
+    Param("rigid_points", "setting", list, None,
+          "Landmarks that define head motion (default: eye corners and nose for 68 points).",
+          nullable=True, validate=check_indices),
+    *FILTER_PARAMS,
+]
 
 
 def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
@@ -377,3 +434,26 @@ def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, 
                                      points_raw=raw))
     log.info("imported %d frames x %d points from %s", len(points), points.shape[1], src)
     return [Path(output)]
+
+
+def _track_files(kw) -> list[Path]:
+    return [Path(kw.get("base_dir") or ".") / a for a in (kw.get("annotations") or [])]
+
+
+def _track_expand(name, path) -> list[Path]:
+    from ..io.frames import is_sequence, sequence_files
+
+    return sequence_files(path) if name == "video" and is_sequence(path) else [path]
+
+
+#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+STAGE = Stage(
+    "track",
+    "Track landmarks through a video from an annotated first frame.",
+    PARAMS,
+    run_track,
+    extra_inputs=_track_files,
+    expand_input=_track_expand,
+    uses_progress=True,
+    uses_base_dir=True,
+)

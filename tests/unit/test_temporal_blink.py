@@ -3,8 +3,8 @@
 import numpy as np
 
 from retarget_cli.decompose import decompose
-from retarget_cli.select import select_keys
 from retarget_cli.regions import REGION_PRESETS_68
+from retarget_cli.select import select_keys
 from retarget_cli.stages.filtering import FILTER_DEFAULTS, apply_filter
 from retarget_cli.synth import (
     EXPRESSIONS,
