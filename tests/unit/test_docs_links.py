@@ -60,7 +60,7 @@ def anchors(page: Path) -> set[str]:
 def broken_links(page: Path, root: Path = ROOT) -> list[str]:
     """One message per link of *page* that does not resolve (named relative to *root*)."""
     bad = []
-    for lineno, line in enumerate(_prose(page.read_text(encoding="utf-8")), 1):
+    for line in _prose(page.read_text(encoding="utf-8")):
         for target in LINK_RE.findall(line):
             if re.match(r"[a-z][a-z0-9+.-]*:", target):  # http:, https:, mailto:
                 continue
