@@ -111,8 +111,13 @@ def _table(params) -> list[str]:
     return lines
 
 
-def _stages() -> dict[str, tuple[str, list]]:
-    """Stage name to (help, params), in pipeline order."""
+def declared_stages() -> dict[str, tuple[str, list]]:
+    """Stage name to ``(help, params)``, in pipeline order.
+
+    Uses :func:`retarget_cli.pipeline.stage_params` when it exists, else the
+    ``params`` of each entry of ``STAGES``; the help text is the stage's
+    ``help`` attribute (empty when it has none).
+    """
     stages = getattr(pipeline, "STAGES", {})
     if hasattr(pipeline, "stage_params"):
         declared = pipeline.stage_params()
@@ -133,7 +138,7 @@ def render_config_reference() -> str:
     """
     out = [_INTRO, "## Top level", ""]
     out += _table(config.TOP_LEVEL.values())
-    for name, (help_text, params) in _stages().items():
+    for name, (help_text, params) in declared_stages().items():
         out += ["", f"## `{name}`", ""]
         if help_text:
             out += [_cell(help_text), ""]

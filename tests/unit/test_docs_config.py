@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from retarget_cli import config, pipeline
-from retarget_cli.docs_config import COMMAND, render_config_reference
+from retarget_cli import config
+from retarget_cli.docs_config import COMMAND, declared_stages, render_config_reference
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "config.md"
 
@@ -19,7 +19,10 @@ def test_config_reference_is_up_to_date():
 def test_every_declared_parameter_is_in_the_reference():
     text = render_config_reference()
     sections = text.split("\n## ")
-    for name, params in pipeline.stage_params().items():
+    stages = declared_stages()
+    assert {"track", "select", "decompose", "apply"} <= set(stages)
+    for name, (_, params) in stages.items():
+        assert params, f"stage {name} declares no parameters"
         section = next((s for s in sections if s.startswith(f"`{name}`")), None)
         assert section is not None, f"stage {name} missing"
         for p in params:
@@ -34,3 +37,17 @@ def test_reference_shows_defaults_ranges_and_links():
     assert "| `landmarks` | input | str | from `track.output` |" in text
     assert "`rts`, `one-euro`, `none`" in text
     assert "| `downscale` | setting | float | `1.0` | [0.05, 1] |" in text
+
+
+def test_a_changed_declaration_changes_the_reference(monkeypatch):
+    import dataclasses
+
+    from retarget_cli import docs_config
+
+    stages = docs_config.declared_stages()
+    help_text, params = stages["select"]
+    changed = [dataclasses.replace(p, default=13) if p.name == "k" else p for p in params]
+    monkeypatch.setattr(docs_config, "declared_stages", lambda: {**stages, "select": (help_text, changed)})
+    text = docs_config.render_config_reference()
+    assert "| `k` | setting | int | `13` | [1, 1000] |" in text
+    assert text != DOC.read_text(encoding="utf-8")
