@@ -102,147 +102,43 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
     points and anchor the filter.
     """
     from ..io.annotations import read_annotations
-    from ..io.frames import FrameSource, TruncatedInputError
+    from ..io.frames import FrameSource
     from ..io.landmarks import Landmarks, save_landmarks
     from ..track.head import apply_similarity, estimate_head, invert_similarity
     from ..track.head import smooth_head as smooth_head_fn
-    from ..track.lk import FaceLostError, check_inside, track_lk
-    from .detect import detect_frame, init_pts_path, is_auto, write_pts_once
+    from .detect import is_auto, write_pts_once
     from .filtering import apply_filter
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
+    tracker_settings = {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
+                        "rigid_points": rigid_points, "downscale": downscale, "fuse": fuse}
     auto = is_auto(init)
     if not auto:
         init = _require(init, "annotation file")
-    extra = [Path(base_dir or ".") / a for a in (annotations or [])]
-    for a in extra:
-        _require(a, "annotation file")
-    if method not in ("auto", "lk", "eigenpoints", "markers", "facemark", "detect"):
-        raise ParameterError(f"method: expected 'auto', 'detect', 'lk', 'eigenpoints', 'markers' or 'facemark', "
-                         f"got {method!r}")
-    if method == "auto":
-        from ..track.detect import detector_installed
-
-        method = "detect" if detector_installed() else "lk"
-        log.info("method auto: tracking with %s%s", method,
-                 "" if method == "detect" else " (install the extra 'detect' for the pretrained detector)")
+    extra = [_require(Path(base_dir or ".") / a, "annotation file") for a in (annotations or [])]
+    method, spec = _tracker(method)
     given = extra if auto else [init, *extra]
     ann, src = read_annotations(given, frame=init_frame) if given else ({}, {})
     need_auto = auto and start not in ann
-    detector = None
-    if need_auto or method == "detect":
-        from ..track.detect import Detector
-
-        detector = Detector()  # fails here, before any decoding, when the extra is not installed
-    if ann and method == "detect" and len(next(iter(ann.values()))) != Detector.n_points:
-        raise InputError(f"{src[next(iter(ann))]}: method detect places {Detector.n_points} points but the "
-                         f"annotation has {len(next(iter(ann.values())))}")
-    fitter = None
-    if method == "facemark":
-        from ..io.facemark import load_facemark
-
-        if not model:
-            raise InputError("method facemark needs a model file (--model, or track.model); "
-                             "train one with 'retarget train-tracker'")
-        fitter = load_facemark(model)
-        n_ann = len(next(iter(ann.values()))) if ann else 68
-        if fitter.n_points != n_ann:
-            raise InputError(f"{model}: the Facemark model was trained for {fitter.n_points} points but "
-                             f"{init} has {n_ann}")
-    elif model:
-        log.warning("model %s is used by method facemark only; ignored by %s", model, method)
-    # lk and detect track grayscale frames: convert them in the decoding thread
-    with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=method in ("lk", "detect")) as source:
-        check_not_input(output, source.files() + given)
-        if overlay:
-            check_not_input(overlay, source.files() + given)
-        init_out = init_pts_path(output, start) if need_auto else None
-        if init_out is not None:
-            check_not_input(init_out, source.files() + given + [output] + ([overlay] if overlay else []))
+    objects = _prepare(spec, method, need_auto=need_auto, ann=ann, src=src, model=model, init=init)
+    _warn_unused(spec, method, tracker_settings, model)
+    # gray trackers get grayscale frames, converted in the decoding thread
+    with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=spec.gray) as source:
+        init_out = _check_track_outputs(source, given, output, overlay, start, need_auto)
         W, H = source.frame_size
         it = iter(source)
         ahead = []
-        if need_auto and method != "detect":
-            ahead.append(next(it))  # an undecodable video raises TruncatedInputError (an InputError) here
-            ann[start] = detect_frame(ahead[0], detector=detector, where=f"{source.path}: frame {start}")
-            src[start] = init_out
-            write_pts_once(init_out, ann[start])
-            log.info("%s: frame %d annotated by the detector; wrote %s", source.path, start, init_out)
-        if start not in ann and method != "detect":
+        if need_auto and "detector" not in spec.needs:
+            ahead.append(_auto_annotate(it, source, start, objects["detector"], init_out, ann, src))
+        if start not in ann and "detector" not in spec.needs:
             raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
                              f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
-        index = {}
-        for f, P in ann.items():
-            try:
-                check_inside(P, (W, H), f"frame {f}")
-            except ValueError as exc:
-                raise InputError(f"{src[f]}: {exc}") from None
-            if f < start or (end is not None and f >= end):
-                log.info("%s: frame %d is outside the tracked range, ignored", src[f], f)
-            elif (f - start) % step:
-                raise InputError(f"{src[f]}: frame {f} is not tracked with start {start} and step {step}")
-            else:
-                index[(f - start) // step] = P
-        stopped = []
-
-        def frames():
-            try:
-                yield from ahead
-                yield from it
-            except TruncatedInputError as exc:
-                stopped.append(exc)
-
-        n_expected = None
-        if source.frame_count:
-            last = source.frame_count if end is None else min(end, source.frame_count)
-            n_expected = max(0, (last - start + step - 1) // step)
-        with progress(n_expected, "track") as bar:
-            try:
-                if method == "eigenpoints":
-                    from ..track.eigenpoints import track_eigenpoints
-
-                    if downscale != 1:
-                        log.warning("downscale applies to the lk tracker only; eigenpoints uses its own window")
-                    points, conf = track_eigenpoints(frames(), index, rigid_points=rigid_points,
-                                                     progress=lambda t: bar.update(1))
-                elif method == "detect":
-                    from ..track.detect import track_detect
-
-                    points, conf = track_detect(frames(), index, detector=detector, downscale=downscale,
-                                                fuse=fuse, progress=lambda t: bar.update(1))
-                elif method == "markers":
-                    from ..track.markers import track_markers
-
-                    points, conf = track_markers(frames(), index, progress=lambda t: bar.update(1))
-                elif method == "facemark":
-                    from ..track.facemark import track_facemark
-
-                    if downscale != 1:
-                        log.warning("downscale applies to the lk tracker only; facemark fits at full resolution")
-                    points, conf = track_facemark(frames(), index, model=fitter, rigid_points=rigid_points,
-                                                  progress=lambda t: bar.update(1))
-                else:
-                    points, conf = track_lk(frames(), index, window=window, levels=levels,
-                                            fb_threshold=fb_threshold, anchor=anchor, rigid_points=rigid_points,
-                                            downscale=downscale, progress=lambda t: bar.update(1))
-            except FaceLostError as exc:
-                where = source.frames[exc.frame] if exc.frame < len(source.frames) else exc.frame
-                msg = f"{source.path}: {str(exc).replace(f'frame {exc.frame}', f'frame {where}')}"
-                if not keep_partial or exc.frame < 1:
-                    raise InputError(msg + ("; rerun with --keep-partial to keep the frames before it"
-                                            if exc.frame >= 1 else "")) from None
-                log.warning("%s; keeping the %d frames tracked before it (--keep-partial)", msg, exc.frame)
-                points, conf = exc.points, exc.confidence
-            except ValueError as exc:
-                raise InputError(f"{init_out or init or video}: {exc}") from exc
-        if stopped:
-            if not keep_partial:
-                raise InputError(f"{stopped[0]}; rerun with --keep-partial to keep the {len(points)} frames "
-                                 f"tracked up to then")
-            log.warning("%s; keeping the %d frames tracked (--keep-partial)", stopped[0], len(points))
+        index = _annotation_index(ann, src, (W, H), start, end, step)
+        points, conf = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings, progress=progress,
+                                    keep_partial=keep_partial, where=init_out or init or video)
         frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
         files = source.files()
-    if need_auto and method == "detect":
+    if need_auto and "detector" in spec.needs:
         write_pts_once(init_out, points[0])
     points, raw, fmeta = apply_filter(points, conf, fps=source.fps, settings=fset, where=str(video),
                                       anchors=[i for i in index if i < len(points)])
@@ -254,7 +150,7 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
                        "downscale": downscale, "start": start, "end": end, "step": step,
-                       "smooth_head": smooth_head, **({"fuse": fuse} if method == "detect" else {})},
+                       "smooth_head": smooth_head, **({"fuse": fuse} if "fuse" in spec.settings else {})},
         "filter": fmeta,
         "source": Path(video).name,
         "source_sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
@@ -262,26 +158,167 @@ def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_thr
         "annotated_frames": [int(f) for f in ann],
         "init": "auto" if auto else Path(init).name,
     }
-    if fitter is not None:
+    if "model" in objects:
         meta["model"], meta["model_sha256"] = Path(model).name, sha256_file(model)
     save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
                                      frames=frame_numbers, points_raw=raw))
     written = [Path(output)] + ([init_out] if init_out else [])
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
     if overlay:
-        from ..io.overlay import write_overlay
-
-        with FrameSource(video, start=start, end=end, step=step, fps=fps) as again, \
-                progress(len(points), "overlay") as bar:
-            def upto():
-                try:
-                    yield from again
-                except TruncatedInputError:
-                    return
-            write_overlay(overlay, upto(), points, conf, head, fps=source.fps, frame_size=(W, H),
-                          progress=lambda t: bar.update(1))
+        _write_track_overlay(overlay, video, points, conf, head, source, start=start, end=end, step=step, fps=fps,
+                             progress=progress)
         written.append(Path(overlay))
     return written
+
+
+def _tracker(method: str):
+    """The method (``auto`` resolved) and its :class:`~retarget_cli.track.base.TrackerSpec`."""
+    from ..track import TRACKERS, method_choices
+
+    if method not in method_choices():
+        raise ParameterError(f"method: expected {', '.join(map(repr, method_choices()))}, got {method!r}")
+    if method == "auto":
+        from ..track.detect import detector_installed
+
+        method = "detect" if detector_installed() else "lk"
+        log.info("method auto: tracking with %s%s", method,
+                 "" if method == "detect" else " (install the extra 'detect' for the pretrained detector)")
+    return method, TRACKERS[method]
+
+
+def _prepare(spec, method, *, need_auto, ann, src, model, init) -> dict:
+    """The objects the tracker needs (``detector``, ``model``), loaded and checked before any decoding."""
+    objects = {}
+    n_ann = len(next(iter(ann.values()))) if ann else None
+    if need_auto or "detector" in spec.needs:
+        from ..track.detect import Detector
+
+        objects["detector"] = Detector()  # fails here, before any decoding, when the extra is not installed
+        if n_ann is not None and "detector" in spec.needs and n_ann != Detector.n_points:
+            raise InputError(f"{src[next(iter(ann))]}: method {method} places {Detector.n_points} points but the "
+                             f"annotation has {n_ann}")
+    if "model" in spec.needs:
+        from ..io.facemark import load_facemark
+
+        if not model:
+            raise InputError(f"method {method} needs a model file (--model, or track.model); "
+                             "train one with 'retarget train-tracker'")
+        objects["model"] = fitter = load_facemark(model)
+        if fitter.n_points != (n_ann or 68):
+            raise InputError(f"{model}: the Facemark model was trained for {fitter.n_points} points but "
+                             f"{init} has {n_ann or 68}")
+    return objects
+
+
+def _warn_unused(spec, method, settings: dict, model) -> None:
+    """A warning for each tracker setting away from its default that *method* does not use."""
+    defaults = {p.name: p.default for p in PARAMS}
+    for name, value in settings.items():
+        if name != "rigid_points" and name not in spec.settings and value != defaults[name]:
+            log.warning("%s %s is not used by method %s; ignored", name, value, method)
+    if model and "model" not in spec.needs:
+        log.warning("model %s is used by method facemark only; ignored by %s", model, method)
+
+
+def _check_track_outputs(source, given, output, overlay, start, need_auto):
+    """Refuse outputs that are inputs; the path of the automatic annotation (or None)."""
+    from .detect import init_pts_path
+
+    check_not_input(output, source.files() + given)
+    if overlay:
+        check_not_input(overlay, source.files() + given)
+    init_out = init_pts_path(output, start) if need_auto else None
+    if init_out is not None:
+        check_not_input(init_out, source.files() + given + [output] + ([overlay] if overlay else []))
+    return init_out
+
+
+def _auto_annotate(it, source, start, detector, init_out, ann, src):
+    """Annotate the first frame with the detector (for a tracker that needs an annotation); returns the frame."""
+    from .detect import detect_frame, write_pts_once
+
+    frame = next(it)  # an undecodable video raises TruncatedInputError (an InputError) here
+    ann[start] = detect_frame(frame, detector=detector, where=f"{source.path}: frame {start}")
+    src[start] = init_out
+    write_pts_once(init_out, ann[start])
+    log.info("%s: frame %d annotated by the detector; wrote %s", source.path, start, init_out)
+    return frame
+
+
+def _annotation_index(ann, src, size, start, end, step) -> dict:
+    """Annotated frames as ``{row of the tracked sequence: (L, 2)}``, each checked against the frame size."""
+    from ..track.base import check_inside
+
+    index = {}
+    for f, P in ann.items():
+        try:
+            check_inside(P, size, f"frame {f}")
+        except ValueError as exc:
+            raise InputError(f"{src[f]}: {exc}") from None
+        if f < start or (end is not None and f >= end):
+            log.info("%s: frame %d is outside the tracked range, ignored", src[f], f)
+        elif (f - start) % step:
+            raise InputError(f"{src[f]}: frame {f} is not tracked with start {start} and step {step}")
+        else:
+            index[(f - start) // step] = P
+    return index
+
+
+def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress, keep_partial, where):
+    """Run the tracker over the decoded frames; a truncated video or a lost face per *keep_partial*."""
+    from ..errors import FaceLostError, TruncatedInputError
+
+    stopped = []
+
+    def frames():
+        try:
+            yield from ahead
+            yield from it
+        except TruncatedInputError as exc:
+            stopped.append(exc)
+
+    n_expected = None
+    if source.frame_count:
+        last = source.frame_count if source.end is None else min(source.end, source.frame_count)
+        n_expected = max(0, (last - source.start + source.step - 1) // source.step)
+    track = spec.load()
+    kw = {k: settings[k] for k in spec.settings} | {k: objects[k] for k in spec.needs}
+    with progress(n_expected, "track") as bar:
+        try:
+            points, conf = track(frames(), index, progress=lambda t: bar.update(1), **kw)
+        except FaceLostError as exc:
+            where_f = source.frames[exc.frame] if exc.frame < len(source.frames) else exc.frame
+            msg = f"{source.path}: {str(exc).replace(f'frame {exc.frame}', f'frame {where_f}')}"
+            if not keep_partial or exc.frame < 1:
+                raise InputError(msg + ("; rerun with --keep-partial to keep the frames before it"
+                                        if exc.frame >= 1 else "")) from None
+            log.warning("%s; keeping the %d frames tracked before it (--keep-partial)", msg, exc.frame)
+            points, conf = exc.points, exc.confidence
+        except ValueError as exc:
+            raise InputError(f"{where}: {exc}") from exc
+    if stopped:
+        if not keep_partial:
+            raise InputError(f"{stopped[0]}; rerun with --keep-partial to keep the {len(points)} frames "
+                             f"tracked up to then")
+        log.warning("%s; keeping the %d frames tracked (--keep-partial)", stopped[0], len(points))
+    return points, conf
+
+
+def _write_track_overlay(overlay, video, points, conf, head, source, *, start, end, step, fps, progress):
+    """The overlay video: the frames decoded again with the landmarks and the head frame drawn."""
+    from ..errors import TruncatedInputError
+    from ..io.frames import FrameSource
+    from ..io.overlay import write_overlay
+
+    with FrameSource(video, start=start, end=end, step=step, fps=fps) as again, \
+            progress(len(points), "overlay") as bar:
+        def upto():
+            try:
+                yield from again
+            except TruncatedInputError:
+                return
+        write_overlay(overlay, upto(), points, conf, head, fps=source.fps, frame_size=source.frame_size,
+                      progress=lambda t: bar.update(1))
 
 
 def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None, stages=5, trees=4, depth=4,

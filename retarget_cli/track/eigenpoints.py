@@ -29,8 +29,8 @@ from collections.abc import Iterable
 import numpy as np
 
 from ..errors import ShapeError
+from .base import check_inside, normalize_annotations
 from .head import default_rigid_points
-from .lk import check_inside, normalize_annotations
 
 log = logging.getLogger(__name__)
 

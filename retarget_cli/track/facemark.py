@@ -39,9 +39,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ShapeError
+from ..errors import FaceLostError, ShapeError
+from ..io.video import to_gray as _gray
+from .base import check_inside, normalize_annotations
 from .head import default_rigid_points, fit_similarity
-from .lk import FaceLostError, _gray, check_inside, normalize_annotations
 
 log = logging.getLogger(__name__)
 

@@ -18,8 +18,9 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..errors import ShapeError
-from .lk import FaceLostError, _gray, check_inside, flow_forward_backward, normalize_annotations
+from ..errors import FaceLostError, ShapeError
+from ..io.video import to_gray as _gray
+from .base import check_inside, flow_forward_backward, normalize_annotations
 from .prior import ShapePrior
 
 log = logging.getLogger(__name__)
