@@ -171,26 +171,81 @@ def blink_picture(clip, video, tracks, ref_pts, ref_eye, out_dir: Path):
     return path
 
 
-def main() -> int:
-    from realrig.measures import MEDIAPIPE, MULTIPIE68, pearson
-    from reference import ReferenceUnavailable, reference_landmarks
-
+def _parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--videos", type=Path, default=ROOT.parent / "shared" / "realdata" / "videos")
     ap.add_argument("--clips", default=",".join(CLIPS))
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--sizes", default="1280x720,1920x1080", help="Wide frames for the default method ('' none).")
     ap.add_argument("--pictures", type=Path, default=None)
-    args = ap.parse_args()
-    if not args.videos.is_dir():
-        print(f"skipped: {args.videos} not found (the shared real clips)")
-        return 0
+    return ap.parse_args()
+
+
+def _skip_reason(videos: Path) -> str | None:
+    """Why the benchmark cannot run here (no clips, no detector extra), or None."""
+    if not videos.is_dir():
+        return f"{videos} not found (the shared real clips)"
     try:
         from retarget_cli.track.detect import Detector
 
         Detector()
     except Exception as exc:  # noqa: BLE001 - the extra is missing
-        print(f"skipped: {exc}")
+        return str(exc)
+    return None
+
+
+def _print_rows(rows) -> None:
+    print("| clip | method | frames | frames/s | r mouth | r eyes | r eye L | r eye R | r brow "
+          "| min eye | max mouth |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for clip, m, n, fps, why, r, meas in rows:
+        if why is not None:
+            print(f"| {clip} | {m} | | | n/a: {why} | | | | | | |")
+            continue
+        ext = f"{np.nanmin(meas['eye']):.3f} | {np.nanmax(meas['mouth']):.3f}"
+        if r is None:
+            print(f"| {clip} | MediaPipe / {m} | {n} | {fps:.0f} | | | | | | {ext} |")
+            continue
+        cells = " | ".join(f"{r[k]:.2f}" for k in MEASURES)
+        print(f"| {clip} | {m} | {n} | {fps:.0f} | {cells} | {ext} |")
+
+
+def _print_means(methods, summary) -> None:
+    print()
+    print("Mean over the clips (lowest clip in brackets):")
+    print("| method | r mouth | r eyes | r brow |")
+    print("|---|---|---|---|")
+    for m in methods:
+        if not summary[m]["mouth"]:
+            continue
+        cells = " | ".join(f"{np.mean(summary[m][k]):.2f} ({np.min(summary[m][k]):.2f})"
+                           for k in ("mouth", "eye", "brow"))
+        print(f"| {m} | {cells} |")
+
+
+def _print_sizes(videos: Path, sizes_arg: str, build: Path, work: Path) -> None:
+    sizes = [tuple(int(v) for v in s.split("x")) for s in sizes_arg.split(",") if s]
+    if not sizes:
+        return
+    print()
+    print("Default method (detect) at production sizes, clip d3 scaled into the frame:")
+    print("| size | decode-only frames/s | track frames/s | track / decode |")
+    print("|---|---|---|---|")
+    for W, H in sizes:
+        wide = widescreen(videos / "d3.mp4", (W, H), build / f"d3_{W}x{H}.avi")
+        dfps, n = decode_fps(wide)
+        P, dt = run_method("detect", wide, None, work)
+        print(f"| {W}x{H} | {dfps:.0f} | {len(P) / dt:.0f} | {len(P) / dt / dfps:.2f} |")
+
+
+def main() -> int:
+    from realrig.measures import MEDIAPIPE, MULTIPIE68, pearson
+    from reference import ReferenceUnavailable, reference_landmarks
+
+    args = _parse_args()
+    why = _skip_reason(args.videos)
+    if why is not None:
+        print(f"skipped: {why}")
         return 0
     import logging
 
@@ -230,43 +285,10 @@ def main() -> int:
                 if path:
                     print(f"wrote {path}", file=sys.stderr)
 
-        print("| clip | method | frames | frames/s | r mouth | r eyes | r eye L | r eye R | r brow "
-              "| min eye | max mouth |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
-        for clip, m, n, fps, why, r, meas in rows:
-            if why is not None:
-                print(f"| {clip} | {m} | | | n/a: {why} | | | | | | |")
-                continue
-            ext = f"{np.nanmin(meas['eye']):.3f} | {np.nanmax(meas['mouth']):.3f}"
-            if r is None:
-                print(f"| {clip} | MediaPipe / {m} | {n} | {fps:.0f} | | | | | | {ext} |")
-                continue
-            cells = " | ".join(f"{r[k]:.2f}" for k in MEASURES)
-            print(f"| {clip} | {m} | {n} | {fps:.0f} | {cells} | {ext} |")
-        print()
-        print("Mean over the clips (lowest clip in brackets):")
-        print("| method | r mouth | r eyes | r brow |")
-        print("|---|---|---|---|")
-        for m in methods:
-            if not summary[m]["mouth"]:
-                continue
-            cells = " | ".join(f"{np.mean(summary[m][k]):.2f} ({np.min(summary[m][k]):.2f})"
-                               for k in ("mouth", "eye", "brow"))
-            print(f"| {m} | {cells} |")
-
-        sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",") if s]
-        if sizes:
-            print()
-            print("Default method (detect) at production sizes, clip d3 scaled into the frame:")
-            print("| size | decode-only frames/s | track frames/s | track / decode |")
-            print("|---|---|---|---|")
-            for W, H in sizes:
-                wide = widescreen(args.videos / "d3.mp4", (W, H), build / f"d3_{W}x{H}.avi")
-                dfps, n = decode_fps(wide)
-                P, dt = run_method("detect", wide, None, work)
-                print(f"| {W}x{H} | {dfps:.0f} | {len(P) / dt:.0f} | {len(P) / dt / dfps:.2f} |")
+        _print_rows(rows)
+        _print_means(methods, summary)
+        _print_sizes(args.videos, args.sizes, build, work)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -150,16 +150,8 @@ def _read_entries(path: Path) -> tuple[dict, list]:
     return top, [dict(s) for s in shots]
 
 
-def _read_csv(path: Path) -> list[dict]:
-    """CSV rows as shot entries: empty cells are absent; ``STAGE.KEY`` columns become ``set``; values YAML."""
-    import yaml
-
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from exc
-    rows = list(csv.reader(text.splitlines()))
-    rows = [r for r in rows if any(c.strip() for c in r)]
+def _csv_header(path: Path, rows: list[list[str]]) -> list[str]:
+    """The checked header row of a shot-list CSV."""
     if len(rows) < 2:
         raise ConfigError(f"{path}: expected a header row (name, video or config, ...) and at least one shot")
     header = [h.strip() for h in rows[0]]
@@ -170,6 +162,38 @@ def _read_csv(path: Path) -> list[dict]:
             raise unknown_key_error(f"{path}: header", h, (*SHOT_KEYS, "base", "STAGE.KEY"))
     if "set" in header:
         raise ConfigError(f"{path}: header: give overrides as STAGE.KEY columns (e.g. select.k), not 'set'")
+    return header
+
+
+def _csv_cell(entry: dict, h: str, cell: str, where: str) -> None:
+    """Store one non-empty CSV *cell* of column *h* in the shot *entry* (*where* is ``PATH:LINE``)."""
+    import yaml
+
+    if h == "annotations":
+        entry[h] = [a.strip() for a in cell.split(";") if a.strip()]
+    elif "." in h:
+        try:
+            entry.setdefault("set", {})[h] = yaml.safe_load(cell)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{where}: {h}: value is not valid YAML ({yaml_problem(exc)})") from exc
+    elif h == "seed":
+        try:
+            entry[h] = int(cell)
+        except ValueError:
+            raise ConfigError(f"{where}: seed: expected an integer, got {cell!r}") from None
+    else:
+        entry[h] = cell
+
+
+def _read_csv(path: Path) -> list[dict]:
+    """CSV rows as shot entries: empty cells are absent; ``STAGE.KEY`` columns become ``set``; values YAML."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from exc
+    rows = list(csv.reader(text.splitlines()))
+    rows = [r for r in rows if any(c.strip() for c in r)]
+    header = _csv_header(path, rows)
     out = []
     for line, row in enumerate(rows[1:], start=2):
         if len(row) > len(header):
@@ -177,22 +201,8 @@ def _read_csv(path: Path) -> list[dict]:
         entry: dict = {}
         for h, cell in zip(header, row):
             cell = cell.strip()
-            if not cell:
-                continue
-            if h == "annotations":
-                entry[h] = [a.strip() for a in cell.split(";") if a.strip()]
-            elif "." in h:
-                try:
-                    entry.setdefault("set", {})[h] = yaml.safe_load(cell)
-                except yaml.YAMLError as exc:
-                    raise ConfigError(f"{path}:{line}: {h}: value is not valid YAML ({yaml_problem(exc)})") from exc
-            elif h == "seed":
-                try:
-                    entry[h] = int(cell)
-                except ValueError:
-                    raise ConfigError(f"{path}:{line}: seed: expected an integer, got {cell!r}") from None
-            else:
-                entry[h] = cell
+            if cell:
+                _csv_cell(entry, h, cell, f"{path}:{line}")
         entry["_line"] = line
         out.append(entry)
     return out
@@ -241,10 +251,8 @@ def _check_file(path: Path, where: str) -> None:
         raise InputError(f"{where}: {path}: file not found")
 
 
-def _shot(entry: dict, i: int, list_path: Path, top: dict, out_root: Path, stages: dict) -> Shot:
-    from .pipeline import STAGES, resolve, select_stages
-
-    base_dir = list_path.resolve().parent
+def _shot_where(entry: dict, i: int, list_path: Path) -> tuple[str, str]:
+    """The shot's checked name and the ``LIST: shot NAME`` prefix of its messages; unknown keys refused."""
     name = entry.get("name")
     label = f"line {entry['_line']}" if "_line" in entry else f"shots[{i}]"
     if not isinstance(name, str) or not _NAME.match(name):
@@ -254,6 +262,11 @@ def _shot(entry: dict, i: int, list_path: Path, top: dict, out_root: Path, stage
     for key in entry:
         if key not in SHOT_KEYS and key not in ("base", "_line"):
             raise unknown_key_error(where, key, SHOT_KEYS)
+    return name, where
+
+
+def _shot_config(entry: dict, top: dict, base_dir: Path, where: str) -> Path:
+    """The shot's own ``config:`` or the shared ``base:``, resolved and required to exist."""
     own = entry.get("config")
     shared = entry.get("base", top.get("base"))
     if own is None and shared is None:
@@ -264,7 +277,11 @@ def _shot(entry: dict, i: int, list_path: Path, top: dict, out_root: Path, stage
     config = (base_dir / config_rel).resolve()
     if not config.is_file():
         raise InputError(f"{where}: {'config' if own is not None else 'base'}: {config}: config file not found")
+    return config
 
+
+def _shot_sets(entry: dict, where: str, stages: dict, base_dir: Path) -> dict:
+    """The shot's overrides as ``{"STAGE.KEY": value}``, keys checked, list-relative paths made absolute."""
     sets: dict = {}
     for key, stage_key in (("video", "track.video"), ("init", "track.init"), ("annotations", "track.annotations")):
         if key in entry:
@@ -287,24 +304,24 @@ def _shot(entry: dict, i: int, list_path: Path, top: dict, out_root: Path, stage
             sets[k] = _absolute(v, base_dir)
     if "output_dir" in sets:
         raise ConfigError(f"{where}: set: output_dir: give the shot's 'output:' instead")
+    return sets
+
+
+def _shot_output(entry: dict, name: str, where: str, base_dir: Path, out_root: Path) -> Path | None:
+    """The shot's output folder: its ``output:``, else OUT_ROOT/NAME for a shared base, else None (the config's)."""
     if "output" in entry:
         if not isinstance(entry["output"], str):
             raise ConfigError(f"{where}: output: expected a folder path, got {entry['output']!r}")
-        out = (base_dir / entry["output"]).resolve()
-    elif own is None:
-        out = out_root / name
-    else:
-        out = None  # the config's own output_dir
-    overrides = [f"{k}={yaml_value(v)}" for k, v in sets.items()]
-    if out is not None:
-        overrides.append(f"output_dir={yaml_value(str(out))}")
-    try:
-        cfg = load_config(config, stages, overrides)
-        names = select_stages(cfg)
-        resolved = {n: resolve(cfg, n) for n in names}
-    except (ConfigError, InputError) as exc:
-        raise type(exc)(f"{where}: {exc}") from None
-    # User-given input files must exist now (outputs of earlier stages appear as the shot runs).
+        return (base_dir / entry["output"]).resolve()
+    if entry.get("config") is None:
+        return out_root / name
+    return None  # the config's own output_dir
+
+
+def _check_inputs(cfg, resolved: dict, where: str) -> None:
+    """User-given input files of the resolved stages must exist (outputs of earlier stages are exempt)."""
+    from .pipeline import STAGES
+
     produced = {Path(kw[p.name]).resolve() for n, kw in resolved.items() for p in STAGES[n].params
                 if p.kind == "output" and kw[p.name] is not None}
     for n, kw in resolved.items():
@@ -319,6 +336,27 @@ def _shot(entry: dict, i: int, list_path: Path, top: dict, out_root: Path, stage
         if n == "track":
             for a in kw.get("annotations") or []:
                 _check_file(cfg.base_dir / a, f"{where}: track.annotations")
+
+
+def _shot(entry: dict, i: int, list_path: Path, top: dict, out_root: Path, stages: dict) -> Shot:
+    from .pipeline import resolve, select_stages
+
+    base_dir = list_path.resolve().parent
+    name, where = _shot_where(entry, i, list_path)
+    config = _shot_config(entry, top, base_dir, where)
+    sets = _shot_sets(entry, where, stages, base_dir)
+    out = _shot_output(entry, name, where, base_dir, out_root)
+    overrides = [f"{k}={yaml_value(v)}" for k, v in sets.items()]
+    if out is not None:
+        overrides.append(f"output_dir={yaml_value(str(out))}")
+    try:
+        cfg = load_config(config, stages, overrides)
+        names = select_stages(cfg)
+        resolved = {n: resolve(cfg, n) for n in names}
+    except (ConfigError, InputError) as exc:
+        raise type(exc)(f"{where}: {exc}") from None
+    # User-given input files must exist now (outputs of earlier stages appear as the shot runs).
+    _check_inputs(cfg, resolved, where)
     return Shot(name, config, overrides, cfg.output_dir, names)
 
 

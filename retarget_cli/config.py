@@ -80,46 +80,76 @@ class Param:
             if self.nullable or self.default is None:
                 return None
             raise ConfigError(f"{where}: a value is required ({self.describe_range()})")
-        t = self.type
-        if t is bool:
-            if not isinstance(value, bool):
-                raise ConfigError(f"{where}: expected true or false, got {value!r}")
-        elif t is int:
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        elif t is float:
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigError(f"{where}: expected a number, got {value!r}")
-            try:
-                value = float(value)
-            except OverflowError:
-                value = math.inf
-            if not math.isfinite(value):
-                raise ConfigError(f"{where}: expected a finite number ({self.describe_range()}), got {value!r}")
-        elif t is str:
-            if isinstance(value, (int, float)) and not isinstance(value, bool) and self.kind != "setting":
-                value = str(value)
-            if not isinstance(value, str):
-                raise ConfigError(f"{where}: expected a string, got {value!r}")
-        elif t in (list, dict):
-            if not isinstance(value, t):
-                raise ConfigError(f"{where}: expected a {'list' if t is list else 'mapping'}, got {value!r}")
-        if self.choices is not None and t is list:
-            bad = [v for v in value if v not in self.choices]
-            if bad or not value or len(set(value)) != len(value):
-                raise ConfigError(f"{where}: expected a non-empty list without repeats of "
-                                  f"{', '.join(map(str, self.choices))}; got {value!r}")
-        elif self.choices is not None and value not in self.choices:
-            hint = closest(str(value), [str(c) for c in self.choices])
-            extra = f"; did you mean {hint!r}?" if hint else ""
-            raise ConfigError(f"{where}: {value!r} is not {self.describe_range()}{extra}")
-        if t in (int, float) and (
+        coerce = _COERCE.get(self.type)
+        if coerce is not None:
+            value = coerce(self, value, where)
+        if self.choices is not None:
+            self._check_choices(value, where)
+        if self.type in (int, float) and (
             (self.min is not None and value < self.min) or (self.max is not None and value > self.max)
         ):
             raise ConfigError(f"{where}: {value!r} is out of range; expected {self.describe_range()}")
         if self.validate is not None:
             self.validate(value, where)
         return value
+
+    def _check_choices(self, value: Any, where: str) -> None:
+        """*value* (or, for a list, each item, once) must be one of :attr:`choices`."""
+        if self.type is list:
+            bad = [v for v in value if v not in self.choices]
+            if bad or not value or len(set(value)) != len(value):
+                raise ConfigError(f"{where}: expected a non-empty list without repeats of "
+                                  f"{', '.join(map(str, self.choices))}; got {value!r}")
+        elif value not in self.choices:
+            hint = closest(str(value), [str(c) for c in self.choices])
+            extra = f"; did you mean {hint!r}?" if hint else ""
+            raise ConfigError(f"{where}: {value!r} is not {self.describe_range()}{extra}")
+
+
+# --------------------------------------------------------------------------- type coercion (Param.check)
+
+
+def _coerce_bool(param: Param, value: Any, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{where}: expected true or false, got {value!r}")
+    return value
+
+
+def _coerce_int(param: Param, value: Any, where: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    return value
+
+
+def _coerce_float(param: Param, value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    try:
+        value = float(value)
+    except OverflowError:
+        value = math.inf
+    if not math.isfinite(value):
+        raise ConfigError(f"{where}: expected a finite number ({param.describe_range()}), got {value!r}")
+    return value
+
+
+def _coerce_str(param: Param, value: Any, where: str) -> str:
+    """Numbers become strings for inputs and outputs (file names like ``0001``), not for settings."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and param.kind != "setting":
+        value = str(value)
+    if not isinstance(value, str):
+        raise ConfigError(f"{where}: expected a string, got {value!r}")
+    return value
+
+
+def _coerce_container(param: Param, value: Any, where: str):
+    if not isinstance(value, param.type):
+        raise ConfigError(f"{where}: expected a {'list' if param.type is list else 'mapping'}, got {value!r}")
+    return value
+
+
+_COERCE = {bool: _coerce_bool, int: _coerce_int, float: _coerce_float, str: _coerce_str,
+           list: _coerce_container, dict: _coerce_container}
 
 
 # --------------------------------------------------------------------------- item validators (Param.validate)
@@ -326,6 +356,69 @@ def parse_override(text: str) -> tuple[str | None, str, Any]:
     return stage, key, value
 
 
+def _read_raw(path: Path, stages: dict) -> dict:
+    """The config file's top-level mapping (sections copied so overrides do not alias the YAML)."""
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    if path.stat().st_size > YAML_MAX_BYTES:
+        raise ConfigError(f"{path}: larger than {YAML_MAX_BYTES >> 20} MiB; not a config file")
+    raw = load_yaml(path.read_bytes(), str(path), with_line=True)
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(raw).__name__}")
+    bad = [k for k in raw if not isinstance(k, str)]
+    if bad:
+        raise ConfigError(f"{path}: {bad[0]!r} is not a section name; expected one of "
+                          f"{', '.join(sorted(set(TOP_LEVEL) | set(stages)))}")
+    return {k: (dict(v) if isinstance(v, dict) else v) for k, v in raw.items()}
+
+
+def _apply_overrides(raw: dict, path: Path, stages: dict, overrides) -> None:
+    """Write the ``--set`` *overrides* into *raw* in place."""
+    for text in overrides:
+        stage, key, value = parse_override(text)
+        if stage is None:
+            raw[key] = value
+            continue
+        if stage not in stages:
+            raise unknown_key_error(f"--set {text}", stage, stages)
+        section = raw.get(stage)
+        if section is None:
+            section = {}
+        if not isinstance(section, dict):
+            raise ConfigError(f"{path}: section {stage!r} must be a mapping of settings, got {section!r}")
+        raw[stage] = section
+        section[key] = value
+
+
+def _check_section(path: Path, key: str, value: Any, params: dict) -> dict:
+    """Section *key* of the config, each setting checked against its :class:`Param` in *params*."""
+    if value is None:
+        value = {}
+    if not isinstance(value, dict):
+        raise ConfigError(f"{path}: section {key!r} must be a mapping of settings, got {value!r}")
+    checked = {}
+    for k, v in value.items():
+        if not isinstance(k, str):
+            raise unknown_key_error(f"{path}: {key}", repr(k), params)
+        if k not in params:
+            raise unknown_key_error(f"{path}: {key}", k, params)
+        checked[k] = params[k].check(v, f"{path}: {key}.{k}")
+    return checked
+
+
+def _output_dir(path: Path, base: Path, top: dict) -> Path:
+    """The absolute output folder; it must not be an existing file."""
+    out = top.get("output_dir", TOP_LEVEL["output_dir"].default)
+    if not out.strip():
+        raise ConfigError(f"{path}: output_dir: expected a folder name, got {out!r}")
+    output_dir = (base / out).resolve()
+    if output_dir.exists() and not output_dir.is_dir():
+        raise ConfigError(f"{path}: output_dir: {output_dir} exists and is not a folder; choose another output_dir")
+    return output_dir
+
+
 def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
     """Read and validate a run config.
 
@@ -345,34 +438,8 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
         type or an out-of-range value; the message names file and key.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
-    if path.stat().st_size > YAML_MAX_BYTES:
-        raise ConfigError(f"{path}: larger than {YAML_MAX_BYTES >> 20} MiB; not a config file")
-    raw = load_yaml(path.read_bytes(), str(path), with_line=True)
-    if raw is None:
-        raw = {}
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(raw).__name__}")
-    bad = [k for k in raw if not isinstance(k, str)]
-    if bad:
-        raise ConfigError(f"{path}: {bad[0]!r} is not a section name; expected one of "
-                          f"{', '.join(sorted(set(TOP_LEVEL) | set(stages)))}")
-    raw = {k: (dict(v) if isinstance(v, dict) else v) for k, v in raw.items()}
-    for text in overrides:
-        stage, key, value = parse_override(text)
-        if stage is None:
-            raw[key] = value
-            continue
-        if stage not in stages:
-            raise unknown_key_error(f"--set {text}", stage, stages)
-        section = raw.get(stage)
-        if section is None:
-            section = {}
-        if not isinstance(section, dict):
-            raise ConfigError(f"{path}: section {stage!r} must be a mapping of settings, got {section!r}")
-        raw[stage] = section
-        section[key] = value
+    raw = _read_raw(path, stages)
+    _apply_overrides(raw, path, stages, overrides)
     valid_top = set(TOP_LEVEL) | set(stages)
     sections = {}
     top = {}
@@ -382,25 +449,8 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
             raise unknown_key_error(str(path), key, valid_top)
         if key in TOP_LEVEL:
             top[key] = TOP_LEVEL[key].check(value, f"{path}: {key}")
-            continue
-        if value is None:
-            value = {}
-        if not isinstance(value, dict):
-            raise ConfigError(f"{path}: section {key!r} must be a mapping of settings, got {value!r}")
-        params = {p.name: p for p in stages[key]}
-        checked = {}
-        for k, v in value.items():
-            if not isinstance(k, str):
-                raise unknown_key_error(f"{path}: {key}", repr(k), params)
-            if k not in params:
-                raise unknown_key_error(f"{path}: {key}", k, params)
-            checked[k] = params[k].check(v, f"{path}: {key}.{k}")
-        sections[key] = checked
+        else:
+            sections[key] = _check_section(path, key, value, {p.name: p for p in stages[key]})
     base = path.resolve().parent
-    out = top.get("output_dir", TOP_LEVEL["output_dir"].default)
-    if not out.strip():
-        raise ConfigError(f"{path}: output_dir: expected a folder name, got {out!r}")
-    output_dir = (base / out).resolve()
-    if output_dir.exists() and not output_dir.is_dir():
-        raise ConfigError(f"{path}: output_dir: {output_dir} exists and is not a folder; choose another output_dir")
+    output_dir = _output_dir(path, base, top)
     return Config(path, base, output_dir, top.get("seed", 0), sections)

@@ -687,6 +687,31 @@ def metrics(rig: QuadraticRig, weights, targets, alpha: float):
             sq + alpha * W.sum(axis=1))
 
 
+def _check_solve_args(rig: QuadraticRig, X: np.ndarray, solver: str, alpha: float, tol: float,
+                      max_iter: int) -> None:
+    """Refuse targets *X* (T, N, 3) that do not match *rig*, and out-of-range settings of :func:`solve`."""
+    if X.shape[1:] != (rig.n_vertices, 3):
+        raise ShapeError(f"targets: expected shape (T, {rig.n_vertices}, 3) to match the rig, got {X.shape}")
+    if solver not in SOLVERS:
+        raise ParameterError(f"solver: expected one of {', '.join(SOLVERS)}, got {solver!r}")
+    if not (np.isfinite(alpha) and alpha >= 0):
+        raise ParameterError(f"alpha: expected a number >= 0, got {alpha!r}")
+    if not (np.isfinite(tol) and tol > 0):
+        raise ParameterError(f"tol: expected a number > 0, got {tol!r}")
+    if int(max_iter) < 1:
+        raise ParameterError(f"max_iter: expected an integer >= 1, got {max_iter!r}")
+
+
+def _check_init(rig: QuadraticRig, init) -> np.ndarray | None:
+    """*init* as a float array of shape (m,), finite; None stays None."""
+    if init is None:
+        return None
+    init = np.asarray(init, dtype=np.float64)
+    if init.shape != (rig.n_shapes,) or not np.all(np.isfinite(init)):
+        raise ShapeError(f"init: expected shape ({rig.n_shapes},) finite, got {init.shape}")
+    return init
+
+
 def solve(rig: QuadraticRig, targets, *, solver: str = DEFAULT_SOLVER, alpha: float = DEFAULT_ALPHA,
           tol: float = DEFAULT_TOL, max_iter: int = DEFAULT_MAX_ITER, init=None,
           callback: Callable[[int], None] | None = None, history: list | None = None) -> InverseRigResult:
@@ -721,21 +746,9 @@ def solve(rig: QuadraticRig, targets, *, solver: str = DEFAULT_SOLVER, alpha: fl
     InverseRigResult
     """
     X = check_array(targets, "targets", ndim=3)
-    if X.shape[1:] != (rig.n_vertices, 3):
-        raise ShapeError(f"targets: expected shape (T, {rig.n_vertices}, 3) to match the rig, got {X.shape}")
-    if solver not in SOLVERS:
-        raise ParameterError(f"solver: expected one of {', '.join(SOLVERS)}, got {solver!r}")
-    if not (np.isfinite(alpha) and alpha >= 0):
-        raise ParameterError(f"alpha: expected a number >= 0, got {alpha!r}")
-    if not (np.isfinite(tol) and tol > 0):
-        raise ParameterError(f"tol: expected a number > 0, got {tol!r}")
-    if int(max_iter) < 1:
-        raise ParameterError(f"max_iter: expected an integer >= 1, got {max_iter!r}")
+    _check_solve_args(rig, X, solver, alpha, tol, max_iter)
     max_iter = int(max_iter)
-    if init is not None:
-        init = np.asarray(init, dtype=np.float64)
-        if init.shape != (rig.n_shapes,) or not np.all(np.isfinite(init)):
-            raise ShapeError(f"init: expected shape ({rig.n_shapes},) finite, got {init.shape}")
+    init = _check_init(rig, init)
     tick = callback or (lambda n: None)
     T, m = X.shape[0], rig.n_shapes
     Bmat = X.reshape(T, -1) - rig.b0  # targets minus neutral

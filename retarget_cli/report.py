@@ -291,8 +291,36 @@ def _file_params(stage: str) -> set:
     return {p.name for p in STAGES[stage].params if p.kind in ("input", "output")} | {"base_dir"}
 
 
-def _summary(data: RunData, run: RunFiles, keys: dict) -> tuple[str, bool]:
-    parts = []
+def _landmark_rows(data: RunData) -> list:
+    """Summary rows about the landmarks file: point count, frame size, tracker, landmark filter."""
+    w, h = data.frame_size
+    rows = [("landmarks", f"{data.lm.n_points} points, {w}x{h} pixels")]
+    if data.lm.meta.get("tracker"):
+        rows.append(("tracker", str(data.lm.meta.get("tracker"))))
+    filt = data.lm.meta.get("filter")
+    if isinstance(filt, dict) and filt.get("method"):
+        params = ", ".join(f"{k} {v}" for k, v in filt.items() if k != "method")
+        rows.append(("landmark filter", f"{filt['method']} ({params})" if params else str(filt["method"])))
+    return rows
+
+
+def _solver_rows(meta: dict) -> list:
+    """Summary rows from the weights' meta: solver, and mesh-space jitter per region."""
+    rows = []
+    solver = meta.get("solver")
+    if solver:
+        rows.append(("solver", str(solver)))
+    for name, d in sorted((meta.get("diagnostics") or {}).items()):
+        if isinstance(d, dict) and "shape_jitter_px" in d:
+            ratio = (f" ({d['shape_jitter_px'] / d['input_jitter_px']:.2f}× the input landmarks')"
+                     if d.get("input_jitter_px") else "")
+            rows.append((f"mesh-space jitter {name}", f"{d['shape_jitter_px']:.3g} px/frame² mean landmark "
+                         f"acceleration{ratio}"))
+    return rows
+
+
+def _summary_rows(data: RunData, run: RunFiles, keys: dict) -> list:
+    """The (name, value) rows of the run-summary table."""
     rows = [("run", _show(run.root))]
     if run.config:
         rows.append(("config", _show(run.config)))
@@ -301,69 +329,74 @@ def _summary(data: RunData, run: RunFiles, keys: dict) -> tuple[str, bool]:
     if data.n_frames:
         rows.append(("frames", f"{data.n_frames} at {data.fps:g} fps ({data.n_frames / data.fps:.2f} s)"))
     if data.lm is not None:
-        w, h = data.frame_size
-        rows.append(("landmarks", f"{data.lm.n_points} points, {w}x{h} pixels"))
-        if data.lm.meta.get("tracker"):
-            rows.append(("tracker", str(data.lm.meta.get("tracker"))))
-        filt = data.lm.meta.get("filter")
-        if isinstance(filt, dict) and filt.get("method"):
-            params = ", ".join(f"{k} {v}" for k, v in filt.items() if k != "method")
-            rows.append(("landmark filter", f"{filt['method']} ({params})" if params else str(filt["method"])))
+        rows += _landmark_rows(data)
     for name, (W, _) in data.regions.items():
         err = keys.get(name, {}).get("error")
         extra = f", E = {err:.4g} px² (eq. 5)" if isinstance(err, (int, float)) else ""
         rows.append((f"region {name}", f"{W.shape[1]} keys{extra}"))
     if data.regions and data.other.get("meta"):
-        solver = data.other["meta"].get("solver")
-        if solver:
-            rows.append(("solver", str(solver)))
-        for name, d in sorted((data.other["meta"].get("diagnostics") or {}).items()):
-            if isinstance(d, dict) and "shape_jitter_px" in d:
-                ratio = (f" ({d['shape_jitter_px'] / d['input_jitter_px']:.2f}× the input landmarks')"
-                         if d.get("input_jitter_px") else "")
-                rows.append((f"mesh-space jitter {name}", f"{d['shape_jitter_px']:.3g} px/frame² mean landmark "
-                             f"acceleration{ratio}"))
+        rows += _solver_rows(data.other["meta"])
     if data.frame_files:
         rows.append(("target frames", f"{len(data.frame_files)} OBJ in {_show(run.frames)}"))
-    parts.append(_table(("", ""), rows))
+    return rows
+
+
+def _inputs_html(man: dict) -> str:
+    """The collapsible list of the run's input files (not produced by a stage), first 40 shown."""
+    produced = {path for m in man.values() for path in (m.get("outputs") or {})}
+    inp, seen = [], set()
+    for stage, m in man.items():
+        for path, rec in sorted((m.get("inputs") or {}).items()):
+            if isinstance(rec, dict) and path not in produced and path not in seen:
+                seen.add(path)
+                inp.append((stage, path, rec.get("size", ""), str(rec.get("sha256", ""))[:12]))
+    if not inp:
+        return ""
+    shown = inp[:40]
+    more = (f'<p class="muted">and {len(inp) - len(shown)} more input files.</p>'
+            if len(inp) > len(shown) else "")
+    return (f"<details><summary>Inputs: {len(inp)} files (sizes and sha256)</summary>"
+            + _table(("first used by", "file (relative to the config)", "bytes", "sha256"), shown,
+                     num_cols=(2,)) + more + "</details>")
+
+
+def _stages_html(man: dict) -> str:
+    """The table of stages with their seconds, version and settings (file parameters left out)."""
+    st = []
+    for stage, m in man.items():
+        settings = {k: v for k, v in (m.get("settings") or {}).items() if k not in _file_params(stage)}
+        text = "; ".join(f"{k} = {_fmt_setting(v)}" for k, v in sorted(settings.items()))
+        sec = m.get("seconds")
+        st.append((stage, f"{sec:.2f}" if isinstance(sec, (int, float)) else "n/a", m.get("version", ""), text))
+    return "<h3>Stages</h3>" + _table(("stage", "seconds", "version", "settings"), st, num_cols=(1,))
+
+
+def _timings_html(timed: list) -> str:
+    """Bar chart of ``[(stage, seconds)]``."""
+    fig, ax = _figure(6, 0.45 + 0.22 * len(timed))
+    ax = ax[0, 0]
+    names = [s for s, _ in timed][::-1]
+    secs = [v for _, v in timed][::-1]
+    ax.barh(names, secs, color="#4a7fb5")
+    for i, v in enumerate(secs):
+        ax.text(v, i, f" {v:.2f} s", va="center", fontsize=8)
+    ax.set_xlabel("seconds (wall clock, last run of each stage)")
+    ax.set_xlim(0, max(secs) * 1.18 + 1e-3)
+    return _figure_html(_png_fig(fig), "Stage timings from the manifests.")
+
+
+def _summary(data: RunData, run: RunFiles, keys: dict) -> tuple[str, bool]:
+    parts = [_table(("", ""), _summary_rows(data, run, keys))]
     man = run.manifests
     if man:
-        produced = {path for m in man.values() for path in (m.get("outputs") or {})}
-        inp, seen = [], set()
-        for stage, m in man.items():
-            for path, rec in sorted((m.get("inputs") or {}).items()):
-                if isinstance(rec, dict) and path not in produced and path not in seen:
-                    seen.add(path)
-                    inp.append((stage, path, rec.get("size", ""), str(rec.get("sha256", ""))[:12]))
-        if inp:
-            shown = inp[:40]
-            more = (f'<p class="muted">and {len(inp) - len(shown)} more input files.</p>'
-                    if len(inp) > len(shown) else "")
-            parts.append(f"<details><summary>Inputs: {len(inp)} files (sizes and sha256)</summary>"
-                         + _table(("first used by", "file (relative to the config)", "bytes", "sha256"), shown,
-                                  num_cols=(2,)) + more + "</details>")
-        st = []
-        for stage, m in man.items():
-            settings = {k: v for k, v in (m.get("settings") or {}).items() if k not in _file_params(stage)}
-            text = "; ".join(f"{k} = {_fmt_setting(v)}" for k, v in sorted(settings.items()))
-            sec = m.get("seconds")
-            st.append((stage, f"{sec:.2f}" if isinstance(sec, (int, float)) else "n/a", m.get("version", ""), text))
-        parts.append("<h3>Stages</h3>" + _table(("stage", "seconds", "version", "settings"), st, num_cols=(1,)))
+        parts.append(_inputs_html(man))
+        parts.append(_stages_html(man))
     else:
         parts.append('<p class="muted">No stage manifests (.retarget/*.json): the stages were run one by one, '
                      "so inputs, settings and timings are unknown.</p>")
     timed = [(s, m["seconds"]) for s, m in man.items() if isinstance(m.get("seconds"), (int, float))]
     if timed:
-        fig, ax = _figure(6, 0.45 + 0.22 * len(timed))
-        ax = ax[0, 0]
-        names = [s for s, _ in timed][::-1]
-        secs = [v for _, v in timed][::-1]
-        ax.barh(names, secs, color="#4a7fb5")
-        for i, v in enumerate(secs):
-            ax.text(v, i, f" {v:.2f} s", va="center", fontsize=8)
-        ax.set_xlabel("seconds (wall clock, last run of each stage)")
-        ax.set_xlim(0, max(secs) * 1.18 + 1e-3)
-        parts.append(_figure_html(_png_fig(fig), "Stage timings from the manifests."))
+        parts.append(_timings_html(timed))
     return _section("summary", "Run summary", "".join(parts)), bool(timed)
 
 
@@ -399,14 +432,16 @@ def _tracking(data: RunData) -> str | None:
     return _section("tracking", "Tracking confidence", body)
 
 
-def _keys_sheet(data: RunData, run: RunFiles, keys: dict, frames: dict, camera, shading) -> str | None:
-    import cv2
-
+def _sheet_regions(data: RunData, keys: dict) -> dict:
+    """Regions with key frames: from ``keys.json``, else the weights file's key frames."""
     regions = {n: r for n, r in keys.items() if r.get("frames")}
     if not regions and data.regions:
         regions = {n: {"frames": [int(f) for f in fr], "points": None} for n, (_, fr) in data.regions.items()}
-    if not regions:
-        return None
+    return regions
+
+
+def _sheet_renderer(run: RunFiles, camera, shading):
+    """``(targets, renderer)`` for the target key shapes; either is None when unreadable or absent."""
     targets = None
     if run.targets:
         from .io.stagefiles import read_targets
@@ -415,15 +450,33 @@ def _keys_sheet(data: RunData, run: RunFiles, keys: dict, frames: dict, camera, 
             targets = read_targets(run.targets)
         except InputError as exc:
             log.warning("%s", exc)
-    renderer = None
-    if targets is not None:
-        from .io.obj import read_obj
-        from .render import MeshRenderer
+    if targets is None:
+        return None, None
+    from .io.obj import read_obj
+    from .render import MeshRenderer
 
-        ref_path = targets.neutral or next(iter(next(iter(targets.regions.values()))["keys"].values()))
-        if Path(ref_path).is_file():
-            ref = read_obj(ref_path)
-            renderer = MeshRenderer(ref.faces(), ref.vertices, camera=camera, size=(THUMB, THUMB), shading=shading)
+    ref_path = targets.neutral or next(iter(next(iter(targets.regions.values()))["keys"].values()))
+    if not Path(ref_path).is_file():
+        return targets, None
+    ref = read_obj(ref_path)
+    return targets, MeshRenderer(ref.faces(), ref.vertices, camera=camera, size=(THUMB, THUMB), shading=shading)
+
+
+def _target_thumb(renderer, targets, name: str, f: int, col) -> np.ndarray:
+    """Render of region *name*'s target key shape at frame *f*, or a grey "no target" tile."""
+    from .io.obj import read_obj
+
+    if name in targets.regions and f in targets.regions[name]["keys"]:
+        p = targets.regions[name]["keys"][f]
+        if Path(p).is_file():
+            m = read_obj(p)
+            if m.n_vertices == renderer.n_vertices:
+                return _label(renderer.render(m.vertices), f"target {f}", col)
+    return _label(_blank((THUMB, THUMB), (60, 60, 60)), "no target")
+
+
+def _sheet_rows(data: RunData, frames: dict, regions: dict, targets, renderer) -> tuple[list, list]:
+    """Contact-sheet image rows (source thumbnails, then target renders when there is a renderer) and notes."""
     rows = []
     notes = []
     for r, (name, reg) in enumerate(regions.items()):
@@ -432,23 +485,22 @@ def _keys_sheet(data: RunData, run: RunFiles, keys: dict, frames: dict, camera, 
         if len(fr) > MAX_SHEET_KEYS:
             notes.append(f"{name}: first {MAX_SHEET_KEYS} of {len(fr)} keys shown")
             fr = fr[:MAX_SHEET_KEYS]
-        top, bottom = [], []
-        for f in fr:
-            top.append(_label(source_thumb(data, frames, f, highlight=reg.get("points"), color=col),
-                              f"{name} {f}", col))
-            tgt = None
-            if renderer is not None and name in targets.regions and f in targets.regions[name]["keys"]:
-                p = targets.regions[name]["keys"][f]
-                if Path(p).is_file():
-                    from .io.obj import read_obj
-
-                    m = read_obj(p)
-                    if m.n_vertices == renderer.n_vertices:
-                        tgt = _label(renderer.render(m.vertices), f"target {f}", col)
-            bottom.append(tgt if tgt is not None else _label(_blank((THUMB, THUMB), (60, 60, 60)), "no target"))
+        top = [_label(source_thumb(data, frames, f, highlight=reg.get("points"), color=col), f"{name} {f}", col)
+               for f in fr]
         rows.append(np.hstack(top))
         if renderer is not None:
-            rows.append(np.hstack(bottom))
+            rows.append(np.hstack([_target_thumb(renderer, targets, name, f, col) for f in fr]))
+    return rows, notes
+
+
+def _keys_sheet(data: RunData, run: RunFiles, keys: dict, frames: dict, camera, shading) -> str | None:
+    import cv2
+
+    regions = _sheet_regions(data, keys)
+    if not regions:
+        return None
+    targets, renderer = _sheet_renderer(run, camera, shading)
+    rows, notes = _sheet_rows(data, frames, regions, targets, renderer)
     width = max(r.shape[1] for r in rows)
     sheet = np.vstack([cv2.copyMakeBorder(r, 0, 4, 0, width - r.shape[1], cv2.BORDER_CONSTANT, value=(255, 255, 255))
                        for r in rows])

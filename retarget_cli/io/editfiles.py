@@ -180,6 +180,126 @@ def edits_rig(path: str | os.PathLike) -> Path | None:
     return path.parent / rig if rig else None
 
 
+def _edit_body(item, where: str) -> tuple[str, dict, str]:
+    """``(kind, settings, where.kind)`` of one ``edits[i]`` entry (``{pin: {...}}`` or ``{attenuate: {...}}``)."""
+    if not isinstance(item, dict) or len(item) != 1:
+        raise ConfigError(f"{where}: expected one of 'pin:' or 'attenuate:' with its settings")
+    kind, body = next(iter(item.items()))
+    if kind not in EDIT_KINDS:
+        raise unknown_key_error(where, str(kind), EDIT_KINDS)
+    where = f"{where}.{kind}"
+    _keys(body, PIN_KEYS if kind == "pin" else ATTENUATE_KEYS, where)
+    return kind, body, where
+
+
+def _edit_common(body: dict, where: str, frames: list) -> dict:
+    """The settings every edit has: frame range, ease in / out, solve; checked against the animation."""
+    fr = body.get("frames")
+    if isinstance(fr, int) and not isinstance(fr, bool):
+        fr = [fr, fr]
+    if not isinstance(fr, list) or len(fr) != 2 or not all(isinstance(f, int) and not isinstance(f, bool)
+                                                           for f in fr) or fr[0] > fr[1]:
+        raise ConfigError(f"{where}.frames: expected a frame or [first, last] (inclusive), got {fr!r}")
+    ease_in = _int(body.get("ease_in", 0), f"{where}.ease_in", 0)
+    ease_out = _int(body.get("ease_out", 0), f"{where}.ease_out", 0)
+    if fr[1] + ease_out < frames[0] or fr[0] - ease_in > frames[-1]:
+        raise ConfigError(f"{where}.frames: {fr} is outside the animation (frames {frames[0]}-{frames[-1]})")
+    solve = body.get("solve", "bounded")
+    if solve not in ("bounded", "closed-form"):
+        hint = closest(str(solve), ("bounded", "closed-form"))
+        raise ConfigError(f"{where}.solve: expected 'bounded' or 'closed-form', got {solve!r}"
+                          + (f"; did you mean {hint!r}?" if hint else ""))
+    return dict(frames=(fr[0], fr[1]), ease_in=ease_in, ease_out=ease_out, bounded=solve == "bounded",
+                where=where)
+
+
+def _pin(c, cw: str, n_vertices: int, frames: list):
+    """One ``constraints[j]`` entry of a pin edit as a :class:`~retarget_cli.edit.Pin`."""
+    from ..edit import Pin
+
+    _keys(c, CONSTRAINT_KEYS, cw)
+    if "vertex" not in c:
+        raise ConfigError(f"{cw}: 'vertex' is required")
+    if "position" in c and any(k in c for k in ("offset", "frame", "to_vertex")):
+        raise ConfigError(f"{cw}: 'position' is absolute; it cannot be combined with offset, frame or to_vertex")
+    return Pin(
+        vertex=_vertex(c["vertex"], f"{cw}.vertex", n_vertices),
+        axes=_axes(c.get("axes", "xyz"), f"{cw}.axes"),
+        weight=_num(c.get("weight", 1.0), f"{cw}.weight", 0.0),
+        position=_vec3(c["position"], f"{cw}.position") if "position" in c else None,
+        offset=_vec3(c["offset"], f"{cw}.offset") if "offset" in c else (0.0, 0.0, 0.0),
+        frame=_frame(c["frame"], f"{cw}.frame", frames) if "frame" in c else None,
+        to_vertex=_vertex(c["to_vertex"], f"{cw}.to_vertex", n_vertices) if "to_vertex" in c else None,
+    )
+
+
+def _w0(w0, where: str, expressions) -> dict | None:
+    """A pin edit's ``w0``: None for ``current``, else ``{expression: coefficient}`` of known expressions."""
+    if w0 == "current":
+        return None
+    if not (isinstance(w0, dict) and w0):
+        raise ConfigError(f"{where}.w0: expected 'current' or {{expression: coefficient}}, got {w0!r}")
+    for name, coef in w0.items():
+        if name not in expressions:
+            hint = closest(str(name), expressions)
+            known = ", ".join(expressions) or "no expressions"
+            raise ConfigError(f"{where}.w0: unknown expression {name!r}"
+                              + (f"; did you mean {hint!r}?" if hint else f"; the rig's library has {known}"))
+        _num(coef, f"{where}.w0.{name}")
+    return {str(k): float(v) for k, v in w0.items()}
+
+
+def _pin_edit(body: dict, common: dict, n_vertices: int, frames: list, expressions):
+    """A ``pin:`` edit's settings as a :class:`~retarget_cli.edit.PinEdit`."""
+    from ..edit import DEFAULT_ALPHA, DEFAULT_MU, PinEdit
+
+    where = common["where"]
+    cons = body.get("constraints")
+    if not isinstance(cons, list) or not cons:
+        raise ConfigError(f"{where}.constraints: expected a non-empty list of {{vertex: id, position: [x, y, z]}}")
+    pins = [_pin(c, f"{where}.constraints[{j}]", n_vertices, frames) for j, c in enumerate(cons)]
+    w0 = _w0(body.get("w0", "current"), where, expressions)
+    edit = PinEdit(pins=pins, alpha=_num(body.get("alpha", DEFAULT_ALPHA), f"{where}.alpha", 0.0),
+                   mu=_num(body.get("mu", DEFAULT_MU), f"{where}.mu", 0.0), w0=w0, **common)
+    if edit.alpha + edit.mu <= 0:
+        raise ConfigError(f"{where}: alpha + mu must be > 0")
+    return edit
+
+
+def _select_group(g, gw: str, path: Path, n_vertices: int) -> tuple[list, str]:
+    """One ``select[j]`` entry of an attenuate edit: ``(vertex ids, axes)``; a string names a vertex-mask file."""
+    from .stagefiles import read_vertex_mask
+
+    _keys(g, SELECT_KEYS, gw)
+    verts = g.get("vertices")
+    if isinstance(verts, str):
+        mask_file = path.parent / verts
+        verts = [int(v) for v in np.flatnonzero(read_vertex_mask(mask_file, n_vertices) > 0)]
+        if not verts:
+            raise ConfigError(f"{gw}.vertices: {mask_file} selects no vertex")
+    if not isinstance(verts, list) or not verts:
+        raise ConfigError(f"{gw}.vertices: expected a list of vertex ids or a vertex-mask file")
+    verts = [_vertex(v, f"{gw}.vertices", n_vertices) for v in verts]
+    return verts, _axes(g.get("axes", "xyz"), f"{gw}.axes")
+
+
+def _attenuate_edit(body: dict, common: dict, path: Path, n_vertices: int, frames: list):
+    """An ``attenuate:`` edit's settings as an :class:`~retarget_cli.edit.AttenuateEdit`."""
+    from ..edit import AttenuateEdit
+
+    where = common["where"]
+    sel = body.get("select")
+    if not isinstance(sel, list) or not sel:
+        raise ConfigError(f"{where}.select: expected a non-empty list of {{vertices: [ids], axes: xyz}}")
+    groups = [_select_group(g, f"{where}.select[{j}]", path, n_vertices) for j, g in enumerate(sel)]
+    ref = body.get("reference", "start")
+    if ref not in ("start", "neutral"):
+        _frame(ref, f"{where}.reference", frames)
+    alpha = body.get("alpha")
+    alpha = None if alpha is None else _num(alpha, f"{where}.alpha", 0.0)
+    return AttenuateEdit(select=groups, alpha=alpha, reference=ref, **common)
+
+
 def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=()) -> list:
     """Read and check ``edits.yaml`` against a rig and an animation.
 
@@ -202,9 +322,6 @@ def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=
         Naming the file, the edit (``edits[2].pin.constraints[0].vertex``) and
         what was expected; unknown keys get the closest valid key.
     """
-    from ..edit import DEFAULT_ALPHA, DEFAULT_MU, AttenuateEdit, Pin, PinEdit
-    from .stagefiles import read_vertex_mask
-
     path = Path(path)
     data = _load_edits_yaml(path)
     frames = [int(f) for f in frames]
@@ -213,94 +330,12 @@ def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=
         raise ConfigError(f"{path}: edits: expected a non-empty list of '- pin: {{...}}' or '- attenuate: {{...}}'")
     out = []
     for i, item in enumerate(items):
-        where = f"{path}: edits[{i}]"
-        if not isinstance(item, dict) or len(item) != 1:
-            raise ConfigError(f"{where}: expected one of 'pin:' or 'attenuate:' with its settings")
-        kind, body = next(iter(item.items()))
-        if kind not in EDIT_KINDS:
-            raise unknown_key_error(where, str(kind), EDIT_KINDS)
-        where = f"{where}.{kind}"
-        _keys(body, PIN_KEYS if kind == "pin" else ATTENUATE_KEYS, where)
-        fr = body.get("frames")
-        if isinstance(fr, int) and not isinstance(fr, bool):
-            fr = [fr, fr]
-        if not isinstance(fr, list) or len(fr) != 2 or not all(isinstance(f, int) and not isinstance(f, bool)
-                                                               for f in fr) or fr[0] > fr[1]:
-            raise ConfigError(f"{where}.frames: expected a frame or [first, last] (inclusive), got {fr!r}")
-        ease_in = _int(body.get("ease_in", 0), f"{where}.ease_in", 0)
-        ease_out = _int(body.get("ease_out", 0), f"{where}.ease_out", 0)
-        if fr[1] + ease_out < frames[0] or fr[0] - ease_in > frames[-1]:
-            raise ConfigError(f"{where}.frames: {fr} is outside the animation (frames {frames[0]}-{frames[-1]})")
-        solve = body.get("solve", "bounded")
-        if solve not in ("bounded", "closed-form"):
-            hint = closest(str(solve), ("bounded", "closed-form"))
-            raise ConfigError(f"{where}.solve: expected 'bounded' or 'closed-form', got {solve!r}"
-                              + (f"; did you mean {hint!r}?" if hint else ""))
-        common = dict(frames=(fr[0], fr[1]), ease_in=ease_in, ease_out=ease_out, bounded=solve == "bounded",
-                      where=where)
+        kind, body, where = _edit_body(item, f"{path}: edits[{i}]")
+        common = _edit_common(body, where, frames)
         if kind == "pin":
-            cons = body.get("constraints")
-            if not isinstance(cons, list) or not cons:
-                raise ConfigError(f"{where}.constraints: expected a non-empty list of {{vertex: id, position: [x, y, z]}}")
-            pins = []
-            for j, c in enumerate(cons):
-                cw = f"{where}.constraints[{j}]"
-                _keys(c, CONSTRAINT_KEYS, cw)
-                if "vertex" not in c:
-                    raise ConfigError(f"{cw}: 'vertex' is required")
-                if "position" in c and any(k in c for k in ("offset", "frame", "to_vertex")):
-                    raise ConfigError(f"{cw}: 'position' is absolute; it cannot be combined with offset, frame or to_vertex")
-                pins.append(Pin(
-                    vertex=_vertex(c["vertex"], f"{cw}.vertex", n_vertices),
-                    axes=_axes(c.get("axes", "xyz"), f"{cw}.axes"),
-                    weight=_num(c.get("weight", 1.0), f"{cw}.weight", 0.0),
-                    position=_vec3(c["position"], f"{cw}.position") if "position" in c else None,
-                    offset=_vec3(c["offset"], f"{cw}.offset") if "offset" in c else (0.0, 0.0, 0.0),
-                    frame=_frame(c["frame"], f"{cw}.frame", frames) if "frame" in c else None,
-                    to_vertex=_vertex(c["to_vertex"], f"{cw}.to_vertex", n_vertices) if "to_vertex" in c else None,
-                ))
-            w0 = body.get("w0", "current")
-            if w0 == "current":
-                w0 = None
-            elif isinstance(w0, dict) and w0:
-                for name, coef in w0.items():
-                    if name not in expressions:
-                        hint = closest(str(name), expressions)
-                        known = ", ".join(expressions) or "no expressions"
-                        raise ConfigError(f"{where}.w0: unknown expression {name!r}"
-                                          + (f"; did you mean {hint!r}?" if hint else f"; the rig's library has {known}"))
-                    _num(coef, f"{where}.w0.{name}")
-                w0 = {str(k): float(v) for k, v in w0.items()}
-            else:
-                raise ConfigError(f"{where}.w0: expected 'current' or {{expression: coefficient}}, got {w0!r}")
-            out.append(PinEdit(pins=pins, alpha=_num(body.get("alpha", DEFAULT_ALPHA), f"{where}.alpha", 0.0),
-                               mu=_num(body.get("mu", DEFAULT_MU), f"{where}.mu", 0.0), w0=w0, **common))
-            if out[-1].alpha + out[-1].mu <= 0:
-                raise ConfigError(f"{where}: alpha + mu must be > 0")
+            out.append(_pin_edit(body, common, n_vertices, frames, expressions))
         else:
-            sel = body.get("select")
-            if not isinstance(sel, list) or not sel:
-                raise ConfigError(f"{where}.select: expected a non-empty list of {{vertices: [ids], axes: xyz}}")
-            groups = []
-            for j, g in enumerate(sel):
-                gw = f"{where}.select[{j}]"
-                _keys(g, SELECT_KEYS, gw)
-                verts = g.get("vertices")
-                if isinstance(verts, str):
-                    mask_file = path.parent / verts
-                    verts = [int(v) for v in np.flatnonzero(read_vertex_mask(mask_file, n_vertices) > 0)]
-                    if not verts:
-                        raise ConfigError(f"{gw}.vertices: {mask_file} selects no vertex")
-                if not isinstance(verts, list) or not verts:
-                    raise ConfigError(f"{gw}.vertices: expected a list of vertex ids or a vertex-mask file")
-                verts = [_vertex(v, f"{gw}.vertices", n_vertices) for v in verts]
-                groups.append((verts, _axes(g.get("axes", "xyz"), f"{gw}.axes")))
-            ref = body.get("reference", "start")
-            if ref not in ("start", "neutral"):
-                _frame(ref, f"{where}.reference", frames)
-            alpha = body.get("alpha")
-            alpha = None if alpha is None else _num(alpha, f"{where}.alpha", 0.0)
-            out.append(AttenuateEdit(select=groups, alpha=alpha, reference=ref, **common))
+            out.append(_attenuate_edit(body, common, path, n_vertices, frames))
     return out
 
 

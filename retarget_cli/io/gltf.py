@@ -151,6 +151,118 @@ class _Bin:
         return len(self.accessors) - 1
 
 
+def _check_glb_inputs(base: np.ndarray, D: np.ndarray, W: np.ndarray, target_names, fps: float) -> None:
+    """Shapes of :func:`glb_bytes`'s arrays: base (N, 3), targets (M, N, 3), weights (T >= 1, M); fps > 0."""
+    if base.ndim != 2 or base.shape[1] != 3:
+        raise ShapeError(f"base: expected shape (N, 3), got {base.shape}")
+    if D.ndim != 3 or D.shape[1:] != base.shape:
+        raise ShapeError(f"targets: expected shape (M, {base.shape[0]}, 3), got {D.shape}")
+    if W.ndim != 2 or W.shape[1] != D.shape[0] or W.shape[0] < 1:
+        raise ShapeError(f"weights: expected shape (T, {D.shape[0]}), got {W.shape}")
+    if len(target_names) != D.shape[0]:
+        raise ShapeError(f"target_names: expected {D.shape[0]} names, got {len(target_names)}")
+    if not fps > 0:
+        raise ShapeError(f"fps: expected > 0, got {fps}")
+
+
+def _surface_normals(surface, base: np.ndarray, src: np.ndarray, vn, N: int) -> np.ndarray:
+    """Unit normals (V, 3) of the split vertices: the OBJ's ``vn`` where given, else computed from the faces."""
+    from .objsurface import vertex_normals
+
+    if vn is not None:
+        nrm = surface.normals[np.maximum(vn, 0)]
+        nrm[vn < 0] = 0
+    else:
+        nrm = vertex_normals(base[:N], surface.counts, surface.v)[src]
+    length = np.linalg.norm(nrm, axis=1, keepdims=True)
+    return np.where(length > 0, nrm / np.where(length > 0, length, 1), [0.0, 0.0, 1.0])  # unit, as glTF requires
+
+
+def _material_groups(surface, tris: np.ndarray, face: np.ndarray) -> tuple[list, list]:
+    """Triangles grouped per OBJ material as ``[(material index or None, (F, 3))]``, and the glTF materials."""
+    tri_mat = surface.material[face]
+    groups, materials = [], []
+    for m, mat in enumerate(surface.materials):
+        color = surface.base_colors.get(mat)
+        if color is None and not mat:
+            groups.append((None, tris[tri_mat == m]))
+            continue
+        pbr = {"metallicFactor": 0.0}
+        if color is not None:
+            pbr["baseColorFactor"] = [float(c) for c in color] + [1.0]
+        groups.append((len(materials), tris[tri_mat == m]))
+        materials.append({"name": mat, "pbrMetallicRoughness": pbr})
+    return groups or [(None, tris)], materials
+
+
+def _plain_mesh(b: _Bin, base: np.ndarray, faces, N: int) -> tuple[dict, list]:
+    """Attributes and one triangle group of a mesh given as polygons only."""
+    tris = triangulate(faces)
+    if tris.size and int(tris.max()) >= N:
+        raise ShapeError(f"faces: vertex id {int(tris.max())} is out of range for {N} vertices")
+    attributes = {"POSITION": b.add(base, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)}
+    return attributes, [(None, tris)]
+
+
+def _surface_mesh(b: _Bin, surface, base: np.ndarray, D: np.ndarray, N: int):
+    """Attributes, triangle groups and materials of an OBJ surface; base and targets split per corner."""
+    if surface.v.size and int(surface.v.max()) >= N:
+        raise ShapeError(f"surface: vertex id {int(surface.v.max())} is out of range for {N} vertices")
+    src, corners, vt, vn = split_vertices(surface, N)
+    base, D = base[src], D[:, src]
+    attributes = {"POSITION": b.add(base, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)}
+    nrm = _surface_normals(surface, base, src, vn, N)
+    attributes["NORMAL"] = b.add(nrm.astype(np.float32), kind="VEC3", target=_ARRAY_BUFFER)
+    if vt is not None:
+        uv = surface.uv[np.maximum(vt, 0)] * [1.0, -1.0] + [0.0, 1.0]  # glTF's v runs downwards
+        uv[vt < 0] = 0
+        attributes["TEXCOORD_0"] = b.add(uv.astype(np.float32), kind="VEC2", target=_ARRAY_BUFFER)
+    tris, face = _fan(surface.counts, corners)
+    groups, materials = _material_groups(surface, tris, face)
+    return attributes, groups, materials, D
+
+
+def _primitives(b: _Bin, groups: list, attributes: dict, targets: list) -> list:
+    """One glTF primitive per triangle group, sharing the attributes and morph targets."""
+    prims = []
+    for mat, tri in groups:
+        prim = {"attributes": attributes, "mode": _TRIANGLES, "targets": targets}
+        if len(tri):
+            prim["indices"] = b.add(tri.reshape(-1), kind="SCALAR", target=_ELEMENT_ARRAY_BUFFER)
+        if mat is not None:
+            prim["material"] = mat
+        prims.append(prim)
+    return prims
+
+
+def _node_animation(b: _Bin, node_transforms, T: int, t_acc: int, samplers: list, channels: list) -> None:
+    """Append the node's TRS samplers and channels for per-frame similarities (T, 3, 4)."""
+    A = np.asarray(node_transforms, dtype=np.float64)
+    if A.shape != (T, 3, 4):
+        raise ShapeError(f"node_transforms: expected shape ({T}, 3, 4), got {A.shape}")
+    s = np.linalg.norm(A[:, :, 0], axis=1)
+    phi = np.arctan2(A[:, 1, 0], A[:, 0, 0])  # roll about z
+    quat = np.stack([np.zeros(T), np.zeros(T), np.sin(phi / 2), np.cos(phi / 2)], 1)
+    for path, val in (("translation", A[:, :, 3]), ("rotation", quat), ("scale", np.repeat(s[:, None], 3, 1))):
+        kind = "VEC4" if path == "rotation" else "VEC3"
+        samplers.append({"input": t_acc, "output": b.add(val.astype(np.float32), kind=kind),
+                         "interpolation": "LINEAR"})
+        channels.append({"sampler": len(samplers) - 1, "target": {"node": 0, "path": path}})
+
+
+def _container(doc: dict, b: _Bin) -> bytes:
+    """The GLB container: header, JSON chunk (space-padded), BIN chunk."""
+    js = json.dumps(doc, sort_keys=True, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    js += b" " * ((-len(js)) % 4)
+    binary = b"".join(b.parts)
+    total = 12 + 8 + len(js) + 8 + len(binary)
+    return b"".join([
+        struct.pack("<4sII", b"glTF", 2, total),
+        struct.pack("<I4s", len(js), b"JSON"), js,
+        struct.pack("<I4s", len(binary), b"BIN\0"), binary,
+    ])
+
+
 def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_transforms=None,
               name: str = "character", surface=None) -> bytes:
     """A complete ``.glb`` file.
@@ -183,86 +295,23 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
     base = np.asarray(base, dtype=np.float32)
     D = np.asarray(targets, dtype=np.float32)
     W = np.asarray(weights, dtype=np.float32)
-    if base.ndim != 2 or base.shape[1] != 3:
-        raise ShapeError(f"base: expected shape (N, 3), got {base.shape}")
-    if D.ndim != 3 or D.shape[1:] != base.shape:
-        raise ShapeError(f"targets: expected shape (M, {base.shape[0]}, 3), got {D.shape}")
-    if W.ndim != 2 or W.shape[1] != D.shape[0] or W.shape[0] < 1:
-        raise ShapeError(f"weights: expected shape (T, {D.shape[0]}), got {W.shape}")
-    if len(target_names) != D.shape[0]:
-        raise ShapeError(f"target_names: expected {D.shape[0]} names, got {len(target_names)}")
-    if not fps > 0:
-        raise ShapeError(f"fps: expected > 0, got {fps}")
+    _check_glb_inputs(base, D, W, target_names, fps)
     T = W.shape[0]
     N = base.shape[0]
     b = _Bin()
-    materials = []
     if surface is None:
-        tris = triangulate(faces)
-        if tris.size and int(tris.max()) >= N:
-            raise ShapeError(f"faces: vertex id {int(tris.max())} is out of range for {N} vertices")
-        attributes = {"POSITION": b.add(base, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)}
-        groups = [(None, tris)]
+        attributes, groups = _plain_mesh(b, base, faces, N)
+        materials = []
     else:
-        from .objsurface import vertex_normals
-
-        if surface.v.size and int(surface.v.max()) >= N:
-            raise ShapeError(f"surface: vertex id {int(surface.v.max())} is out of range for {N} vertices")
-        src, corners, vt, vn = split_vertices(surface, N)
-        base, D = base[src], D[:, src]
-        attributes = {"POSITION": b.add(base, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)}
-        if vn is not None:
-            nrm = surface.normals[np.maximum(vn, 0)]
-            nrm[vn < 0] = 0
-        else:
-            nrm = vertex_normals(base[:N], surface.counts, surface.v)[src]
-        length = np.linalg.norm(nrm, axis=1, keepdims=True)
-        nrm = np.where(length > 0, nrm / np.where(length > 0, length, 1), [0.0, 0.0, 1.0])  # unit, as glTF requires
-        attributes["NORMAL"] = b.add(nrm.astype(np.float32), kind="VEC3", target=_ARRAY_BUFFER)
-        if vt is not None:
-            uv = surface.uv[np.maximum(vt, 0)] * [1.0, -1.0] + [0.0, 1.0]  # glTF's v runs downwards
-            uv[vt < 0] = 0
-            attributes["TEXCOORD_0"] = b.add(uv.astype(np.float32), kind="VEC2", target=_ARRAY_BUFFER)
-        tris, face = _fan(surface.counts, corners)
-        tri_mat = surface.material[face]
-        groups = []
-        for m, mat in enumerate(surface.materials):
-            color = surface.base_colors.get(mat)
-            if color is None and not mat:
-                groups.append((None, tris[tri_mat == m]))
-                continue
-            pbr = {"metallicFactor": 0.0}
-            if color is not None:
-                pbr["baseColorFactor"] = [float(c) for c in color] + [1.0]
-            groups.append((len(materials), tris[tri_mat == m]))
-            materials.append({"name": mat, "pbrMetallicRoughness": pbr})
-        if not groups:
-            groups = [(None, tris)]
+        attributes, groups, materials, D = _surface_mesh(b, surface, base, D, N)
     targets = [{"POSITION": b.add(d, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)} for d in D]
-    prims = []
-    for mat, tri in groups:
-        prim = {"attributes": attributes, "mode": _TRIANGLES, "targets": targets}
-        if len(tri):
-            prim["indices"] = b.add(tri.reshape(-1), kind="SCALAR", target=_ELEMENT_ARRAY_BUFFER)
-        if mat is not None:
-            prim["material"] = mat
-        prims.append(prim)
+    prims = _primitives(b, groups, attributes, targets)
     times = (np.arange(T) / fps).astype(np.float32)
     t_acc = b.add(times, kind="SCALAR", bounds=True)
     samplers = [{"input": t_acc, "output": b.add(W.reshape(-1), kind="SCALAR"), "interpolation": "LINEAR"}]
     channels = [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]
     if node_transforms is not None:
-        A = np.asarray(node_transforms, dtype=np.float64)
-        if A.shape != (T, 3, 4):
-            raise ShapeError(f"node_transforms: expected shape ({T}, 3, 4), got {A.shape}")
-        s = np.linalg.norm(A[:, :, 0], axis=1)
-        phi = np.arctan2(A[:, 1, 0], A[:, 0, 0])  # roll about z
-        quat = np.stack([np.zeros(T), np.zeros(T), np.sin(phi / 2), np.cos(phi / 2)], 1)
-        for path, val in (("translation", A[:, :, 3]), ("rotation", quat), ("scale", np.repeat(s[:, None], 3, 1))):
-            kind = "VEC4" if path == "rotation" else "VEC3"
-            samplers.append({"input": t_acc, "output": b.add(val.astype(np.float32), kind=kind),
-                             "interpolation": "LINEAR"})
-            channels.append({"sampler": len(samplers) - 1, "target": {"node": 0, "path": path}})
+        _node_animation(b, node_transforms, T, t_acc, samplers, channels)
     doc = {
         "asset": {"version": "2.0", "generator": f"retarget {__version__}"},
         "scene": 0,
@@ -277,15 +326,7 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
     }
     if materials:
         doc["materials"] = materials
-    js = json.dumps(doc, sort_keys=True, separators=(",", ":"), allow_nan=False).encode("utf-8")
-    js += b" " * ((-len(js)) % 4)
-    binary = b"".join(b.parts)
-    total = 12 + 8 + len(js) + 8 + len(binary)
-    return b"".join([
-        struct.pack("<4sII", b"glTF", 2, total),
-        struct.pack("<I4s", len(js), b"JSON"), js,
-        struct.pack("<I4s", len(binary), b"BIN\0"), binary,
-    ])
+    return _container(doc, b)
 
 
 def write_glb(path: str | os.PathLike, **kwargs) -> None:

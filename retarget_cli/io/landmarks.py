@@ -107,6 +107,113 @@ def _numeric(data: dict, key: str, path) -> np.ndarray:
     return a
 
 
+def _points(data: dict, path) -> np.ndarray:
+    """``points`` as float32 (T, L, 2) with T, L >= 1."""
+    if "points" not in data:
+        raise InputError(f"{path}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
+    points = _numeric(data, "points", path).astype(np.float32)
+    if points.ndim != 3 or points.shape[2] != 2 or points.shape[0] == 0 or points.shape[1] == 0:
+        raise InputError(f"{path}: 'points' must have shape (T, L, 2) with T, L >= 1, got {points.shape}")
+    return points
+
+
+def _confidence(data: dict, path, points: np.ndarray) -> np.ndarray:
+    """``confidence`` (T, L) in [0, 1]; absent, 1 where the point is finite and 0 elsewhere."""
+    T, L, _ = points.shape
+    if data.get("confidence") is None:
+        return np.where(np.isfinite(points).all(-1), 1.0, 0.0).astype(np.float32)
+    conf = _numeric(data, "confidence", path)
+    if conf.shape != (T, L):
+        raise InputError(f"{path}: 'confidence' must have shape {(T, L)}, got {conf.shape}")
+    bad = ~(np.isfinite(conf) & (conf >= 0) & (conf <= 1))
+    if bad.any():
+        t, i = (int(v) for v in np.argwhere(bad)[0])
+        raise InputError(f"{path}: 'confidence' must be finite and in [0, 1]; frame {t} landmark {i} has "
+                         f"{conf[t, i]!r}")
+    return conf
+
+
+def _head(data: dict, path, points: np.ndarray, conf: np.ndarray, rigid_points) -> tuple[np.ndarray, np.ndarray]:
+    """``head`` (T, 2, 3) and ``stabilized`` (T, L, 2) from the file, or estimated when both are absent."""
+    T, L, _ = points.shape
+    if ("head" in data) != ("stabilized" in data):
+        raise InputError(f"{path}: 'head' and 'stabilized' must be given together or not at all")
+    if "head" not in data:
+        return estimate_head(points, conf, rigid_points=rigid_points)
+    head, stab = _numeric(data, "head", path), _numeric(data, "stabilized", path)
+    if head.shape != (T, 2, 3):
+        raise InputError(f"{path}: 'head' must have shape {(T, 2, 3)}, got {head.shape}")
+    if stab.shape != (T, L, 2):
+        raise InputError(f"{path}: 'stabilized' must have shape {(T, L, 2)}, got {stab.shape}")
+    if not np.isfinite(head).all():
+        t = int(np.flatnonzero(~np.isfinite(head).reshape(T, -1).all(1))[0])
+        raise InputError(f"{path}: 'head' must be finite; frame {t} is not")
+    return head, stab
+
+
+def _points_raw(data: dict, path, T: int, L: int) -> np.ndarray | None:
+    raw = data.get("points_raw")
+    if raw is not None and (raw.dtype.kind != "f" or raw.shape != (T, L, 2)):
+        raise InputError(f"{path}: 'points_raw' must be floats of shape {(T, L, 2)} like 'points', got "
+                         f"{raw.dtype} of shape {raw.shape}")
+    return raw
+
+
+def _fps(data: dict, path) -> float:
+    if "fps" not in data:
+        return 30.0
+    f = _numeric(data, "fps", path)
+    if f.size != 1 or f.ndim > 1 or not np.isfinite(f).all() or not float(f.ravel()[0]) > 0:
+        raise InputError(f"{path}: 'fps' must be one finite number > 0, got {f.ravel()[:4].tolist()} "
+                         f"(shape {f.shape})")
+    return float(f.ravel()[0])
+
+
+def _frame_size(data: dict, path) -> np.ndarray:
+    """``[width, height]`` as int64; ``[0, 0]`` when absent."""
+    if "frame_size" not in data:
+        return np.zeros(2, dtype=np.int64)
+    fs = _numeric(data, "frame_size", path)
+    if fs.shape != (2,) or not np.isfinite(fs).all() or np.any(fs < 0) or np.any(fs % 1 != 0) \
+            or np.any(fs > 1 << 20):
+        raise InputError(f"{path}: 'frame_size' must be [width, height] (integers >= 0), got {fs.tolist()}")
+    return fs.astype(np.int64)
+
+
+def _frames(data: dict, path, T: int) -> np.ndarray | None:
+    frames = data.get("frames")
+    if frames is None:
+        return None
+    if frames.dtype.kind not in "iu" or frames.shape != (T,):
+        raise InputError(f"{path}: 'frames' must be {T} integers (one per row of 'points'), got "
+                         f"{frames.dtype} of shape {frames.shape}")
+    return frames.astype(np.int64)
+
+
+def _names(data: dict, path, L: int) -> np.ndarray | None:
+    names = data.get("names")
+    if names is not None and (names.dtype.kind not in "US" or names.shape != (L,)):
+        raise InputError(f"{path}: 'names' must be {L} strings (one per landmark), got {names.dtype} of shape "
+                         f"{names.shape}")
+    return names
+
+
+def _meta(data: dict, path) -> dict:
+    """``meta``: one JSON string holding an object; ``{}`` when absent."""
+    if "meta" not in data:
+        return {}
+    m = data["meta"]
+    if m.dtype.kind not in "US" or m.size != 1:
+        raise InputError(f"{path}: 'meta' must be one JSON string, got {m.dtype} of shape {m.shape}")
+    try:
+        meta = json.loads(str(m.ravel()[0]))
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise InputError(f"{path}: 'meta' is not a JSON string ({exc})") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: 'meta' must be a JSON object, got {type(meta).__name__}")
+    return meta
+
+
 def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     """Read a ``landmarks.npz`` file, completing optional keys.
 
@@ -124,77 +231,16 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     """
     path = Path(path)
     data = load_npz(path)
-    if "points" not in data:
-        raise InputError(f"{path}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
-    points = _numeric(data, "points", path).astype(np.float32)
-    if points.ndim != 3 or points.shape[2] != 2 or points.shape[0] == 0 or points.shape[1] == 0:
-        raise InputError(f"{path}: 'points' must have shape (T, L, 2) with T, L >= 1, got {points.shape}")
+    points = _points(data, path)
     T, L, _ = points.shape
-    conf = data.get("confidence")
-    if conf is None:
-        conf = np.where(np.isfinite(points).all(-1), 1.0, 0.0).astype(np.float32)
-    else:
-        conf = _numeric(data, "confidence", path)
-        if conf.shape != (T, L):
-            raise InputError(f"{path}: 'confidence' must have shape {(T, L)}, got {conf.shape}")
-        bad = ~(np.isfinite(conf) & (conf >= 0) & (conf <= 1))
-        if bad.any():
-            t, i = (int(v) for v in np.argwhere(bad)[0])
-            raise InputError(f"{path}: 'confidence' must be finite and in [0, 1]; frame {t} landmark {i} has "
-                             f"{conf[t, i]!r}")
-    if ("head" in data) != ("stabilized" in data):
-        raise InputError(f"{path}: 'head' and 'stabilized' must be given together or not at all")
-    if "head" in data:
-        head, stab = _numeric(data, "head", path), _numeric(data, "stabilized", path)
-        if head.shape != (T, 2, 3):
-            raise InputError(f"{path}: 'head' must have shape {(T, 2, 3)}, got {head.shape}")
-        if stab.shape != (T, L, 2):
-            raise InputError(f"{path}: 'stabilized' must have shape {(T, L, 2)}, got {stab.shape}")
-        if not np.isfinite(head).all():
-            t = int(np.flatnonzero(~np.isfinite(head).reshape(T, -1).all(1))[0])
-            raise InputError(f"{path}: 'head' must be finite; frame {t} is not")
-    else:
-        head, stab = estimate_head(points, conf, rigid_points=rigid_points)
-    raw = data.get("points_raw")
-    if raw is not None:
-        if raw.dtype.kind != "f" or raw.shape != (T, L, 2):
-            raise InputError(f"{path}: 'points_raw' must be floats of shape {(T, L, 2)} like 'points', got "
-                             f"{raw.dtype} of shape {raw.shape}")
-    fps = 30.0
-    if "fps" in data:
-        f = _numeric(data, "fps", path)
-        if f.size != 1 or f.ndim > 1 or not np.isfinite(f).all() or not float(f.ravel()[0]) > 0:
-            raise InputError(f"{path}: 'fps' must be one finite number > 0, got {f.ravel()[:4].tolist()} "
-                             f"(shape {f.shape})")
-        fps = float(f.ravel()[0])
-    frame_size = np.zeros(2, dtype=np.int64)
-    if "frame_size" in data:
-        fs = _numeric(data, "frame_size", path)
-        if fs.shape != (2,) or not np.isfinite(fs).all() or np.any(fs < 0) or np.any(fs % 1 != 0) \
-                or np.any(fs > 1 << 20):
-            raise InputError(f"{path}: 'frame_size' must be [width, height] (integers >= 0), got {fs.tolist()}")
-        frame_size = fs.astype(np.int64)
-    frames = data.get("frames")
-    if frames is not None:
-        if frames.dtype.kind not in "iu" or frames.shape != (T,):
-            raise InputError(f"{path}: 'frames' must be {T} integers (one per row of 'points'), got "
-                             f"{frames.dtype} of shape {frames.shape}")
-        frames = frames.astype(np.int64)
-    names = data.get("names")
-    if names is not None and (names.dtype.kind not in "US" or names.shape != (L,)):
-        raise InputError(f"{path}: 'names' must be {L} strings (one per landmark), got {names.dtype} of shape "
-                         f"{names.shape}")
-    meta = {}
-    if "meta" in data:
-        m = data["meta"]
-        if m.dtype.kind not in "US" or m.size != 1:
-            raise InputError(f"{path}: 'meta' must be one JSON string, got {m.dtype} of shape {m.shape}")
-        try:
-            meta = json.loads(str(m.ravel()[0]))
-        except (json.JSONDecodeError, RecursionError) as exc:
-            raise InputError(f"{path}: 'meta' is not a JSON string ({exc})") from None
-        if not isinstance(meta, dict):
-            raise InputError(f"{path}: 'meta' must be a JSON object, got {type(meta).__name__}")
+    conf = _confidence(data, path, points)
+    head, stab = _head(data, path, points, conf, rigid_points)
+    raw = _points_raw(data, path, T, L)
+    fps = _fps(data, path)
+    frame_size = _frame_size(data, path)
+    frames = _frames(data, path, T)
+    names = _names(data, path, L)
+    meta = _meta(data, path)
     return Landmarks(
         points=points,
         confidence=conf.astype(np.float32),

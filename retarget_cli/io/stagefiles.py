@@ -413,6 +413,90 @@ def _rig_range(value, where: str) -> tuple[float, float]:
     return float(value[0]), float(value[1])
 
 
+def _slider(name, where: str, shapes: dict) -> str:
+    """*name* as a slider of the rig; an unknown one gets the closest name (or the list) in the message."""
+    from ..config import closest
+
+    if str(name) not in shapes:
+        hint = closest(str(name), shapes)
+        raise InputError(f"{where}: unknown slider {name!r}" + (f"; did you mean {hint!r}?" if hint else
+                                                                f"; the rig's sliders are {', '.join(shapes)}"))
+    return str(name)
+
+
+def _rig_shapes(path: Path, data) -> dict:
+    """The checked top level of ``rig.yaml``: shape name to absolute OBJ path."""
+    from ..config import unknown_key_error
+
+    if not isinstance(data, dict) or not isinstance(data.get("neutral"), str) or not isinstance(data.get("shapes"), dict):
+        raise InputError(f"{path}: expected 'neutral: file.obj' and 'shapes: {{name: file.obj}}'")
+    for key in data:
+        if key not in RIG_KEYS:
+            raise unknown_key_error(str(path), str(key), RIG_KEYS)
+    if not data["shapes"] or not all(isinstance(v, str) for v in data["shapes"].values()):
+        raise InputError(f"{path}: shapes: expected a non-empty mapping of shape names to OBJ files")
+    return {str(k): path.parent / v for k, v in data["shapes"].items()}
+
+
+def _rig_ranges(path: Path, data: dict, shapes: dict, rng: tuple) -> dict:
+    """Every slider's ``(lo, hi)``: *rng* unless ``ranges:`` overrides it."""
+    over = data.get("ranges") or {}
+    if not isinstance(over, dict):
+        raise InputError(f"{path}: ranges: expected a mapping of slider names to t or [lo, hi]")
+    ranges = {n: rng for n in shapes}
+    for name, value in over.items():
+        ranges[_slider(name, f"{path}: ranges", shapes)] = _rig_range(value, f"{path}: ranges.{name}")
+    return ranges
+
+
+def _rig_library(path: Path, data: dict, shapes: dict, ranges: dict) -> dict:
+    """``library:`` as ``{expression: {slider: weight}}``, each weight within its slider's range."""
+    library = {}
+    lib = data.get("library") or {}
+    if not isinstance(lib, dict):
+        raise InputError(f"{path}: library: expected {{expression: {{slider: weight}}}}")
+    for expr, vec in lib.items():
+        where = f"{path}: library.{expr}"
+        if not isinstance(vec, dict) or not vec:
+            raise InputError(f"{where}: expected a non-empty mapping of slider names to weights")
+        library[str(expr)] = {}
+        for name, value in vec.items():
+            name = _slider(name, where, shapes)
+            lo, hi = ranges[name]
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+                raise InputError(f"{where}.{name}: expected a number in the slider's range [{lo:g}, {hi:g}], got {value!r}")
+            library[str(expr)][name] = float(value)
+    return library
+
+
+def _rig_landmarks(path: Path, data: dict) -> list | Path | None:
+    """``landmarks:``: a list of vertex ids, or a map file (made absolute)."""
+    landmarks = data.get("landmarks")
+    if isinstance(landmarks, str):
+        return path.parent / landmarks
+    if landmarks is not None and (
+            not isinstance(landmarks, list) or not landmarks
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in landmarks)):
+        raise InputError(f"{path}: landmarks: expected a list of vertex ids (one per landmark, >= 0) or a map "
+                         f"file, got {str(landmarks)[:60]!r}")
+    return landmarks
+
+
+def _rig_exclusive(path: Path, data: dict, shapes: dict) -> list | None:
+    """``exclusive:`` as a list of slider-name pairs, or None."""
+    exclusive = data.get("exclusive")
+    if exclusive is None:
+        return None
+    if not isinstance(exclusive, list):
+        raise InputError(f"{path}: exclusive: expected a list of [slider, slider] pairs")
+    pairs = []
+    for i, pair in enumerate(exclusive):
+        if not isinstance(pair, list) or len(pair) != 2 or pair[0] == pair[1]:
+            raise InputError(f"{path}: exclusive[{i}]: expected a pair of two different slider names, got {pair!r}")
+        pairs.append(tuple(_slider(n, f"{path}: exclusive[{i}]", shapes) for n in pair))
+    return pairs
+
+
 def read_rig(path: str | os.PathLike) -> Rig:
     """Read ``rig.yaml``.
 
@@ -429,71 +513,19 @@ def read_rig(path: str | os.PathLike) -> Rig:
         Naming the file and the key; unknown keys and slider names get the
         closest valid name as a suggestion.
     """
-    from ..config import closest, unknown_key_error
+    from .livelink import check_names_mapping
 
     path = Path(path)
     data = _load_yaml(path, "rig")
-    if not isinstance(data, dict) or not isinstance(data.get("neutral"), str) or not isinstance(data.get("shapes"), dict):
-        raise InputError(f"{path}: expected 'neutral: file.obj' and 'shapes: {{name: file.obj}}'")
-    for key in data:
-        if key not in RIG_KEYS:
-            raise unknown_key_error(str(path), str(key), RIG_KEYS)
-    if not data["shapes"] or not all(isinstance(v, str) for v in data["shapes"].values()):
-        raise InputError(f"{path}: shapes: expected a non-empty mapping of shape names to OBJ files")
-    shapes = {str(k): path.parent / v for k, v in data["shapes"].items()}
+    shapes = _rig_shapes(path, data)
     shapes_are = data.get("shapes_are", "absolute")
     if shapes_are not in ("absolute", "delta"):
         raise InputError(f"{path}: shapes_are: expected 'absolute' or 'delta', got {shapes_are!r}")
     rng = _rig_range(data.get("range", [0.0, 1.0]), f"{path}: range")
-
-    def check_name(name, where):
-        if str(name) not in shapes:
-            hint = closest(str(name), shapes)
-            raise InputError(f"{where}: unknown slider {name!r}" + (f"; did you mean {hint!r}?" if hint else
-                                                                    f"; the rig's sliders are {', '.join(shapes)}"))
-        return str(name)
-
-    over = data.get("ranges") or {}
-    if not isinstance(over, dict):
-        raise InputError(f"{path}: ranges: expected a mapping of slider names to t or [lo, hi]")
-    ranges = {n: rng for n in shapes}
-    for name, value in over.items():
-        ranges[check_name(name, f"{path}: ranges")] = _rig_range(value, f"{path}: ranges.{name}")
-    library = {}
-    lib = data.get("library") or {}
-    if not isinstance(lib, dict):
-        raise InputError(f"{path}: library: expected {{expression: {{slider: weight}}}}")
-    for expr, vec in lib.items():
-        where = f"{path}: library.{expr}"
-        if not isinstance(vec, dict) or not vec:
-            raise InputError(f"{where}: expected a non-empty mapping of slider names to weights")
-        library[str(expr)] = {}
-        for name, value in vec.items():
-            name = check_name(name, where)
-            lo, hi = ranges[name]
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
-                raise InputError(f"{where}.{name}: expected a number in the slider's range [{lo:g}, {hi:g}], got {value!r}")
-            library[str(expr)][name] = float(value)
-    landmarks = data.get("landmarks")
-    if isinstance(landmarks, str):
-        landmarks = path.parent / landmarks
-    elif landmarks is not None:
-        if (not isinstance(landmarks, list) or not landmarks
-                or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in landmarks)):
-            raise InputError(f"{path}: landmarks: expected a list of vertex ids (one per landmark, >= 0) or a map "
-                             f"file, got {str(landmarks)[:60]!r}")
-    exclusive = data.get("exclusive")
-    if exclusive is not None:
-        if not isinstance(exclusive, list):
-            raise InputError(f"{path}: exclusive: expected a list of [slider, slider] pairs")
-        pairs = []
-        for i, pair in enumerate(exclusive):
-            if not isinstance(pair, list) or len(pair) != 2 or pair[0] == pair[1]:
-                raise InputError(f"{path}: exclusive[{i}]: expected a pair of two different slider names, got {pair!r}")
-            pairs.append(tuple(check_name(n, f"{path}: exclusive[{i}]") for n in pair))
-        exclusive = pairs
-    from .livelink import check_names_mapping
-
+    ranges = _rig_ranges(path, data, shapes, rng)
+    library = _rig_library(path, data, shapes, ranges)
+    landmarks = _rig_landmarks(path, data)
+    exclusive = _rig_exclusive(path, data, shapes)
     names = check_names_mapping(data.get("names"), shapes, f"{path}: names")
     return Rig(path, path.parent / data["neutral"], shapes, rng, ranges, shapes_are, library, data.get("correctives"),
                landmarks, exclusive, names)
