@@ -39,8 +39,8 @@ def setting(stage: str, name: str, *decls, **extra):
         kw.update(default=p.default, is_flag=True)
     else:
         decls = decls or (flag,)
-        if p.choices:
-            kw["type"] = click.Choice(p.choices)
+        if p.options:
+            kw["type"] = click.Choice(p.options)
         elif p.type in (int, float) and (p.min is not None or p.max is not None):
             kw["type"] = (click.IntRange if p.type is int else click.FloatRange)(p.min, p.max)
         else:

@@ -38,7 +38,9 @@ class Param:
     default : object
         :data:`REQUIRED` when the key must be given.
     choices, min, max : optional
-        Allowed values / inclusive range.
+        Allowed values / inclusive range. *choices* may be a function returning
+        them, read at each check (a registry such as
+        :data:`retarget_cli.track.TRACKERS` that may grow after import).
     link : str, optional
         ``"stage.param"`` whose output feeds this input by default in
         ``retarget run``.
@@ -55,7 +57,7 @@ class Param:
     type: type
     default: Any = REQUIRED
     help: str = ""
-    choices: tuple | None = None
+    choices: tuple | Callable | None = None
     min: float | None = None
     max: float | None = None
     nullable: bool = False
@@ -64,12 +66,17 @@ class Param:
     validate: Callable | None = None
 
     @property
+    def options(self) -> tuple | None:
+        """The allowed values (:attr:`choices`, called when it is a function), or None."""
+        return tuple(self.choices()) if callable(self.choices) else self.choices
+
+    @property
     def required(self) -> bool:
         return self.default is REQUIRED
 
     def describe_range(self) -> str:
-        if self.choices:
-            return "one of " + ", ".join(map(str, self.choices))
+        if self.options:
+            return "one of " + ", ".join(map(str, self.options))
         lo = "-inf" if self.min is None else f"{self.min:g}"
         hi = "inf" if self.max is None else f"{self.max:g}"
         return f"{self.type.__name__} in [{lo}, {hi}]"
@@ -83,7 +90,7 @@ class Param:
         coerce = _COERCE.get(self.type)
         if coerce is not None:
             value = coerce(self, value, where)
-        if self.choices is not None:
+        if self.options is not None:
             self._check_choices(value, where)
         if self.type in (int, float) and (
             (self.min is not None and value < self.min) or (self.max is not None and value > self.max)
@@ -96,12 +103,12 @@ class Param:
     def _check_choices(self, value: Any, where: str) -> None:
         """*value* (or, for a list, each item, once) must be one of :attr:`choices`."""
         if self.type is list:
-            bad = [v for v in value if v not in self.choices]
+            bad = [v for v in value if v not in self.options]
             if bad or not value or len(set(value)) != len(value):
                 raise ConfigError(f"{where}: expected a non-empty list without repeats of "
-                                  f"{', '.join(map(str, self.choices))}; got {value!r}")
-        elif value not in self.choices:
-            hint = closest(str(value), [str(c) for c in self.choices])
+                                  f"{', '.join(map(str, self.options))}; got {value!r}")
+        elif value not in self.options:
+            hint = closest(str(value), [str(c) for c in self.options])
             extra = f"; did you mean {hint!r}?" if hint else ""
             raise ConfigError(f"{where}: {value!r} is not {self.describe_range()}{extra}")
 

@@ -87,8 +87,8 @@ def _default(p) -> str:
 
 def _range(p) -> str:
     parts = []
-    if p.choices:
-        joined = ", ".join(_code(c) for c in p.choices)
+    if p.options:
+        joined = ", ".join(_code(c) for c in p.options)
         parts.append(("any of " if p.type is list else "") + joined)
     elif p.min is not None or p.max is not None:
         lo = "−∞" if p.min is None else _num(p.min)

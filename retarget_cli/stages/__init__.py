@@ -5,7 +5,7 @@ One module per stage; each runner returns the list of files it wrote.
 """
 
 from ..regions import REGION_PRESETS_68, region_points, region_specs  # noqa: F401
-from .apply import APPLY_FILES, APPLY_FORMATS, run_apply  # noqa: F401
+from .apply import run_apply  # noqa: F401
 from .auto_pose import run_auto_pose  # noqa: F401
 from .decompose import run_decompose  # noqa: F401
 from .edit import run_edit  # noqa: F401

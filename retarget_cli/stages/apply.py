@@ -21,7 +21,8 @@ import numpy as np
 
 from ..config import Param, check_vector3
 from ..errors import InputError, ParameterError
-from ..io.atomic import TrackedOutputs, check_not_input, write_text
+from ..io.atomic import TrackedOutputs, check_not_input
+from ..io.exports import EXPORTS, ExportContext, format_choices, formats_help
 from ._common import Stage, _no_progress, _require
 
 log = logging.getLogger(__name__)
@@ -35,10 +36,8 @@ PARAMS = [
           nullable=True, link="track.output"),
     Param("output", "output", str, "frames",
           "Directory for frame_00000.obj, ..., weights.csv, animation.exr/.json, animation.glb."),
-    Param("formats", "setting", list, ["obj"],
-          "Exports: any of obj, csv, exr, glb, curves (the rig's slider curves: curves.csv, curves.npz; "
-          "needs keys posed on a rig), livelink (Live Link Face CSV; needs a rig), usd (animation.usd; "
-          "needs usd-core).", choices=("obj", "csv", "exr", "glb", "curves", "livelink", "usd")),
+    Param("formats", "setting", list, ["obj"], "Exports, any of: " + formats_help() + ".",
+          choices=format_choices),
     Param("drive", "setting", str, "auto",
           "What drives the character: auto (the rig when targets.yaml names one, else the key shapes), "
           "rig, or keys (blend the key OBJs with the region masks).", choices=("auto", "rig", "keys")),
@@ -55,12 +54,6 @@ PARAMS = [
           choices=("offsets", "positions")),
 ]
 
-#: Exports ``apply`` can write (``--format``); file names inside the output directory.
-APPLY_FORMATS = ("obj", "csv", "exr", "glb", "curves", "livelink", "usd")
-APPLY_FILES = {"csv": "weights.csv", "exr": "animation.exr", "exr_json": "animation.json", "glb": "animation.glb",
-               "curves": "curves.csv", "curves_npz": "curves.npz", "livelink": "livelink.csv", "usd": "animation.usd"}
-#: Formats that need the rig's slider curves (keys posed on a rig).
-RIG_FORMATS = ("curves", "livelink")
 DRIVES = ("auto", "rig", "keys")
 
 
@@ -68,9 +61,9 @@ def _check_formats(formats) -> list[str]:
     if isinstance(formats, str):
         formats = [f.strip() for f in formats.split(",") if f.strip()]
     formats = list(formats or [])
-    bad = [f for f in formats if f not in APPLY_FORMATS]
+    bad = [f for f in formats if f not in EXPORTS]
     if bad or not formats:
-        raise ParameterError(f"formats: expected a non-empty list of {', '.join(APPLY_FORMATS)}, got {formats!r}")
+        raise ParameterError(f"formats: expected a non-empty list of {', '.join(EXPORTS)}, got {formats!r}")
     if len(set(formats)) != len(formats):
         raise ParameterError(f"formats: {formats!r} names a format twice")
     return formats
@@ -198,7 +191,7 @@ def _rig_driver(regions, tg, targets, cache_dir):
         return rig.evaluate(curves[sl])
 
     def glb():
-        from .exports import rig_shapes
+        from ..io.exports import rig_shapes
 
         return rig_shapes(rig, curves)
 
@@ -222,111 +215,86 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         output), else the key shapes; ``keys`` blends the key OBJs with the
         region masks even when a rig is named.
     """
-    from ..apply import apply_transforms
-    from ..io.editfiles import write_animation
-    from ..io.obj import write_obj
-    from ..io.stagefiles import load_weights, read_targets, weights_csv
+    from ..io.stagefiles import load_weights, read_targets
 
     weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
     formats = _check_formats(formats)
-    if head_motion not in ("none", "2d"):
-        raise ParameterError(f"head_motion: expected 'none' or '2d', got {head_motion!r}")
-    if vat not in ("offsets", "positions"):
-        raise ParameterError(f"vat: expected 'offsets' or 'positions', got {vat!r}")
-    if drive not in DRIVES:
-        raise ParameterError(f"drive: expected one of {', '.join(DRIVES)}, got {drive!r}")
+    _check_choice("head_motion", head_motion, ("none", "2d"))
+    _check_choice("vat", vat, ("offsets", "positions"))
+    _check_choice("drive", drive, DRIVES)
     regions, meta = load_weights(weights)
     fps = float(meta.get("fps") or 30.0)
     tg = read_targets(targets)
+    use_rig = _check_drive(regions, tg, targets, weights, formats, drive)
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory")
+    for f in formats:
+        for name in EXPORTS[f].files:
+            check_not_input(out / name, [weights, targets, landmarks, *tg.files()])
+    T = next(iter(regions.values()))[0].shape[0]
+    driver = _rig_driver if use_rig else _key_driver
+    positions, template, base, glb, rig_out = driver(regions, tg, targets, cache_dir if use_rig else weights)
+    head = _head_transforms(landmarks, T, base, scale, pivot) if head_motion == "2d" else None
+    out.mkdir(parents=True, exist_ok=True)
+    ledger = TrackedOutputs(out, "apply")  # the output manifest of the folder: what apply wrote there
+    rig, curves = rig_out if rig_out is not None else (None, None)
+    ctx = ExportContext(out=out, fps=fps, n_frames=T, n_vertices=template.n_vertices, template=template, base=base,
+                        positions=positions, head=head, regions=regions, weights=weights, targets=targets,
+                        landmarks=landmarks, rig=rig, rig_file=tg.rig, curves=curves, morph_targets=glb,
+                        settings={"vat": vat}, ledger=ledger)
+    exporters = [EXPORTS[f](ctx) for f in EXPORTS if f in formats]
+    _stream(exporters, ctx, progress)
+    for e in exporters:
+        ledger.written.extend(e.finish())
+    ledger.commit()  # removes what an earlier apply wrote and this one did not (frames past T, other formats)
+    log.info("wrote %d frames of %d vertices to %s (%s; driven by %s)", T, template.n_vertices, out,
+             ", ".join(formats), "the rig" if use_rig else "the key shapes")
+    return ledger.written
+
+
+def _check_choice(name: str, value, allowed) -> None:
+    """*value* must be one of *allowed* (a one-line error naming the setting)."""
+    if value not in allowed:
+        expected = " or ".join(map(repr, allowed)) if len(allowed) == 2 else "one of " + ", ".join(allowed)
+        raise ParameterError(f"{name}: expected {expected}, got {value!r}")
+
+
+def _check_drive(regions, tg, targets, weights, formats, drive) -> bool:
+    """Whether the rig drives the character; every format's needs checked (before any mesh is read)."""
     missing = sorted(set(regions) - set(tg.regions))
     if missing:
         raise InputError(f"{targets}: no targets for region {missing[0]!r} of {weights}")
     use_rig = tg.rig is not None and drive != "keys"
     if drive == "rig" and tg.rig is None:
         raise InputError(f"{targets}: drive rig needs a targets.yaml that names 'rig' and 'sliders' (from auto-pose)")
-    for f in RIG_FORMATS:
-        if f in formats and not use_rig:
-            raise InputError(f"{targets}: format {f} needs keys posed on a rig (a targets.yaml from auto-pose)")
-    if "usd" in formats:
-        from ..io.usd import require_pxr
-
-        require_pxr()
-    out = Path(output)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a directory")
     for f in formats:
-        for key in (f, f + "_npz", f + "_json"):
-            if key in APPLY_FILES:
-                check_not_input(out / APPLY_FILES[key], [weights, targets, landmarks, *tg.files()])
-    T = next(iter(regions.values()))[0].shape[0]
-    if use_rig:
-        positions, template, base, glb, rig_out = _rig_driver(regions, tg, targets, cache_dir)
-    else:
-        positions, template, base, glb, rig_out = _key_driver(regions, tg, targets, weights)
-    N = template.n_vertices
-    head = None
-    if head_motion == "2d":
-        head = _head_transforms(landmarks, T, base, scale, pivot)
-    out.mkdir(parents=True, exist_ok=True)
-    vat_values = np.empty((T, N, 3), np.float32) if "exr" in formats else None
-    ledger = TrackedOutputs(out, "apply")  # the output manifest of the folder: what apply wrote there
-    ledger.plan([out / f"frame_{t:05d}.obj" for t in range(T)] if "obj" in formats else [])
-    written = ledger.written
-    chunk = 64
-    if vat_values is not None or "obj" in formats:
-        with progress(T, "apply") as bar:
-            for start in range(0, T, chunk):
-                sl = slice(start, min(start + chunk, T))
-                pos = positions(sl)
-                if head is not None:
-                    pos = apply_transforms(head[sl], pos)
-                if vat_values is not None:
-                    vat_values[sl] = pos - (base if vat == "offsets" else 0.0)
-                if "obj" in formats:
-                    for i, p in enumerate(pos):
-                        path = out / f"frame_{start + i:05d}.obj"
-                        write_obj(path, template, p)
-                        written.append(path)
-                bar.update(sl.stop - sl.start)
-    if "curves" in formats:
-        rig, curves = rig_out
-        frames = np.arange(T)
-        write_animation(out / APPLY_FILES["curves"], rig.names, curves, frames, frames / fps)
-        write_animation(out / APPLY_FILES["curves_npz"], rig.names, curves, frames,
-                        meta={"fps": fps, "rig": Path(tg.rig).name, "weights": Path(weights).name})
-        written += [out / APPLY_FILES["curves"], out / APPLY_FILES["curves_npz"]]
-    if "livelink" in formats:
-        from .exports import write_livelink
-
-        written.append(write_livelink(out / APPLY_FILES["livelink"], rig_out[0], rig_out[1], fps, landmarks=landmarks))
-    if "usd" in formats:
-        from .exports import write_usd
-
-        written.append(write_usd(out / APPLY_FILES["usd"], template, base, positions, T, fps, rig_out=rig_out,
-                                 head=head))
-    if "csv" in formats:
-        write_text(out / APPLY_FILES["csv"], weights_csv(regions, fps))
-        written.append(out / APPLY_FILES["csv"])
-    if vat_values is not None:
-        from ..io.exr import write_vat
-
-        write_vat(out / APPLY_FILES["exr"], vat_values, fps=fps, mode=vat, sidecar=out / APPLY_FILES["exr_json"])
-        written += [out / APPLY_FILES["exr"], out / APPLY_FILES["exr_json"]]
-    if "glb" in formats:
-        from ..io.gltf import write_glb
-        from ..io.objsurface import obj_surface
-
-        mt, names, mw = glb()
-        write_glb(out / APPLY_FILES["glb"], base=base, faces=None, targets=mt, target_names=names, weights=mw,
-                  fps=fps, node_transforms=head, name=template.path.stem, surface=obj_surface(template))
-        written.append(out / APPLY_FILES["glb"])
-    ledger.commit()  # removes what an earlier apply wrote and this one did not (frames past T, other formats)
-    log.info("wrote %d frames of %d vertices to %s (%s; driven by %s)", T, N, out, ", ".join(formats),
-             "the rig" if use_rig else "the key shapes")
-    return written
+        if EXPORTS[f].needs_rig and not use_rig:
+            raise InputError(f"{targets}: format {f} needs keys posed on a rig (a targets.yaml from auto-pose)")
+        EXPORTS[f].check()
+    return use_rig
 
 
-__all__ = ["APPLY_FILES", "APPLY_FORMATS", "DRIVES", "rig_key_sliders", "run_apply"]
+def _stream(exporters, ctx, progress, chunk: int = 64) -> None:
+    """The frames, chunk by chunk with head motion applied, to every exporter that streams."""
+    from ..apply import apply_transforms
+
+    streams = [e for e in exporters if e.streams]
+    if not streams:
+        return
+    T = ctx.n_frames
+    with progress(T, "apply") as bar:
+        for start in range(0, T, chunk):
+            sl = slice(start, min(start + chunk, T))
+            pos = ctx.positions(sl)
+            if ctx.head is not None:
+                pos = apply_transforms(ctx.head[sl], pos)
+            for e in streams:
+                e.add(start, pos)
+            bar.update(sl.stop - sl.start)
+
+
+__all__ = ["DRIVES", "rig_key_sliders", "run_apply"]
 
 
 def _targets_files(kw) -> list[Path]:

@@ -10,6 +10,7 @@ import numpy as np
 from ..config import Param, check_indices, check_strings
 from ..errors import InputError, ParameterError
 from ..io.atomic import check_not_input, digest_files, sha256_file
+from ..track import method_choices, method_help
 from ._common import Stage, _no_progress, _require
 from .filtering import FILTER_DEFAULTS, FILTER_PARAMS
 
@@ -47,13 +48,7 @@ PARAMS = [
           min=0, max=301),
     Param("keep_partial", "setting", bool, False,
           "On a truncated video or a lost face, keep what was tracked up to then."),
-    Param("method", "setting", str, "auto",
-          "Tracker: detect (dlib's pretrained 68-point detector on every frame joined with optical "
-          "flow; needs the extra detect) or lk (Lucas-Kanade, one or more annotated frames) or "
-          "eigenpoints (the paper's tracker, trained on the annotated frames; give 5 or more) or "
-          "markers (painted dots on the landmarks) or facemark (OpenCV Facemark LBF with --model, see "
-          "train-tracker); auto: detect where the extra is installed, else lk.",
-          choices=("auto", "detect", "lk", "eigenpoints", "markers", "facemark")),
+    Param("method", "setting", str, "auto", method_help(), choices=method_choices),
     Param("fuse", "setting", bool, True,
           "Method detect: join the detections with optical flow (a Kalman filter along the flow and "
           "a smoother over the take); false keeps each frame's detection as it is."),

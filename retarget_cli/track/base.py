@@ -28,9 +28,9 @@ class TrackerSpec:
     ----------
     help : str
         What the method is, one phrase for ``--method``'s help and docs/config.md.
-    function : str
+    function : str or callable
         ``"module:function"`` of the tracker (imported only when it runs, so
-        ``retarget --help`` stays fast).
+        ``retarget --help`` stays fast), or the function itself.
     settings : tuple of str
         The ``track`` settings it takes as keyword arguments (``window``,
         ``downscale``, ``rigid_points``, ...). A setting it does not take is
@@ -47,7 +47,7 @@ class TrackerSpec:
     """
 
     help: str
-    function: str
+    function: str | Callable
     settings: tuple[str, ...] = ()
     gray: bool = False
     needs: tuple[str, ...] = ()
@@ -55,6 +55,8 @@ class TrackerSpec:
 
     def load(self) -> Callable:
         """The tracker function."""
+        if callable(self.function):
+            return self.function
         module, _, name = self.function.partition(":")
         return getattr(importlib.import_module(module), name)
 

@@ -1,0 +1,364 @@
+"""``apply``'s exports: the :data:`EXPORTS` registry and one exporter per format.
+
+``apply`` (:mod:`retarget_cli.stages.apply`) computes the character's frames
+and hands them to every exporter the user asked for (``--format``):
+
+1. :meth:`Exporter.check` runs before any mesh is computed (a missing
+   optional package, a format that needs a rig);
+2. :meth:`Exporter.add` receives the frames chunk by chunk, head motion
+   applied (only exporters with ``streams = True``);
+3. :meth:`Exporter.finish` writes the files and returns them.
+
+Adding an export is one new exporter class (here or in a module of its own)
+and one entry in :data:`EXPORTS`; the ``--format`` choices and help and
+docs/config.md are made from the registry (docs/howto-add-export.md).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from .atomic import write_text
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ExportContext:
+    """What every exporter may read about the animation being exported.
+
+    Attributes
+    ----------
+    out : Path
+        The output folder; exporters write only inside it.
+    fps : float
+    n_frames, n_vertices : int
+        T and N.
+    template : ObjMesh
+        Faces, texture coordinates and materials of the character.
+    base : ndarray, shape (N, 3)
+        The rest mesh (the neutral).
+    positions : callable
+        ``positions(slice)`` -> (t, N, 3) meshes without head motion.
+    head : ndarray, shape (T, 3, 4) or None
+        Head motion, applied to the frames :meth:`Exporter.add` receives.
+    regions : dict
+        Region name to ``(W (T, K), key frames, residuals)``, as ``weights.npz`` holds them.
+    weights, targets, landmarks : Path or None
+        The input files (for metadata and the head rotation of Live Link).
+    rig : BlendshapeRig or None
+        The rig driven, when ``apply`` drives one.
+    rig_file : Path or None
+        Its ``rig.yaml``.
+    curves : ndarray, shape (T, n) or None
+        The rig's slider values per frame.
+    morph_targets : callable
+        ``morph_targets()`` -> (shapes (M, N, 3), names, weights (T, M)) for blendshape formats.
+    settings : dict
+        ``apply``'s settings (``vat``, ...).
+    ledger : TrackedOutputs
+        The folder's output manifest (an exporter of many files plans them there).
+    """
+
+    out: Path
+    fps: float
+    n_frames: int
+    n_vertices: int
+    template: Any
+    base: np.ndarray
+    positions: Callable
+    head: np.ndarray | None
+    regions: dict
+    weights: Path
+    targets: Path
+    landmarks: Path | None
+    rig: Any
+    rig_file: Path | None
+    curves: np.ndarray | None
+    morph_targets: Callable
+    settings: dict
+    ledger: Any
+
+
+class Exporter:
+    """One export format. Subclasses set the class attributes and override what they need.
+
+    Attributes
+    ----------
+    help : str
+        Its files and what they hold, for ``--format``'s help.
+    files : tuple of str
+        Names of the files it writes in the output folder (checked against the inputs first).
+    needs_rig : bool
+        Needs ``apply`` to drive a rig (keys posed by ``auto-pose``).
+    streams : bool
+        Receives the frames through :meth:`add`.
+    """
+
+    help = ""
+    files: tuple[str, ...] = ()
+    needs_rig = False
+    streams = False
+
+    def __init__(self, ctx: ExportContext):
+        self.ctx = ctx
+
+    @classmethod
+    def check(cls) -> None:
+        """Raise before any work when this format cannot be written here (e.g. a missing package)."""
+
+    def add(self, start: int, frames: np.ndarray) -> None:
+        """Frames ``start .. start + len(frames)`` (t, N, 3), head motion applied."""
+
+    def finish(self) -> list[Path]:
+        """Write the files; return their paths."""
+        return []
+
+
+class ObjExport(Exporter):
+    help = "frame_%05d.obj"
+    streams = True
+
+    def __init__(self, ctx):
+        super().__init__(ctx)
+        ctx.ledger.plan([ctx.out / f"frame_{t:05d}.obj" for t in range(ctx.n_frames)])
+        self.written: list[Path] = []
+
+    def add(self, start, frames):
+        from .obj import write_obj
+
+        for i, p in enumerate(frames):
+            path = self.ctx.out / f"frame_{start + i:05d}.obj"
+            write_obj(path, self.ctx.template, p)
+            self.written.append(path)
+
+    def finish(self):
+        return self.written
+
+
+class CsvExport(Exporter):
+    help = "weights.csv"
+    files = ("weights.csv",)
+
+    def finish(self):
+        from .stagefiles import weights_csv
+
+        path = self.ctx.out / self.files[0]
+        write_text(path, weights_csv(self.ctx.regions, self.ctx.fps))
+        return [path]
+
+
+class ExrExport(Exporter):
+    help = "animation.exr + animation.json"
+    files = ("animation.exr", "animation.json")
+    streams = True
+
+    def __init__(self, ctx):
+        super().__init__(ctx)
+        self.values = np.empty((ctx.n_frames, ctx.n_vertices, 3), np.float32)
+        self.offsets = ctx.settings.get("vat", "offsets") == "offsets"
+
+    def add(self, start, frames):
+        self.values[start:start + len(frames)] = frames - (self.ctx.base if self.offsets else 0.0)
+
+    def finish(self):
+        from .exr import write_vat
+
+        exr, sidecar = (self.ctx.out / f for f in self.files)
+        write_vat(exr, self.values, fps=self.ctx.fps, mode=self.ctx.settings.get("vat", "offsets"), sidecar=sidecar)
+        return [exr, sidecar]
+
+
+class GlbExport(Exporter):
+    help = "animation.glb"
+    files = ("animation.glb",)
+
+    def finish(self):
+        from .gltf import write_glb
+        from .objsurface import obj_surface
+
+        c = self.ctx
+        mt, names, mw = c.morph_targets()
+        path = c.out / self.files[0]
+        write_glb(path, base=c.base, faces=None, targets=mt, target_names=names, weights=mw,
+                  fps=c.fps, node_transforms=c.head, name=c.template.path.stem, surface=obj_surface(c.template))
+        return [path]
+
+
+class CurvesExport(Exporter):
+    help = "curves.csv + curves.npz: the rig's sliders per frame, with keys posed by auto-pose"
+    files = ("curves.csv", "curves.npz")
+    needs_rig = True
+
+    def finish(self):
+        from .editfiles import write_animation
+
+        c = self.ctx
+        frames = np.arange(c.n_frames)
+        csv, npz = (c.out / f for f in self.files)
+        write_animation(csv, c.rig.names, c.curves, frames, frames / c.fps)
+        write_animation(npz, c.rig.names, c.curves, frames,
+                        meta={"fps": c.fps, "rig": Path(c.rig_file).name, "weights": Path(c.weights).name})
+        return [csv, npz]
+
+
+class LiveLinkExport(Exporter):
+    help = "livelink.csv: Live Link Face CSV of the rig's sliders"
+    files = ("livelink.csv",)
+    needs_rig = True
+
+    def finish(self):
+        c = self.ctx
+        return [write_livelink(c.out / self.files[0], c.rig, c.curves, c.fps, landmarks=c.landmarks)]
+
+
+class UsdExport(Exporter):
+    help = "animation.usd: UsdSkel blendshapes or a point cache"
+    files = ("animation.usd",)
+
+    @classmethod
+    def check(cls):
+        from .usd import require_pxr
+
+        require_pxr()
+
+    def finish(self):
+        c = self.ctx
+        return [write_usd(c.out / self.files[0], c.template, c.base, c.positions, c.n_frames, c.fps,
+                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.head)]
+
+
+#: Export formats by name, in the order ``--format`` lists them.
+EXPORTS: dict[str, type[Exporter]] = {
+    "obj": ObjExport,
+    "csv": CsvExport,
+    "exr": ExrExport,
+    "glb": GlbExport,
+    "curves": CurvesExport,
+    "livelink": LiveLinkExport,
+    "usd": UsdExport,
+}
+
+
+def format_choices() -> tuple[str, ...]:
+    """The registered format names."""
+    return tuple(EXPORTS)
+
+
+def formats_help() -> str:
+    """``name (its files)`` for every registered format, comma-separated."""
+    return ", ".join(f"{name} ({cls.help})" for name, cls in EXPORTS.items())
+
+
+# --------------------------------------------------------------------------- writers the rig exports share
+
+
+def head_rotation(landmarks, T: int):
+    """(T, 3) head yaw, pitch, roll (radians) from ``landmarks.npz``, or None without a landmarks file.
+
+    Roll comes from the tracked 2D head motion; yaw and pitch are 0 (the 2D
+    track has no estimate of them).
+    """
+    from .landmarks import load_landmarks
+    from .livelink import head_rotation_from_similarity
+
+    if landmarks is None:
+        return None
+    lm = load_landmarks(landmarks)
+    if lm.n_frames != T:
+        raise InputError(f"{landmarks}: has {lm.n_frames} frames but the weights have {T}")
+    return head_rotation_from_similarity(lm.head)
+
+
+def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None) -> Path:
+    """Write the rig's curves as a Live Link Face CSV (:func:`retarget_cli.io.livelink.livelink_csv`).
+
+    Parameters
+    ----------
+    rig : BlendshapeRig
+        Its slider names, and ``rig.yaml``'s ``names:`` mapping (``rig.spec.names``).
+    curves : ndarray, shape (T, n)
+    landmarks : path-like, optional
+        ``landmarks.npz``: HeadRoll from its head motion; without it the head columns are 0.
+    """
+    from .livelink import livelink_csv
+
+    rot = head_rotation(landmarks, len(curves))
+    if rot is None:
+        log.info("Live Link Face CSV: no landmarks file, so the head rotation columns are 0")
+    names = rig.spec.names if rig.spec is not None else {}
+    write_text(path, livelink_csv(curves, rig.names, fps, names=names, head_rotation=rot))
+    return path
+
+
+def rig_shapes(rig, curves: np.ndarray) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """The rig's shapes and weights for blendshape formats (glTF morph targets, UsdSkel BlendShapes).
+
+    One shape per slider, driven by its curve; then one per corrective of
+    ``rig.yaml`` (Racković et al. 2023, eq. 4: ``w_i w_j (corrective_ij −
+    neutral)``), which neither format can express, baked as an extra shape
+    ``corrective_<a>_<b>`` driven by the product of its pair's weights.
+
+    Returns
+    -------
+    shapes : ndarray, shape (M, N, 3)
+    names : list of str, length M
+    weights : ndarray, shape (T, M)
+    """
+    from .obj import read_obj
+    from .rigfiles import parse_correctives
+
+    D = rig.D.toarray() if rig.sparse else np.asarray(rig.D)
+    shapes = [D.T.reshape(rig.n_sliders, -1, 3)]
+    names, cols = list(rig.names), [np.asarray(curves, dtype=np.float64)]
+    corr = parse_correctives(rig.spec) if rig.spec is not None else []
+    for i, j, p in corr:
+        mesh = read_obj(p)
+        if mesh.n_vertices != rig.n_vertices:
+            raise InputError(f"{p}: corrective has {mesh.n_vertices} vertices, the rig has {rig.n_vertices}")
+        shapes.append((mesh.vertices - rig.neutral)[None])
+        names.append(f"corrective_{rig.names[i]}_{rig.names[j]}")
+        cols.append((cols[0][:, i] * cols[0][:, j])[:, None])
+    if corr:
+        log.info("blendshape exports: %d corrective shapes baked as extra shapes driven by their pairs' "
+                 "products (the OBJ/EXR frames are the linear rig)", len(corr))
+    return np.concatenate(shapes), names, np.concatenate(cols, axis=1)
+
+
+def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: float, *, morph_targets=None,
+              head=None) -> Path:
+    """Write ``animation.usd``: a UsdSkel character with a rig, else a point cache.
+
+    Parameters
+    ----------
+    template : ObjMesh
+        Faces and texture coordinates.
+    base : ndarray, shape (N, 3)
+        The rest mesh (the rig's neutral).
+    positions : callable
+        ``positions(slice)`` -> (t, N, 3) meshes without head motion (the point cache).
+    morph_targets : callable, optional
+        ``morph_targets()`` -> (shapes, names, weights) of the rig (:func:`rig_shapes`); without it a point cache.
+    head : ndarray, shape (T, 3, 4), optional
+        Head motion, the time-sampled transform of ``/Character``.
+    """
+    from .objsurface import obj_surface
+    from .usd import write_usd_points, write_usd_skel
+
+    surf = obj_surface(template)
+    uv = (surf.uv, surf.vt) if surf.has_uv else None
+    common = dict(counts=surf.counts, corners=surf.v, fps=fps, uv=uv, transforms=head, name=Path(template.path).stem)
+    if morph_targets is not None:
+        shapes, names, weights = morph_targets()
+        write_usd_skel(path, points=base, shapes=shapes, names=names, weights=weights, **common)
+    else:
+        X = np.concatenate([positions(slice(s, min(s + 64, T))) for s in range(0, T, 64)])
+        write_usd_points(path, positions=X, **common)
+    return path
