@@ -14,7 +14,10 @@ each take and tracker it measures in the same run:
   ``retarget track`` does (decoding included, overlapped with tracking by
   its prefetch thread), and the ratio;
 - mean landmark error against the truth, and the mean over the first and the
-  last 10 % of frames (drift ratio = last / first).
+  last 10 % of frames (drift ratio = last / first);
+- blink closure: per eye and blink of the truth (:func:`blink_closures`), how much of the true
+  drop of the eye opening (lid gap / eye width) the track reproduces, the mean over the take's
+  blinks and the smallest (issue #15's target for the default method: 90 %).
 
 Then ``retarget run`` on the default take gives the retargeted OBJ sequence's
 mean vertex error relative to the mean ground-truth expression displacement.
@@ -108,6 +111,44 @@ def marker_methods():
             "lk (1 annotated frame)": lambda fr, tr: track_lk(fr, _annotated(tr, 1))}
 
 
+#: The two eyes of the 68-point layout: corners, upper lid pair, lower lid pair (0-based ids).
+EYES = ((36, 39, (37, 38), (41, 40)), (42, 45, (43, 44), (47, 46)))
+
+
+def _eye_opening(points, eye) -> np.ndarray:
+    """Lid gap over eye width of one eye (see retarget_cli.track.detect.eye_opening), (T, 68, 2) -> (T,)."""
+    a, b, up, lo = eye
+    gap = sum(np.linalg.norm(points[:, u] - points[:, v], axis=1) for u, v in zip(up, lo)) / 2
+    return gap / np.linalg.norm(points[:, a] - points[:, b], axis=1)
+
+
+def blink_closures(points, truth, *, below: float = 0.5, margin: int = 3) -> np.ndarray:
+    """Share of each true blink's closure that a track reproduces, one value per eye and blink.
+
+    A blink of one eye is a run of frames where the true opening of that eye falls below *below*
+    times its median; over that run widened by *margin* frames, the closure of a series ``e`` is
+    ``median(e) - min(e)`` (the median over the take), and the value is the track's closure over
+    the truth's.
+
+    Parameters
+    ----------
+    points, truth : ndarray (T, 68, 2)
+
+    Returns
+    -------
+    ndarray (K,)
+        K blinks over both eyes (empty if the take has none).
+    """
+    out = []
+    for eye in EYES:
+        et, ep = _eye_opening(truth, eye), _eye_opening(points, eye)
+        low = np.flatnonzero(et < below * np.median(et))
+        for run in np.split(low, np.flatnonzero(np.diff(low) > 1) + 1) if len(low) else []:
+            w = slice(max(run[0] - margin, 0), run[-1] + margin + 1)
+            out.append((np.median(ep) - ep[w].min()) / (np.median(et) - et[w].min()))
+    return np.asarray(out)
+
+
 def decode_only(video: Path) -> tuple[int, float]:
     """The peer: frames and frames/s of a plain sequential ``cv2.VideoCapture.read`` loop."""
     import cv2
@@ -124,7 +165,7 @@ def decode_only(video: Path) -> tuple[int, float]:
 def bench_take(d: Path, label: str, trackers=None, only: str = "") -> list[tuple]:
     truth = load_npz(d / "truth_landmarks.npz")["points"].astype(np.float64)
     n, decode = decode_only(d / "face.mp4")
-    rows = [(label, "decode only (sequential cv2.VideoCapture.read)", None, None, None, decode, 1.0)]
+    rows = [(label, "decode only (sequential cv2.VideoCapture.read)", None, None, None, decode, 1.0, None)]
     for name, fn in (trackers or methods()).items():
         if not name.startswith(only):
             continue
@@ -135,7 +176,8 @@ def bench_take(d: Path, label: str, trackers=None, only: str = "") -> list[tuple
         fps = n / (time.perf_counter() - t0)
         err = np.linalg.norm(pts - truth, axis=2).mean(1)
         tenth = max(len(err) // 10, 1)
-        rows.append((label, name, err.mean(), err[:tenth].mean(), err[-tenth:].mean(), fps, fps / decode))
+        closure = blink_closures(pts, truth)
+        rows.append((label, name, err.mean(), err[:tenth].mean(), err[-tenth:].mean(), fps, fps / decode, closure))
     return rows
 
 
@@ -212,13 +254,16 @@ def main() -> None:
             rel = pipeline_error(Path(tmp) / "default")
     print(f"synthetic takes: {args.frames} frames at {w}x{h}, seed {args.seed}; stressed = {STRESS}")
     print(f"numba kernels loaded in {load:.2f} s before timing (once per process)")
-    print("| take | method | mean px | first 10% | last 10% | drift (last/first) | frames/s | vs decode-only |")
-    print("|---|---|---|---|---|---|---|---|")
-    for label, name, m, f, la, fps, ratio in rows:
+    print("| take | method | mean px | first 10% | last 10% | drift (last/first) | blink closure mean (min, blinks) "
+          "| frames/s | vs decode-only |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for label, name, m, f, la, fps, ratio, closure in rows:
         if m is None:
-            print(f"| {label} | {name} | | | | | {fps:.0f} | 1 |")
-        else:
-            print(f"| {label} | {name} | {m:.2f} | {f:.2f} | {la:.2f} | {la / max(f, 1e-9):.2f}x | {fps:.0f} | {ratio:.3f}x |")
+            print(f"| {label} | {name} | | | | | | {fps:.0f} | 1 |")
+            continue
+        blinks = f"{100 * closure.mean():.0f} % ({100 * closure.min():.0f} %, {len(closure)})" if len(closure) else "no blink"
+        print(f"| {label} | {name} | {m:.2f} | {f:.2f} | {la:.2f} | {la / max(f, 1e-9):.2f}x | {blinks} | {fps:.0f} "
+              f"| {ratio:.3f}x |")
     if rel is not None:
         print(f"retargeted mesh error (default take, lk via retarget run): {100 * rel:.1f}% of the mean expression displacement")
 

@@ -87,9 +87,12 @@ def test_annotated_frames_are_taken_exactly_and_reset_forgets_the_track():
 def test_default_tracker_follows_a_synthetic_blink_that_lk_misses(tmp_path):
     """sample_data's take blinks at frame 70 (truth eye opening 0.02 of the eye width against 0.31 open).
 
-    The default method (detect, fused with flow) closes the eyes about half way there (dlib's predictor
-    on this rendered face reaches 0.11 at best, fused 0.12-0.14); lk, anchored to the open eyes of the
-    annotation, hardly moves. The issue's target (90 % of the true closure) is not reached yet.
+    The default method (detect, fused with flow) closes the eyes about half way there; lk, anchored to
+    the open eyes of the annotation, hardly moves. The issue's target (90 % of the true closure) is not
+    reached: dlib's predictor itself stops at 0.14-0.15 on the closed frames (it puts the lids on the
+    two edges of the dark lash band the closed eye shows, the upper lid 0.12 eye widths above the
+    truth), at any frame scale (0.5-3x) and with the box placed from the truth; the fusion keeps
+    what it detects (test_fusion_keeps_the_detectors_blink).
     """
     from retarget_cli.io.landmarks import load_landmarks
     from retarget_cli.pipeline import stage_params
@@ -114,6 +117,32 @@ def test_default_tracker_follows_a_synthetic_blink_that_lk_misses(tmp_path):
     lk, _ = closure(init=str(tmp_path / "default.init_00040.pts"), method="lk", filter="none")
     assert fused >= 0.45, fused
     assert lk < 0.1, lk
+
+
+@needs_dlib
+def test_fusion_keeps_the_detectors_blink():
+    """On sample_data's blink (frames 67-73) the fused track closes the eyes as far as the raw detections.
+
+    Optical flow cannot follow a closing lid (its window sees the skin stretch, not the lid's edge), so
+    the fusion must not pull the lid points back towards the flow: the closure of the fused track is at
+    least 95 % of the raw detector's (both measured like the default-tracker test above).
+    """
+    from retarget_cli.io.frames import FrameSource
+    from retarget_cli.track.detect import Detector, track_detect
+
+    with FrameSource(str(SAMPLE / "face.mp4"), start=40, end=100, gray=True) as src:
+        frames = list(src)
+    det = Detector()
+    blink = slice(27, 34)
+
+    def closure(points):
+        e = eye_opening(points)
+        return np.median(e) - e[blink].min()
+
+    raw, _ = track_detect(frames, detector=det, fuse=False)
+    fused, _ = track_detect(frames, detector=det)
+    assert closure(raw) > 0.1, closure(raw)  # the detector does see a blink
+    assert closure(fused) >= 0.95 * closure(raw), (closure(fused), closure(raw))
 
 
 @needs_dlib
