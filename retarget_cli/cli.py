@@ -15,6 +15,7 @@ import sys
 import click
 
 from . import __version__
+from .clitypes import IndexList, Size
 from .config import Param
 from .errors import INTERRUPTED_EXIT_STATUS, RetargetError
 
@@ -23,15 +24,26 @@ log = logging.getLogger("retarget_cli")
 _TYPES = {int: click.INT, float: click.FLOAT, str: click.STRING}
 
 
-def _param(stage: str, name: str) -> Param:
+def _param(command: str, name: str) -> Param:
+    """The declared :class:`Param` *name* of a pipeline stage or a command (:func:`command_params`)."""
+    return next(p for p in command_params(command) if p.name == name)
+
+
+def command_params(command: str) -> list[Param]:
+    """The declarations of a pipeline stage (``track``, ``auto_pose``, ...) or of another command."""
     from .pipeline import STAGES
 
-    return STAGES[stage].param(name)
+    if command in STAGES:
+        return STAGES[command].params
+    from .stages import detect, edit, solve_rig, track
+
+    return {"train-tracker": track.TRAIN_PARAMS, "import": track.IMPORT_PARAMS, "annotate": detect.PARAMS,
+            "edit": edit.PARAMS, "solve-rig": solve_rig.PARAMS}[command]
 
 
-def setting(stage: str, name: str, *decls, **extra):
-    """A click option built from the stage's declared :class:`Param` (one source of truth)."""
-    p = _param(stage, name)
+def setting(command: str, name: str, *decls, **extra):
+    """A click option built from the command's declared :class:`Param` (one source of truth)."""
+    p = _param(command, name)
     flag = "--" + p.name.replace("_", "-")
     kw = dict(help=p.help, show_default=True)
     if p.type is bool:
@@ -210,11 +222,10 @@ def main(verbose: int, quiet: bool):
     logging.getLogger("retarget_cli").setLevel(level)
 
 
-def _inverse_rig_default(name):
-    """A constant of :mod:`retarget_cli.inverse_rig` (numpy only, cheap to import)."""
-    from . import inverse_rig
+def _formats_help() -> str:
+    from .io.exports import formats_help
 
-    return getattr(inverse_rig, name)
+    return formats_help()
 
 
 def _print_outputs(paths):
@@ -247,7 +258,7 @@ def _print_outputs(paths):
 @setting("track", "downscale")
 @setting("track", "fps")
 @setting("track", "smooth_head")
-@click.option("--rigid-points", default=None, metavar="SPEC",
+@click.option("--rigid-points", type=IndexList(), default=None, metavar="SPEC",
               help="Landmarks that define head motion, e.g. 27-31,33,35,36,39,42,45 (default: eye corners "
                    "and nose for 68 points, else all).")
 @setting("track", "keep_partial")
@@ -265,11 +276,7 @@ def track(video, init, annotations, output, rigid_points, **settings):
     annotates the first), or with --method detect by a pretrained detector on every frame."""
     from .stages import run_track
 
-    rigid = None
-    if rigid_points:
-        rigid = _parse_regions([f"r={rigid_points}"])["r"]
-        if rigid == "all":
-            raise click.BadParameter("expected indices such as 27-31,36,39", param_hint="--rigid-points")
+    rigid = rigid_points or None
     _print_outputs(run_track(video=video, init=init, annotations=list(annotations), output=output,
                              rigid_points=rigid, progress=progress, **settings))
 
@@ -279,19 +286,13 @@ def track(video, init, annotations, output, rigid_points, **settings):
 @click.argument("annotations", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @output_option("facemark.yaml", "Model file (OpenCV Facemark LBF; gzip-compressed if the name ends in .gz).",
                required=False)
-@click.option("--fps", type=click.FloatRange(min=0.01), default=None, help="Frame rate of an image sequence.")
-@click.option("--rigid-points", default=None, metavar="SPEC",
-              help="Landmarks aligning the annotated frames before morphing (default: eye corners and nose for "
-                   "68 points, else all).")
-@click.option("--stages", type=click.IntRange(1, 10), default=5, show_default=True, help="Cascade stages.")
-@click.option("--trees", type=click.IntRange(1, 20), default=4, show_default=True,
-              help="Trees per landmark and stage.")
-@click.option("--depth", type=click.IntRange(2, 8), default=4, show_default=True,
-              help="Tree depth (OpenCV tree_depth: depth - 1 splits per tree).")
-@click.option("--face-size", type=click.IntRange(32, 4096), default=200, show_default=True,
-              help="Frames are scaled down so the first annotated face box is this many pixels on its longer "
-                   "side (for training and tracking alike); larger is slower.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random choice.")
+@setting("train-tracker", "fps")
+@setting("train-tracker", "rigid_points", type=IndexList(), metavar="SPEC")
+@setting("train-tracker", "stages")
+@setting("train-tracker", "trees")
+@setting("train-tracker", "depth")
+@setting("train-tracker", "face_size")
+@setting("train-tracker", "seed")
 def train_tracker(video, annotations, output, fps, rigid_points, stages, trees, depth, face_size, seed):
     """Train a Facemark tracking model on annotated frames of VIDEO (a video or an image-sequence pattern).
 
@@ -300,11 +301,7 @@ def train_tracker(video, annotations, output, fps, rigid_points, stages, trees, 
     `retarget track VIDEO --init face_00000.pts --method facemark --model facemark.yaml`."""
     from .stages import run_train_tracker
 
-    rigid = None
-    if rigid_points:
-        rigid = _parse_regions([f"r={rigid_points}"])["r"]
-        if rigid == "all":
-            raise click.BadParameter("expected indices such as 27-31,36,39", param_hint="--rigid-points")
+    rigid = rigid_points or None
     _print_outputs(run_train_tracker(video=video, annotations=list(annotations), output=output, fps=fps,
                                      rigid_points=rigid, stages=stages, trees=trees, depth=depth,
                                      face_size=face_size, seed=seed,
@@ -316,7 +313,7 @@ def train_tracker(video, annotations, output, fps, rigid_points, stages, trees, 
 @click.option("--frames", "frames", required=True, metavar="LIST",
               help="Frames to annotate (0-based), e.g. 0,120,240 or 0-300:60 (every 60th from 0 to 300).")
 @output_option(None, "Directory for the .pts files.")
-@click.option("--fps", type=click.FloatRange(min=0.01), default=None, help="Frame rate of an image sequence.")
+@setting("annotate", "fps")
 def annotate(video, frames, output, fps):
     """Place the 68 landmarks on chosen frames of VIDEO with the pretrained detector (needs the extra detect).
 
@@ -351,20 +348,18 @@ def _parse_frames(spec: str) -> list[int]:
 @main.command("import")
 @click.argument("source", type=click.Path())
 @output_option("landmarks.npz", "Landmarks file (landmarks.npz contract).", required=False)
-@click.option("--fps", type=click.FloatRange(min=0.01, min_open=False), default=None,
-              help="Frame rate (default: the source's, else 30).")
-@click.option("--frame-size", default=None, metavar="WxH", help="Frame size of the source video, e.g. 1920x1080.")
-@click.option("--rigid-points", default=None, metavar="SPEC", help="Landmarks that define head motion.")
-@click.option("--smooth-head", type=click.IntRange(0, 301), default=0, show_default=True,
-              help="Temporal smoothing of the head track (Savitzky-Golay window in frames).")
-@setting("track", "filter", default="none")
-@setting("track", "filter_model")
-@setting("track", "filter_process_noise")
-@setting("track", "filter_measurement_noise")
-@setting("track", "filter_robust")
-@setting("track", "filter_min_cutoff")
-@setting("track", "filter_beta")
-@setting("track", "filter_d_cutoff")
+@setting("import", "fps")
+@setting("import", "frame_size", type=Size(example="1920x1080"), metavar="WxH")
+@setting("import", "rigid_points", type=IndexList(), metavar="SPEC")
+@setting("import", "smooth_head")
+@setting("import", "filter")
+@setting("import", "filter_model")
+@setting("import", "filter_process_noise")
+@setting("import", "filter_measurement_noise")
+@setting("import", "filter_robust")
+@setting("import", "filter_min_cutoff")
+@setting("import", "filter_beta")
+@setting("import", "filter_d_cutoff")
 def import_(source, output, fps, frame_size, rigid_points, smooth_head, **filters):
     """Bring landmarks from another tool into landmarks.npz, with head motion and stabilization.
 
@@ -372,16 +367,7 @@ def import_(source, output, fps, frame_size, rigid_points, smooth_head, **filter
     from each name, e.g. face_00120.pts)."""
     from .stages import run_import
 
-    rigid = None
-    if rigid_points:
-        rigid = _parse_regions([f"r={rigid_points}"])["r"]
-    size = None
-    if frame_size:
-        try:
-            size = tuple(int(v) for v in frame_size.lower().split("x"))
-            assert len(size) == 2
-        except (ValueError, AssertionError):
-            raise click.BadParameter(f"expected WxH, got {frame_size!r}", param_hint="--frame-size") from None
+    rigid, size = rigid_points or None, frame_size
     _print_outputs(run_import(source=source, output=output, fps=fps, frame_size=size, rigid_points=rigid,
                               smooth_head=smooth_head, **filters))
 
@@ -516,10 +502,7 @@ def _parse_masks(masks) -> dict:
 @click.argument("targets", type=click.Path(dir_okay=False))
 @output_option("frames", "Directory for the OBJ sequence and the other exports.", required=False)
 @click.option("--format", "formats", default="obj", show_default=True, metavar="LIST",
-              help="Comma-separated exports: obj (frame_%05d.obj), csv (weights.csv), "
-                   "exr (animation.exr + animation.json), glb (animation.glb), curves (curves.csv + curves.npz: "
-                   "the rig's sliders per frame, with keys posed by auto-pose), livelink (livelink.csv: Live Link "
-                   "Face CSV of the rig's sliders), usd (animation.usd: UsdSkel blendshapes or a point cache).")
+              help=f"Comma-separated exports: {_formats_help()}.")
 @click.option("--landmarks", type=click.Path(dir_okay=False), default=None,
               help="landmarks.npz whose head motion --head-motion 2d applies.")
 @setting("apply", "head_motion")
@@ -558,10 +541,8 @@ def apply(weights, targets, output, formats, landmarks, head_motion, scale, pivo
 @click.argument("animation", type=click.Path(dir_okay=False))
 @click.argument("edits", type=click.Path(dir_okay=False))
 @output_option(None, "Edited weights (.csv or .npz, same layout as ANIMATION).")
-@click.option("--rig", type=click.Path(dir_okay=False), default=None,
-              help="rig.yaml (default: the 'rig:' named in EDITS).")
-@click.option("--objs", type=click.Path(file_okay=False), default=None,
-              help="Also write the posed OBJ sequence (frame_00000.obj, ...) into this directory.")
+@setting("edit", "rig", type=click.Path(dir_okay=False))
+@setting("edit", "objs", type=click.Path(file_okay=False))
 @no_cache_option
 def edit(animation, edits, output, rig, objs, no_cache):
     """Apply the pins and attenuations of EDITS to the rig weights in ANIMATION (CSV or NPZ).
@@ -614,17 +595,11 @@ def auto_pose(keys, landmarks, rig, landmark_vertices, masks, fit, neutral_frame
 @click.argument("rig", type=click.Path(dir_okay=False))
 @click.argument("meshes")
 @output_option(None, "Slider curves (NPZ: curves, names, per-frame metrics).")
-@click.option("--solver", type=click.Choice(_inverse_rig_default("SOLVERS")),
-              default=_inverse_rig_default("DEFAULT_SOLVER"), show_default=True,
-              help="lbfgsb (fast, eq. 8), mm (Racković et al. Alg. 2), bounded, ridge (eq. 6), sequential (eq. 7).")
-@click.option("--alpha", type=click.FloatRange(0), default=_inverse_rig_default("DEFAULT_ALPHA"), show_default=True,
-              help="Sparsity weight alpha of eq. 8 (squared mesh units per unit weight).")
-@click.option("--tol", type=click.FloatRange(0, min_open=True), default=_inverse_rig_default("DEFAULT_TOL"),
-              show_default=True, help="mm/lbfgsb: stop when an iteration lowers the objective by less than tol x it.")
-@click.option("--max-iter", type=click.IntRange(1), default=_inverse_rig_default("DEFAULT_MAX_ITER"),
-              show_default=True, help="mm/lbfgsb: iteration cap per frame.")
-@click.option("--metrics", type=click.Path(dir_okay=False), default=None,
-              help="Also write per-frame metrics with wall times as CSV.")
+@setting("solve-rig", "solver")
+@setting("solve-rig", "alpha")
+@setting("solve-rig", "tol", type=click.FloatRange(0, min_open=True))
+@setting("solve-rig", "max_iter")
+@setting("solve-rig", "metrics", type=click.Path(dir_okay=False))
 @no_cache_option
 def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics, no_cache):
     """Slider weights in [0, 1] of RIG (with corrective shapes) that reproduce MESHES.
@@ -779,22 +754,11 @@ def _camera(yaw, pitch, fov, distance):
     return Camera(yaw=yaw, pitch=pitch, fov=fov, distance=distance)
 
 
-def _parse_size(text: str, param: str = "--size") -> tuple[int, int]:
-    """``WxH`` or ``N`` (square) to (width, height)."""
-    try:
-        parts = [int(v) for v in text.lower().split("x")]
-        w, h = (parts[0], parts[0]) if len(parts) == 1 else parts
-    except ValueError:
-        raise click.BadParameter(f"expected WxH or N, such as 512x512, got {text!r}", param_hint=param) from None
-    if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise click.BadParameter(f"width and height must lie in [16, 8192], got {text}", param_hint=param)
-    return w, h
-
-
 @main.command()
 @click.argument("mesh", metavar="MESH_OR_SEQUENCE")
 @output_option(None, "Image (.png, .jpg) for one OBJ; video (.mp4, .avi) for a sequence.")
-@click.option("--size", default="512", show_default=True, help="Image size WxH, or N for N x N pixels.")
+@click.option("--size", type=Size(square=True, example="512x512"), default="512", metavar="WxH", show_default=True,
+              help="Image size WxH, or N for N x N pixels.")
 @click.option("--fps", type=click.FloatRange(0, 240, min_open=True), default=30.0, show_default=True,
               help="Frame rate of a video output.")
 @_camera_options
@@ -806,7 +770,7 @@ def render(mesh, output, size, fps, yaw, pitch, fov, distance, shading):
     """
     from .preview import write_render
 
-    out = write_render(mesh, output, size=_parse_size(size), fps=fps, camera=_camera(yaw, pitch, fov, distance),
+    out = write_render(mesh, output, size=size, fps=fps, camera=_camera(yaw, pitch, fov, distance),
                        shading=shading, progress=progress)
     click.echo(str(out))
 
@@ -867,16 +831,11 @@ def report(run_path, output, video, worst, yaw, pitch, fov, distance, shading):
 @main.command()
 @click.argument("outdir", type=click.Path(file_okay=False))
 @click.option("--frames", type=click.IntRange(2, 100000), default=240, show_default=True, help="Number of frames.")
-@click.option("--size", default="320x320", show_default=True, help="Frame size WxH in pixels.")
+@click.option("--size", type=Size(lo=64, hi=4096), default="320x320", metavar="WxH", show_default=True, help="Frame size WxH in pixels.")
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True, help="Random seed.")
 def synth(outdir, frames, size, seed):
     """Write a synthetic performance (video, truth, target rig, config) into OUTDIR."""
-    try:
-        w, h = (int(v) for v in size.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"expected WxH such as 320x320, got {size!r}", param_hint="--size") from None
-    if not (64 <= w <= 4096 and 64 <= h <= 4096):
-        raise click.BadParameter(f"width and height must lie in [64, 4096], got {size}", param_hint="--size")
+    w, h = size
     from .synth import write_take
 
     written = write_take(outdir, n_frames=frames, size=(w, h), seed=seed)

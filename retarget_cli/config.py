@@ -219,6 +219,12 @@ def check_strings(value, where: str) -> None:
         raise ConfigError(f"{where}: expected a list of strings, got {str(value)[:80]}")
 
 
+def check_size(value, where: str) -> None:
+    """A frame size ``[width, height]`` of positive integers."""
+    if len(value) != 2 or not all(_is_int(v) and v > 0 for v in value):
+        raise ConfigError(f"{where}: expected [width, height] in pixels, got {value!r}")
+
+
 def check_vector3(value, where: str) -> None:
     if (len(value) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
             or not all(math.isfinite(v) for v in value)):
@@ -461,3 +467,59 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
     base = path.resolve().parent
     output_dir = _output_dir(path, base, top)
     return Config(path, base, output_dir, top.get("seed", 0), sections)
+
+
+# --------------------------------------------------------------------------- the Python API checks its arguments too
+
+
+def _plain(value):
+    """A runner's argument as YAML would give it: numpy scalars as Python numbers, paths as strings, tuples as lists."""
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    if hasattr(value, "item") and getattr(value, "shape", None) == ():
+        return value.item()
+    return value
+
+
+def validate_params(params):
+    """Decorator: check every setting a runner is called with against its :class:`Param` (as scikit-learn's
+    ``validate_params`` does), so the Python API refuses what ``retarget run`` and the CLI refuse.
+
+    Only the arguments the caller gives are checked (a runner's own defaults are its declaration's; a test
+    checks that). The declarations are kept on the runner as ``params``.
+
+    Raises
+    ------
+    ParameterError
+        Naming the argument and what was expected.
+    """
+    import functools
+    import inspect
+
+    from .errors import ParameterError
+
+    declared = {p.name: p for p in params if p.kind == "setting"}
+
+    def decorate(fn):
+        signature = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def runner(*args, **kwargs):
+            bound = signature.bind(*args, **kwargs)
+            for name, value in bound.arguments.items():
+                p = declared.get(name)
+                if p is not None:
+                    try:
+                        p.check(_plain(value), name)
+                    except ConfigError as exc:
+                        raise ParameterError(str(exc)) from None
+            return fn(*args, **kwargs)
+
+        runner.params = tuple(params)
+        return runner
+
+    return decorate

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_vector3
+from ..config import Param, check_vector3, validate_params
 from ..errors import InputError, ParameterError
 from ..io.atomic import TrackedOutputs, check_not_input
 from ..io.exports import EXPORTS, ExportContext, format_choices, formats_help
@@ -198,6 +198,7 @@ def _rig_driver(regions, tg, targets, cache_dir):
     return positions, rig.template, rig.neutral, glb, (rig, curves)
 
 
+@validate_params(PARAMS)
 def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), head_motion="none", scale=None,
               pivot=None, vat="offsets", drive="auto", progress=_no_progress, cache_dir=None) -> list[Path]:
     """Drive the character with the weights and export the result.

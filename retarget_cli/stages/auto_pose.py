@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_indices, check_masks, check_strings
+from ..config import Param, check_indices, check_masks, check_strings, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, tracked_outputs, write_text
 from ..io.vertexmap import read_vertex_map
@@ -103,6 +103,7 @@ def _mask_text(weights: np.ndarray) -> str:
     return "".join(f"{w:.6g}\n" for w in weights)
 
 
+@validate_params(PARAMS)
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame=0, sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, base_dir=None, cache_dir=None) -> list[Path]:

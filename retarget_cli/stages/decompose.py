@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param
+from ..config import Param, validate_params
 from ..decompose import FORMULATIONS, SOLVERS
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_text
@@ -50,6 +50,7 @@ PARAMS = [
 ]
 
 
+@validate_params(PARAMS)
 def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulation="whole", alpha=None, upper=None,
                   neutral_frame=0, confidence=True, lost_fraction=0.5, smooth_space="shape",
                   robust=2.0) -> list[Path]:

@@ -9,10 +9,20 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Param, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input
 
 log = logging.getLogger(__name__)
+
+#: Declared parameters of ``annotate``.
+PARAMS = [
+    Param("video", "input", str, help="Video or image-sequence pattern."),
+    Param("frames", "setting", list, help="Frames to annotate (0-based), e.g. 0,120,240 or 0-300:60 (every 60th "
+          "from 0 to 300)."),
+    Param("output", "output", str, help="Directory for the .pts files."),
+    Param("fps", "setting", float, None, "Frame rate of an image sequence.", min=0.01, nullable=True),
+]
 
 #: The value of ``track.init`` (and ``--init``) that asks for automatic annotation.
 AUTO = "auto"
@@ -59,6 +69,7 @@ def detect_frame(gray, *, detector, where: str) -> np.ndarray:
     return points
 
 
+@validate_params(PARAMS)
 def run_annotate(*, video, frames, output, fps=None) -> list[Path]:
     """Detect the face on the chosen *frames* of *video* and write ``<video stem>_<frame:05d>.pts`` into *output*.
 

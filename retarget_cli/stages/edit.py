@@ -7,12 +7,23 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Param, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, sha256_file, tracked_outputs
 from ..io.runfiles import FRAME_RE
 from ._common import _no_progress, _require
 
 log = logging.getLogger(__name__)
+
+#: Declared parameters of ``edit``.
+PARAMS = [
+    Param("animation", "input", str, help="Rig weights over time (CSV or NPZ)."),
+    Param("edits", "input", str, help="edits.yaml: pins and attenuations over frame ranges."),
+    Param("output", "output", str, help="Edited weights (.csv or .npz, same layout as ANIMATION)."),
+    Param("rig", "input", str, None, "rig.yaml (default: the 'rig:' named in EDITS).", nullable=True),
+    Param("objs", "output", str, None,
+          "Also write the posed OBJ sequence (frame_00000.obj, ...) into this directory.", nullable=True),
+]
 
 
 def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path]:
@@ -31,6 +42,7 @@ def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path
     return written.written
 
 
+@validate_params(PARAMS)
 def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_progress, cache_dir=None) -> list[Path]:
     """Apply ``edits.yaml`` (pins and attenuations over frame ranges) to rig weights over time.
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_masks
+from ..config import Param, check_masks, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, tracked_outputs
 from ._common import Stage, _require
@@ -27,6 +27,7 @@ PARAMS = [
 ]
 
 
+@validate_params(PARAMS)
 def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=None) -> list[Path]:
     """Pose the rig at each key frame's known slider values; write target OBJs and ``targets.yaml``.
 

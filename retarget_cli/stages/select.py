@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_regions
+from ..config import Param, check_regions, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_text
 from ..regions import region_specs
@@ -47,7 +47,8 @@ PARAMS = [
 TEMPLATE_MARK = "# targets.yaml template written by retarget select.\n"
 
 
-def run_select(*, landmarks, output, template=None, method="pca-extremes", k=12, regions=None,
+@validate_params(PARAMS)
+def run_select(*, landmarks, output, template=None, method="greedy", k=12, regions=None,
                neutral_frame=0, kmeans_components=2, evaluate=None, plot=None, evaluate_k=40,
                contact_sheet=None, video=None, seed=0, progress=_no_progress) -> list[Path]:
     """Choose key frames per region; write ``keys.json`` and a ``targets.yaml`` template.

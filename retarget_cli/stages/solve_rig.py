@@ -5,13 +5,41 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from ..config import ConfigError, Param, validate_params
+from ..inverse_rig import DEFAULT_ALPHA, DEFAULT_MAX_ITER, DEFAULT_SOLVER, DEFAULT_TOL, SOLVERS
 from ..io.atomic import check_not_input
 from ._common import _no_progress
 
 log = logging.getLogger(__name__)
 
 
-def run_solve_rig(*, rig, meshes, output, solver, alpha, tol, max_iter, metrics=None,
+def _positive(value, where: str) -> None:
+    if not value > 0:
+        raise ConfigError(f"{where}: expected a number > 0, got {value!r}")
+
+
+#: Declared parameters of ``solve-rig``.
+PARAMS = [
+    Param("rig", "input", str, help="rig.yaml with corrective shapes."),
+    Param("meshes", "input", str,
+          help="A directory of frame_*.obj, a glob such as 'scans/*.obj', or an NPZ with positions (T, N, 3)."),
+    Param("output", "output", str, help="Slider curves (NPZ: curves, names, per-frame metrics)."),
+    Param("solver", "setting", str, DEFAULT_SOLVER,
+          "lbfgsb (fast, eq. 8), mm (Racković et al. Alg. 2), bounded, ridge (eq. 6), sequential (eq. 7).",
+          choices=SOLVERS),
+    Param("alpha", "setting", float, DEFAULT_ALPHA,
+          "Sparsity weight alpha of eq. 8 (squared mesh units per unit weight).", min=0),
+    Param("tol", "setting", float, DEFAULT_TOL,
+          "mm/lbfgsb: stop when an iteration lowers the objective by less than tol x it.", min=0,
+          validate=_positive),
+    Param("max_iter", "setting", int, DEFAULT_MAX_ITER, "mm/lbfgsb: iteration cap per frame.", min=1),
+    Param("metrics", "output", str, None, "Also write per-frame metrics with wall times as CSV.", nullable=True),
+]
+
+
+@validate_params(PARAMS)
+def run_solve_rig(*, rig, meshes, output, solver=DEFAULT_SOLVER, alpha=DEFAULT_ALPHA, tol=DEFAULT_TOL,
+                  max_iter=DEFAULT_MAX_ITER, metrics=None,
                   progress=_no_progress, cache_dir=None) -> tuple[list[Path], dict]:
     """Fit slider weights of a rig with correctives to a mesh sequence (Racković et al. 2023, eq. 8).
 

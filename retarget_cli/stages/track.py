@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_indices, check_strings
+from ..config import Param, check_indices, check_size, check_strings, validate_params
 from ..errors import InputError, ParameterError
 from ..io.atomic import check_not_input, digest_files, sha256_file
 from ..track import method_choices, method_help
@@ -66,8 +67,43 @@ PARAMS = [
     *FILTER_PARAMS,
 ]
 
+#: Declared parameters of ``train-tracker``.
+TRAIN_PARAMS = [
+    Param("video", "input", str, help="Video or image-sequence pattern whose frames are annotated."),
+    Param("annotations", "input", list, help=".pts files (frame number ending the name) or frame,point,x,y CSV "
+          "files; 5 or more frames that span the actor's expressions."),
+    Param("output", "output", str, "facemark.yaml",
+          "Model file (OpenCV Facemark LBF; gzip-compressed if the name ends in .gz)."),
+    Param("fps", "setting", float, None, "Frame rate of an image sequence.", min=0.01, nullable=True),
+    Param("rigid_points", "setting", list, None,
+          "Landmarks aligning the annotated frames before morphing (default: eye corners and nose for "
+          "68 points, else all).", nullable=True, validate=check_indices),
+    Param("stages", "setting", int, 5, "Cascade stages.", min=1, max=10),
+    Param("trees", "setting", int, 4, "Trees per landmark and stage.", min=1, max=20),
+    Param("depth", "setting", int, 4, "Tree depth (OpenCV tree_depth: depth - 1 splits per tree).", min=2, max=8),
+    Param("face_size", "setting", int, 200,
+          "Frames are scaled down so the first annotated face box is this many pixels on its longer "
+          "side (for training and tracking alike); larger is slower.", min=32, max=4096),
+    Param("seed", "setting", int, 0, "Seed of every random choice."),
+]
 
-def run_track(*, video, init, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
+#: Declared parameters of ``import`` (its landmark filter is off by default: imported points stay as given).
+IMPORT_PARAMS = [
+    Param("source", "input", str, help="frame,point,x,y CSV, NPZ with 'points' (T, L, 2) or a folder of .pts files."),
+    Param("output", "output", str, "landmarks.npz", "Landmarks file (landmarks.npz contract)."),
+    Param("fps", "setting", float, None, "Frame rate (default: the source's, else 30).", min=0.01, nullable=True),
+    Param("frame_size", "setting", list, None, "Frame size of the source video, e.g. 1920x1080.", nullable=True,
+          validate=check_size),
+    Param("rigid_points", "setting", list, None, "Landmarks that define head motion.", nullable=True,
+          validate=check_indices),
+    Param("smooth_head", "setting", int, 0,
+          "Temporal smoothing of the head track (Savitzky-Golay window in frames).", min=0, max=301),
+    *(dataclasses.replace(p, default="none") if p.name == "filter" else p for p in FILTER_PARAMS),
+]
+
+
+@validate_params(PARAMS)
+def run_track(*, video, init=None, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
               rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
               fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, base_dir=None,
               progress=_no_progress, filter=FILTER_DEFAULTS["filter"], filter_model=FILTER_DEFAULTS["filter_model"],
@@ -316,6 +352,7 @@ def _write_track_overlay(overlay, video, points, conf, head, source, *, start, e
                       progress=lambda t: bar.update(1))
 
 
+@validate_params(TRAIN_PARAMS)
 def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None, stages=5, trees=4, depth=4,
                       face_size=200, seed=0, progress=_no_progress) -> list[Path]:
     """Train a Facemark LBF model from annotated frames of *video*; write it to *output* atomically.
@@ -378,6 +415,7 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
     return [Path(output)]
 
 
+@validate_params(IMPORT_PARAMS)
 def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0, filter="none",
                filter_model=FILTER_DEFAULTS["filter_model"], filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
                filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
