@@ -1,28 +1,28 @@
-"""Stage registry and the up-to-date-aware runner behind ``retarget run``.
+"""The pipeline's stages in order, and the up-to-date-aware runner behind ``retarget run``.
 
-Each stage declares its inputs, outputs and settings (:class:`~retarget_cli.config.Param`).
-After a stage succeeds, a manifest ``<output_dir>/.retarget/<stage>.json``
-records its resolved settings, the sha256 of every input and output, and the
-version. A later run skips the stage while all of these still match, as make
-and DVC do; the manifest is written last, so a run killed midway is rerun.
+Each stage is declared beside its runner (``STAGE`` in
+:mod:`retarget_cli.stages`): its inputs, outputs and settings
+(:class:`~retarget_cli.config.Param`). After a stage succeeds, its manifest
+(:mod:`retarget_cli.manifest`) records what it ran with; a later run skips the
+stage while all of it still matches, as make and DVC do.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
 from pathlib import Path
 
-from . import __version__, stages
+from . import stages
 from .config import (
     REQUIRED,
     Config,
     Param,
 )
 from .errors import ConfigError, InputError, RetargetError
-from .io.atomic import guard_writes, remove_stale_parts, sha256_file, write_json
+from .io.atomic import guard_writes, remove_stale_parts
+from .manifest import manifest_matches, write_manifest
 from .stages._common import Stage
 
 log = logging.getLogger(__name__)
@@ -49,16 +49,6 @@ STAGES: dict[str, Stage] = {
 ORDER = list(STAGES)
 
 
-def code_fingerprint() -> str:
-    """sha256 over the package's source files: a code change reruns every stage."""
-    import hashlib
-
-    h = hashlib.sha256(__version__.encode())
-    root = Path(__file__).parent
-    for f in sorted(root.rglob("*.py")):
-        h.update(f.relative_to(root).as_posix().encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()[:16]
 
 
 def stage_params() -> dict[str, list[Param]]:
@@ -114,21 +104,8 @@ def resolve(cfg: Config, name: str) -> dict:
     return kw
 
 
-def _record(path: Path) -> dict:
-    st = path.stat()
-    return {"sha256": sha256_file(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
-def _matches(path: Path, rec: dict) -> bool:
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return False
-    if st.st_size != rec.get("size"):
-        return False
-    if st.st_mtime_ns == rec.get("mtime_ns"):
-        return True
-    return sha256_file(path) == rec.get("sha256")
 
 
 def _inputs(stage: Stage, kw: dict) -> list[Path]:
@@ -140,6 +117,11 @@ def _inputs(stage: Stage, kw: dict) -> list[Path]:
     return files + [Path(f) for f in stage.extra_inputs(kw)]
 
 
+def manifest_path(cfg: Config, name: str) -> Path:
+    """Stage *name*'s manifest: ``<output_dir>/.retarget/<name>.json``."""
+    return cfg.output_dir / ".retarget" / f"{name}.json"
+
+
 def _settings(stage: Stage, kw: dict, cfg: Config) -> dict:
     out = {}
     for k, v in kw.items():
@@ -147,36 +129,15 @@ def _settings(stage: Stage, kw: dict, cfg: Config) -> dict:
     return out
 
 
-def manifest_path(cfg: Config, name: str) -> Path:
-    return cfg.output_dir / ".retarget" / f"{name}.json"
+
+
 
 
 def check_up_to_date(cfg: Config, name: str, kw: dict) -> tuple[bool, str]:
     """Whether stage *name*'s manifest still matches; returns (ok, reason)."""
-    path = manifest_path(cfg, name)
-    if not path.is_file():
-        return False, "never run"
-    try:
-        man = json.loads(path.read_text(encoding="utf-8"))
-    except ValueError:  # invalid JSON or not UTF-8
-        return False, "manifest unreadable"
     stage = STAGES[name]
-    if not isinstance(man, dict):
-        return False, "manifest unreadable"
-    if man.get("version") != __version__ or man.get("code") != code_fingerprint():
-        return False, "retarget version or code changed"
-    if man.get("settings") != _settings(stage, kw, cfg):
-        return False, "settings changed"
-    inputs = _inputs(stage, kw)
-    if sorted(man.get("inputs", {})) != sorted(_rel(p, cfg.base_dir) for p in inputs):
-        return False, "input files changed"
-    for p in inputs:
-        if not _matches(p, man["inputs"][_rel(p, cfg.base_dir)]):
-            return False, f"{_rel(p, cfg.base_dir)} changed"
-    for rel, rec in man.get("outputs", {}).items():
-        if not _matches(cfg.base_dir / rel, rec):
-            return False, f"output {rel} missing or modified"
-    return True, "up to date"
+    return manifest_matches(manifest_path(cfg, name), settings=_settings(stage, kw, cfg),
+                            inputs=lambda: _inputs(stage, kw), base=cfg.base_dir)
 
 
 def cache_dir(cfg: Config) -> Path:
@@ -202,16 +163,8 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = Tru
     t0 = time.perf_counter()
     outputs = stage.runner(**call)
     seconds = round(time.perf_counter() - t0, 3)
-    man = {
-        "stage": name,
-        "version": __version__,
-        "code": code_fingerprint(),
-        "settings": _settings(stage, kw, cfg),
-        "inputs": {_rel(p, cfg.base_dir): _record(p) for p in inputs},
-        "outputs": {_rel(p, cfg.base_dir): _record(p) for p in outputs},
-        "seconds": seconds,
-    }
-    write_json(manifest_path(cfg, name), man)
+    write_manifest(manifest_path(cfg, name), name, settings=_settings(stage, kw, cfg), inputs=inputs,
+                   outputs=outputs, base=cfg.base_dir, seconds=seconds)
     return outputs
 
 

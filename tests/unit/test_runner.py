@@ -4,7 +4,6 @@ import json
 
 import pytest
 
-from retarget_cli import pipeline
 from retarget_cli.config import load_config
 from retarget_cli.pipeline import ORDER, STAGES, manifest_path, run_pipeline, stage_params
 
@@ -93,6 +92,8 @@ def test_force_and_ranges(small_take):
 
 def test_code_change_invalidates_manifests(small_take, monkeypatch):
     run(small_take)
-    monkeypatch.setattr(pipeline, "code_fingerprint", lambda: "something-else")
+    from retarget_cli import manifest
+
+    monkeypatch.setattr(manifest, "code_fingerprint", lambda: "something-else")
     _, status = run(small_take)
     assert set(status.values()) == {"ran"}
