@@ -131,13 +131,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     rigid_points : sequence of int, optional
         Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
     """
-    from ..edit import auto_pose
-    from ..io.editfiles import write_animation
-    from ..io.landmarks import load_landmarks
-    from ..io.obj import write_obj
-    from ..io.stagefiles import read_keys, read_rig, write_targets
     from ..rig import BlendshapeRig
-    from ..rigpose import DEFAULT_RIDGE, DEFAULT_SPARSITY, delta_pose, rig_region_masks
 
     if fit not in FITS:
         raise InputError(f"fit: expected one of {', '.join(FITS)}, got {fit!r}")
@@ -148,6 +142,31 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
     # Everything that is cheap to check, before the rig's OBJs are read.
+    spec, kf, lm, frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame,
+                                                     skip_points, rigid_points, masks, base_dir)
+    r = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
+    lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
+    fixed = excluded_sliders(r.names, exclude)
+    region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
+    Y = lm.stabilized[:, lm_ids].astype(np.float64)
+    Cf = lm.confidence[:, lm_ids].astype(np.float64)
+    if fit == "delta":
+        poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed,
+                                                    rigid, sparsity, ridge)
+    else:
+        poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, frames, list(kf.regions), region_rows, fixed,
+                                                       alpha, mu)
+    return _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit,
+                       neutral_frame)
+
+
+def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame, skip_points, rigid_points, masks,
+                  base_dir):
+    """Checks that need no OBJ: outputs that are not inputs, key and neutral frames inside the take, landmark
+    ids, masks. Returns the rig spec, the keys, the landmarks, the sorted key frames and the mask files."""
+    from ..io.landmarks import load_landmarks
+    from ..io.stagefiles import read_keys, read_rig
+
     spec = read_rig(rig_path)
     kf, lm = read_keys(keys), load_landmarks(landmarks)
     inputs = [keys, landmarks, rig_path, *spec.files()] + ([landmark_vertices] if landmark_vertices else [])
@@ -168,10 +187,11 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     if unknown:
         raise InputError(f"masks: region {unknown[0]!r} is not a region of {keys} ({', '.join(kf.regions)})")
     mask_files = {name: _require(Path(base_dir or ".") / m, "region mask") for name, m in masks.items()}
+    return spec, kf, lm, frames, mask_files
 
-    r = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
-    lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, L, r.n_vertices, rig_path)
-    fixed = excluded_sliders(r.names, exclude)
+
+def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
+    """Each region's rows among the mapped landmarks (without *skip_points*), and the rigid rows."""
     if skip_points is None:
         skip_points = CONTOUR_68 if L == 68 else ()
     if rigid_points is None:
@@ -185,47 +205,62 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
             raise InputError(f"{keys}: region {name!r} has no landmark with a rig vertex (after skip_points)")
         region_rows[name] = rows
     rigid = None if rigid_points is None else [pos[p] for p in rigid_points if p in pos]
-    Y = lm.stabilized[:, lm_ids].astype(np.float64)
-    Cf = lm.confidence[:, lm_ids].astype(np.float64)
-    names = list(kf.regions)
-    region_sliders = {}
-    if fit == "delta":
-        exclusive = spec.exclusive
-        if exclusive is None:
-            from ..rigpose import infer_exclusive, project, rig_landmarks
+    return region_rows, rigid
 
-            _, DL = rig_landmarks(r, vx)
-            exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
-            log.info("auto-pose: inferred exclusive pairs %s", exclusive)
-        res = delta_pose(r, vx, Y[neutral_frame], Y[frames], weights=Cf[frames], neutral_weights=Cf[neutral_frame],
-                         regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,
-                         sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
-                         ridge=DEFAULT_RIDGE if ridge is None else ridge)
-        poses = dict(zip(frames, res["w"]))
-        owner = res["owner"]
-        for f, e in zip(frames, res["rms"]):
-            log.info("key %d: landmark displacement rms %.3f px", f, e)
-        for ri, name in enumerate(res["regions"]):
-            region_sliders[name] = [r.names[j] for j in np.flatnonzero(owner == ri)]
-    else:
-        poses = {}
-        upper_saved = r.upper.copy()
-        r.upper = np.where(fixed, r.lower + 1e-12, r.upper)
-        try:
-            for f in frames:
-                one = auto_pose(r, vx, Y[f], weights=Cf[f], alpha=alpha, mu=mu)
-                poses[f] = np.where(fixed, 0.0, one["w"])
-                log.info("key %d: rms %.3f px after %d iterations", f, one["rms"], one["iterations"])
-        finally:
-            r.upper = upper_saved
-        # Absolute poses are whole-face poses: every region's key carries every slider.
-        from ..rigpose import project, rig_landmarks, slider_owners
+
+def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, rigid, sparsity, ridge):
+    """The delta fit (:func:`retarget_cli.rigpose.delta_pose`): poses by frame, slider owners, sliders by region."""
+    from ..rigpose import DEFAULT_RIDGE, DEFAULT_SPARSITY, delta_pose
+
+    exclusive = spec.exclusive
+    if exclusive is None:
+        from ..rigpose import infer_exclusive, project, rig_landmarks
 
         _, DL = rig_landmarks(r, vx)
-        owner = slider_owners(project(DL, np.eye(3)), [region_rows[n] for n in names])
-        owner[fixed] = -1
-        for ri, name in enumerate(names):
-            region_sliders[name] = [r.names[j] for j in np.flatnonzero(owner == ri)]
+        exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
+        log.info("auto-pose: inferred exclusive pairs %s", exclusive)
+    res = delta_pose(r, vx, Y[neutral_frame], Y[frames], weights=Cf[frames], neutral_weights=Cf[neutral_frame],
+                     regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,
+                     sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
+                     ridge=DEFAULT_RIDGE if ridge is None else ridge)
+    owner = res["owner"]
+    for f, e in zip(frames, res["rms"]):
+        log.info("key %d: landmark displacement rms %.3f px", f, e)
+    region_sliders = {name: [r.names[j] for j in np.flatnonzero(owner == ri)] for ri, name in enumerate(res["regions"])}
+    return dict(zip(frames, res["w"])), owner, region_sliders
+
+
+def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
+    """The absolute fit (:func:`retarget_cli.edit.auto_pose`, Lewis & Anjyo eq. 3) of every key frame."""
+    from ..edit import auto_pose
+    from ..rigpose import project, rig_landmarks, slider_owners
+
+    poses = {}
+    upper_saved = r.upper.copy()
+    r.upper = np.where(fixed, r.lower + 1e-12, r.upper)
+    try:
+        for f in frames:
+            one = auto_pose(r, vx, Y[f], weights=Cf[f], alpha=alpha, mu=mu)
+            poses[f] = np.where(fixed, 0.0, one["w"])
+            log.info("key %d: rms %.3f px after %d iterations", f, one["rms"], one["iterations"])
+    finally:
+        r.upper = upper_saved
+    # Absolute poses are whole-face poses: every region's key carries every slider.
+    _, DL = rig_landmarks(r, vx)
+    owner = slider_owners(project(DL, np.eye(3)), [region_rows[n] for n in names])
+    owner[fixed] = -1
+    region_sliders = {name: [r.names[j] for j in np.flatnonzero(owner == ri)] for ri, name in enumerate(names)}
+    return poses, owner, region_sliders
+
+
+def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit, neutral_frame):
+    """Key OBJs, region masks, ``sliders.csv`` and ``targets.yaml``; a failure part-way removes what it wrote."""
+    from ..io.editfiles import write_animation
+    from ..io.obj import write_obj
+    from ..io.stagefiles import write_targets
+    from ..rigpose import rig_region_masks
+
+    names = list(kf.regions)
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
     planned = [out / f"{name}/key_{f:05d}.obj" for name in names for f in kf.regions[name]["frames"]]
     planned += [out / f"masks/{name}.txt" for name in names] + [out / "sliders.csv", out / "targets.yaml"]

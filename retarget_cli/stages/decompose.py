@@ -65,7 +65,6 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
     neutral key's column holds ``1 − Σ`` of the others, so ``apply`` needs no
     change (Lewis et al. 2005, §3).
     """
-    from ..decompose import cardinality, decompose, interpolate_lost, jitter, mean_acceleration, row_residuals
     from ..io.landmarks import load_landmarks
     from ..io.stagefiles import read_keys, save_weights, weights_csv
 
@@ -79,75 +78,10 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
         raise InputError(f"neutral_frame: frame {neutral_frame} is outside the take ({T} frames in {landmarks})")
     regions, extras, diagnostics = {}, {}, {}
     for name, reg in kf.regions.items():
-        bad = [f for f in reg["frames"] if f >= T]
-        if bad:
-            raise InputError(f"{keys}: region {name!r} key frame {bad[0]} is outside the take ({T} frames in {landmarks})")
-        badp = [p for p in reg["points"] if p >= lm.n_points]
-        if badp:
-            raise InputError(f"{keys}: region {name!r} landmark {badp[0]} does not exist ({lm.n_points} points in {landmarks})")
-        pts, frames = reg["points"], np.array(reg["frames"])
-        # (a region of all the points in order needs no gather: at long takes every copy counts)
-        every = list(pts) == list(range(lm.n_points))
-        P = (stab if every else stab[:, pts]).astype(np.float64)
-        C = (conf if every else conf[:, pts]).astype(np.float64)
-        nan = ~np.isfinite(P).all(-1)
-        if np.any(nan & (C > 0)):
-            t, i = np.argwhere(nan & (C > 0))[0]
-            raise InputError(f"{landmarks}: landmark {pts[i]} of region {name!r} is NaN in frame {t} "
-                             f"but has confidence {C[t, i]:.3g}; expected finite coordinates or confidence 0")
-        lost_pt = nan | (C <= LOST_CONFIDENCE)
-        n_unknowns = len(frames) - (1 if formulation == "delta" else 0)
-        if 2 * len(pts) < n_unknowns:
-            raise InputError(f"{keys}: region {name!r} has {len(pts)} landmarks ({2 * len(pts)} coordinates) for "
-                             f"{len(frames)} keys; expected at least {(n_unknowns + 1) // 2} landmarks")
-        lost = (lost_pt.mean(1) > lost_fraction) | (2 * (~lost_pt).sum(1) < n_unknowns)
-        if lost.all():
-            raise InputError(f"{landmarks}: region {name!r} is lost in every frame")
-        nan_keys = [int(f) for f in frames if nan[f].any()]
-        if nan_keys:
-            raise InputError(f"{landmarks}: region {name!r} key frame {nan_keys[0]} has NaN landmarks; "
-                             "a key shape needs every landmark")
-        lost_keys = [int(f) for f in frames if lost_pt[f].any()]
-        if lost_keys:
-            log.info("region %s: key frame %d has lost landmarks; its key shape may be inaccurate", name, lost_keys[0])
-        X = (np.where(nan[..., None], 0.0, P) if nan.any() else P).reshape(T, -1)
-        del P
-        weight = np.repeat(np.where(lost_pt, 0.0, C if confidence else 1.0), 2, axis=1)
-        del C
-        kw = {}
-        if formulation == "delta":
-            if neutral_frame not in reg["frames"]:
-                raise InputError(f"{keys}: region {name!r}: formulation 'delta' needs neutral_frame {neutral_frame} "
-                                 f"among the key frames {reg['frames']} (set decompose.neutral_frame to one of them)")
-            kw["neutral"] = X[neutral_frame]
-        try:
-            W, _ = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
-                             confidence=None if np.all(weight == 1) else weight, smooth_space=smooth_space,
-                             robust=robust, **kw)
-        except ValueError as exc:
-            raise InputError(f"{keys}: region {name!r}: {exc}") from exc
-        if formulation == "delta":
-            j = reg["frames"].index(neutral_frame)
-            W[:, j] = 1.0 - (W.sum(1) - W[:, j])
-        if lost.any():
-            W = interpolate_lost(W, lost)
-            log.warning("region %s: lost in %d of %d frames (first: %d); weights interpolated",
-                        name, int(lost.sum()), T, int(np.flatnonzero(lost)[0]))
-        res = row_residuals(X, W, X[frames])
-        card = cardinality(W)
-        regions[name] = (W, frames, res)
-        extras[name] = {"cardinality": card, "lost": lost}
-        diagnostics[name] = {  # 6 significant digits keep the JSON short and deterministic
-            "mean_residual_px": float(f"{res[~lost].mean() / np.sqrt(len(pts)):.6g}"),
-            "mean_cardinality": float(f"{card.mean():.6g}"),
-            "jitter": float(f"{jitter(W):.6g}"),
-            # mesh-space jitter: mean acceleration of the reconstructed landmarks, and of the input ones
-            "shape_jitter_px": float(f"{mean_acceleration(W @ X[frames]):.6g}"),
-            "input_jitter_px": float(f"{mean_acceleration(X[:, ~lost_pt.all(0).repeat(2)]):.6g}"),
-            "lost_frames": int(lost.sum()),
-        }
-        log.info("region %s: %d frames, mean residual %.4g px, mean cardinality %.2f, jitter %.3g", name, T,
-                 diagnostics[name]["mean_residual_px"], card.mean(), diagnostics[name]["jitter"])
+        regions[name], extras[name], diagnostics[name] = _decompose_region(
+            name, reg, lm, stab, conf, landmarks=landmarks, keys=keys, solver=solver, formulation=formulation,
+            alpha=alpha, upper=upper, neutral_frame=neutral_frame, confidence=confidence,
+            lost_fraction=lost_fraction, smooth_space=smooth_space, robust=robust)
     meta = {"solver": solver, "formulation": formulation, "alpha": alpha, "upper": upper,
             "smooth_space": smooth_space if solver in ("temporal", "temporal-causal") else None,
             "robust": robust if solver == "temporal" else None,
@@ -159,6 +93,88 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
         write_text(csv, weights_csv(regions, lm.fps))
         written.append(Path(csv))
     return written
+
+
+
+def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, formulation, alpha, upper, neutral_frame,
+                      confidence, lost_fraction, smooth_space, robust):
+    """One region's weights (T, K) with its lost frames interpolated; its extras and diagnostics.
+
+    Returns
+    -------
+    (W, key frames, residuals), {"cardinality", "lost"}, diagnostics : tuple
+    """
+    from ..decompose import cardinality, decompose, interpolate_lost, jitter, mean_acceleration, row_residuals
+
+    T = lm.n_frames
+    bad = [f for f in reg["frames"] if f >= T]
+    if bad:
+        raise InputError(f"{keys}: region {name!r} key frame {bad[0]} is outside the take ({T} frames in {landmarks})")
+    badp = [p for p in reg["points"] if p >= lm.n_points]
+    if badp:
+        raise InputError(f"{keys}: region {name!r} landmark {badp[0]} does not exist ({lm.n_points} points in {landmarks})")
+    pts, frames = reg["points"], np.array(reg["frames"])
+    # (a region of all the points in order needs no gather: at long takes every copy counts)
+    every = list(pts) == list(range(lm.n_points))
+    P = (stab if every else stab[:, pts]).astype(np.float64)
+    C = (conf if every else conf[:, pts]).astype(np.float64)
+    nan = ~np.isfinite(P).all(-1)
+    if np.any(nan & (C > 0)):
+        t, i = np.argwhere(nan & (C > 0))[0]
+        raise InputError(f"{landmarks}: landmark {pts[i]} of region {name!r} is NaN in frame {t} "
+                         f"but has confidence {C[t, i]:.3g}; expected finite coordinates or confidence 0")
+    lost_pt = nan | (C <= LOST_CONFIDENCE)
+    n_unknowns = len(frames) - (1 if formulation == "delta" else 0)
+    if 2 * len(pts) < n_unknowns:
+        raise InputError(f"{keys}: region {name!r} has {len(pts)} landmarks ({2 * len(pts)} coordinates) for "
+                         f"{len(frames)} keys; expected at least {(n_unknowns + 1) // 2} landmarks")
+    lost = (lost_pt.mean(1) > lost_fraction) | (2 * (~lost_pt).sum(1) < n_unknowns)
+    if lost.all():
+        raise InputError(f"{landmarks}: region {name!r} is lost in every frame")
+    nan_keys = [int(f) for f in frames if nan[f].any()]
+    if nan_keys:
+        raise InputError(f"{landmarks}: region {name!r} key frame {nan_keys[0]} has NaN landmarks; "
+                         "a key shape needs every landmark")
+    lost_keys = [int(f) for f in frames if lost_pt[f].any()]
+    if lost_keys:
+        log.info("region %s: key frame %d has lost landmarks; its key shape may be inaccurate", name, lost_keys[0])
+    X = (np.where(nan[..., None], 0.0, P) if nan.any() else P).reshape(T, -1)
+    del P
+    weight = np.repeat(np.where(lost_pt, 0.0, C if confidence else 1.0), 2, axis=1)
+    del C
+    kw = {}
+    if formulation == "delta":
+        if neutral_frame not in reg["frames"]:
+            raise InputError(f"{keys}: region {name!r}: formulation 'delta' needs neutral_frame {neutral_frame} "
+                             f"among the key frames {reg['frames']} (set decompose.neutral_frame to one of them)")
+        kw["neutral"] = X[neutral_frame]
+    try:
+        W, _ = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
+                         confidence=None if np.all(weight == 1) else weight, smooth_space=smooth_space,
+                         robust=robust, **kw)
+    except ValueError as exc:
+        raise InputError(f"{keys}: region {name!r}: {exc}") from exc
+    if formulation == "delta":
+        j = reg["frames"].index(neutral_frame)
+        W[:, j] = 1.0 - (W.sum(1) - W[:, j])
+    if lost.any():
+        W = interpolate_lost(W, lost)
+        log.warning("region %s: lost in %d of %d frames (first: %d); weights interpolated",
+                    name, int(lost.sum()), T, int(np.flatnonzero(lost)[0]))
+    res = row_residuals(X, W, X[frames])
+    card = cardinality(W)
+    diagnostics = {  # 6 significant digits keep the JSON short and deterministic
+        "mean_residual_px": float(f"{res[~lost].mean() / np.sqrt(len(pts)):.6g}"),
+        "mean_cardinality": float(f"{card.mean():.6g}"),
+        "jitter": float(f"{jitter(W):.6g}"),
+        # mesh-space jitter: mean acceleration of the reconstructed landmarks, and of the input ones
+        "shape_jitter_px": float(f"{mean_acceleration(W @ X[frames]):.6g}"),
+        "input_jitter_px": float(f"{mean_acceleration(X[:, ~lost_pt.all(0).repeat(2)]):.6g}"),
+        "lost_frames": int(lost.sum()),
+    }
+    log.info("region %s: %d frames, mean residual %.4g px, mean cardinality %.2f, jitter %.3g", name, T,
+             diagnostics["mean_residual_px"], card.mean(), diagnostics["jitter"])
+    return (W, frames, res), {"cardinality": card, "lost": lost}, diagnostics
 
 
 #: The pipeline stage (:mod:`retarget_cli.pipeline`).

@@ -60,7 +60,7 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     """
     from ..io.landmarks import load_landmarks
     from ..io.stagefiles import write_keys, write_targets
-    from ..select import curve_winner, evaluation_curve, key_error, select_keys
+    from ..select import evaluation_curve, key_error, select_keys
 
     landmarks = _require(landmarks, "landmarks file")
     outs = [o for o in (output, template, evaluate, plot, contact_sheet) if o]
@@ -82,18 +82,7 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
         for name, (idx, rk) in specs.items():
             X = stab[:, idx].reshape(lm.n_frames, -1)
-            # Frames where a landmark of the region is lost (NaN) can be neither keys
-            # nor scored by eq. 5; decompose interpolates their weights later.
-            keep = np.flatnonzero(np.isfinite(X).all(1))
-            if keep.size == 0:
-                raise InputError(f"{landmarks}: region {name!r}: every frame has lost (NaN) landmarks")
-            if keep.size < lm.n_frames:
-                log.warning("%s: region %s: %d frames with lost landmarks are left out of key selection",
-                            landmarks, name, lm.n_frames - keep.size)
-            bad_inc = [f for f in include if f not in set(keep.tolist())]
-            if bad_inc:
-                raise InputError(f"{landmarks}: region {name!r}: neutral frame {bad_inc[0]} has lost (NaN) landmarks; "
-                                 "choose another neutral_frame")
+            keep = _usable_frames(X, name, landmarks, include)
             local = {int(f): i for i, f in enumerate(keep)}
             Xk = X[keep]
             inc = tuple(local[int(f)] for f in include)
@@ -124,24 +113,7 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
             "before editing: select rewrites it."))
         written.append(t)
     if evaluate:
-        from ..io.atomic import write_json
-        from ..select_report import curve_csv, write_curve_plot
-
-        write_text(evaluate, curve_csv(curves))
-        summary = {"method": method, "regions": {}}
-        for name, rows in curves.items():
-            try:
-                summary["regions"][name] = curve_winner(rows, chosen_k[name])
-            except ValueError:  # chosen k below 2: nothing evaluated there
-                summary["regions"][name] = {"k": chosen_k[name], "winner": None}
-            summary["regions"][name]["selected_error"] = result[name]["error"]
-            log.info("region %s: at k = %d the lowest E is %s", name, chosen_k[name], summary["regions"][name]["winner"])
-        summary_path = Path(evaluate).with_suffix(".json")
-        write_json(summary_path, summary)
-        written += [Path(evaluate), summary_path]
-        if plot:
-            write_curve_plot(plot, curves, chosen_k)
-            written.append(Path(plot))
+        written += _write_evaluation(evaluate, plot, curves, chosen_k, result, method)
     if contact_sheet:
         from ..select_report import write_contact_sheet
 
@@ -149,6 +121,50 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
         write_contact_sheet(contact_sheet, video, lm.points,
                             {n: (r["points"], r["frames"]) for n, r in result.items()})
         written.append(Path(contact_sheet))
+    return written
+
+
+
+def _usable_frames(X, name, landmarks, include) -> np.ndarray:
+    """Frames of region *name* (rows of *X*) without lost landmarks; the frames in *include* must be among them.
+
+    Frames where a landmark of the region is lost (NaN) can be neither keys
+    nor scored by eq. 5; decompose interpolates their weights later.
+    """
+    keep = np.flatnonzero(np.isfinite(X).all(1))
+    if keep.size == 0:
+        raise InputError(f"{landmarks}: region {name!r}: every frame has lost (NaN) landmarks")
+    if keep.size < len(X):
+        log.warning("%s: region %s: %d frames with lost landmarks are left out of key selection",
+                    landmarks, name, len(X) - keep.size)
+    bad_inc = [f for f in include if f not in set(keep.tolist())]
+    if bad_inc:
+        raise InputError(f"{landmarks}: region {name!r}: neutral frame {bad_inc[0]} has lost (NaN) landmarks; "
+                         "choose another neutral_frame")
+    return keep
+
+
+def _write_evaluation(evaluate, plot, curves, chosen_k, result, method) -> list[Path]:
+    """The evaluation curve (CSV), its summary (JSON beside it) and, with *plot*, its picture."""
+    from ..io.atomic import write_json
+    from ..select import curve_winner
+    from ..select_report import curve_csv, write_curve_plot
+
+    write_text(evaluate, curve_csv(curves))
+    summary = {"method": method, "regions": {}}
+    for name, rows in curves.items():
+        try:
+            summary["regions"][name] = curve_winner(rows, chosen_k[name])
+        except ValueError:  # chosen k below 2: nothing evaluated there
+            summary["regions"][name] = {"k": chosen_k[name], "winner": None}
+        summary["regions"][name]["selected_error"] = result[name]["error"]
+        log.info("region %s: at k = %d the lowest E is %s", name, chosen_k[name], summary["regions"][name]["winner"])
+    summary_path = Path(evaluate).with_suffix(".json")
+    write_json(summary_path, summary)
+    written = [Path(evaluate), summary_path]
+    if plot:
+        write_curve_plot(plot, curves, chosen_k)
+        written.append(Path(plot))
     return written
 
 

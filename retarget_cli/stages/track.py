@@ -415,6 +415,45 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
     return [Path(output)]
 
 
+def _read_point_source(src: Path):
+    """Points by frame from a folder of ``.pts`` files or a ``frame,point,x,y`` CSV, and the source's digest."""
+    from ..io.annotations import read_annotations, read_csv_landmarks
+
+    if src.is_dir():
+        files = sorted(src.glob("*.pts"))
+        if not files:
+            raise InputError(f"{src}: folder holds no .pts file")
+        return read_annotations(files)[0], digest_files(files)
+    if src.suffix.lower() == ".csv":
+        return read_csv_landmarks(src), sha256_file(src)
+    raise InputError(f"{src}: unsupported landmarks source; expected a .csv, a .npz or a folder of .pts files")
+
+
+def _read_npz_source(src: Path, fps, frame_size):
+    """Points by frame, confidences (or None), fps and frame size (given ones first) and digest of an NPZ."""
+    from ..io.atomic import load_npz
+
+    data = load_npz(src)
+    if "points" not in data:
+        raise InputError(f"{src}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
+    P = np.asarray(data["points"], dtype=np.float64)
+    if P.ndim != 3 or P.shape[2] != 2 or 0 in P.shape:
+        raise InputError(f"{src}: 'points' must have shape (T, L, 2), got {P.shape}")
+    frames = np.asarray(data.get("frames", np.arange(len(P))), dtype=np.int64)
+    if frames.shape != (len(P),):
+        raise InputError(f"{src}: 'frames' must have shape {(len(P),)}, got {frames.shape}")
+    conf = None
+    if "confidence" in data:
+        conf = np.asarray(data["confidence"], dtype=np.float64)
+        if conf.shape != P.shape[:2]:
+            raise InputError(f"{src}: 'confidence' must have shape {P.shape[:2]}, got {conf.shape}")
+    fps = fps or (float(data["fps"]) if "fps" in data else None)
+    size = frame_size
+    if size is None and "frame_size" in data:
+        size = tuple(int(v) for v in np.asarray(data["frame_size"]).ravel()[:2])
+    return dict(zip(frames.tolist(), P)), conf, fps, size, sha256_file(src)
+
+
 @validate_params(IMPORT_PARAMS)
 def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0, filter="none",
                filter_model=FILTER_DEFAULTS["filter_model"], filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
@@ -437,46 +476,17 @@ def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, 
     from .filtering import apply_filter
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
-    from ..io.annotations import read_annotations, read_csv_landmarks
-    from ..io.atomic import load_npz
     from ..io.landmarks import Landmarks, save_landmarks
     from ..track.head import apply_similarity, estimate_head, invert_similarity
     from ..track.head import smooth_head as _smooth
 
     src = _require(source, "landmarks source")
     check_not_input(output, [src])
-    conf = None
-    size = frame_size
-    if src.is_dir():
-        files = sorted(src.glob("*.pts"))
-        if not files:
-            raise InputError(f"{src}: folder holds no .pts file")
-        by_frame, _ = read_annotations(files)
-        digest = digest_files(files)
-    elif src.suffix.lower() == ".csv":
-        by_frame = read_csv_landmarks(src)
-        digest = sha256_file(src)
-    elif src.suffix.lower() == ".npz":
-        data = load_npz(src)
-        if "points" not in data:
-            raise InputError(f"{src}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
-        P = np.asarray(data["points"], dtype=np.float64)
-        if P.ndim != 3 or P.shape[2] != 2 or 0 in P.shape:
-            raise InputError(f"{src}: 'points' must have shape (T, L, 2), got {P.shape}")
-        frames = np.asarray(data.get("frames", np.arange(len(P))), dtype=np.int64)
-        if frames.shape != (len(P),):
-            raise InputError(f"{src}: 'frames' must have shape {(len(P),)}, got {frames.shape}")
-        by_frame = dict(zip(frames.tolist(), P))
-        if "confidence" in data:
-            conf = np.asarray(data["confidence"], dtype=np.float64)
-            if conf.shape != P.shape[:2]:
-                raise InputError(f"{src}: 'confidence' must have shape {P.shape[:2]}, got {conf.shape}")
-        fps = fps or (float(data["fps"]) if "fps" in data else None)
-        if size is None and "frame_size" in data:
-            size = tuple(int(v) for v in np.asarray(data["frame_size"]).ravel()[:2])
-        digest = sha256_file(src)
+    if src.suffix.lower() == ".npz" and not src.is_dir():
+        by_frame, conf, fps, size, digest = _read_npz_source(src, fps, frame_size)
     else:
-        raise InputError(f"{src}: unsupported landmarks source; expected a .csv, a .npz or a folder of .pts files")
+        by_frame, digest = _read_point_source(src)
+        conf, size = None, frame_size
     frames = np.array(sorted(by_frame), dtype=np.int64)
     points = np.stack([by_frame[f] for f in frames])
     finite = np.isfinite(points).all(-1)
