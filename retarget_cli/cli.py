@@ -43,7 +43,12 @@ def command_params(command: str) -> list[Param]:
 
 def setting(command: str, name: str, *decls, **extra):
     """A click option built from the command's declared :class:`Param` (one source of truth)."""
-    p = _param(command, name)
+    decls, kw = _option_spec(_param(command, name), decls, extra)
+    return click.option(*decls, name, **kw)
+
+
+def _option_spec(p: Param, decls=(), extra=None) -> tuple[tuple, dict]:
+    """Click option declarations and keywords for *p*: its flag, help, type, range or choices, default."""
     flag = "--" + p.name.replace("_", "-")
     kw = dict(help=p.help, show_default=True)
     if p.type is bool:
@@ -58,8 +63,8 @@ def setting(command: str, name: str, *decls, **extra):
         else:
             kw["type"] = _TYPES.get(p.type, click.STRING)
         kw["default"] = p.default
-    kw.update(extra)
-    return click.option(*decls, name, **kw)
+    kw.update(extra or {})
+    return decls, kw
 
 
 def output_option(default=None, help="Output file.", required=True):
@@ -279,6 +284,19 @@ def track(video, init, annotations, output, rigid_points, **settings):
     rigid = rigid_points or None
     _print_outputs(run_track(video=video, init=init, annotations=list(annotations), output=output,
                              rigid_points=rigid, progress=progress, **settings))
+
+
+def _add_tracker_options(command: click.Command) -> None:
+    """``retarget track`` options for the settings registered trackers declare (:attr:`TrackerSpec.params`)."""
+    from .stages.track import PARAMS
+    from .track import tracker_params
+
+    for p in tracker_params(q.name for q in PARAMS):
+        decls, kw = _option_spec(p)
+        command.params.append(click.Option([*decls, p.name], **kw))
+
+
+_add_tracker_options(track)
 
 
 @main.command("train-tracker")

@@ -490,7 +490,8 @@ def validate_params(params):
     ``validate_params`` does), so the Python API refuses what ``retarget run`` and the CLI refuse.
 
     Only the arguments the caller gives are checked (a runner's own defaults are its declaration's; a test
-    checks that). The declarations are kept on the runner as ``params``.
+    checks that). *params* is a list, or a function returning one when extensions add declarations. The
+    declarations are kept on the runner as ``params``.
 
     Raises
     ------
@@ -502,7 +503,8 @@ def validate_params(params):
 
     from .errors import ParameterError
 
-    declared = {p.name: p for p in params if p.kind == "setting"}
+    def declared() -> dict:
+        return {p.name: p for p in (params() if callable(params) else params) if p.kind == "setting"}
 
     def decorate(fn):
         signature = inspect.signature(fn)
@@ -510,8 +512,16 @@ def validate_params(params):
         @functools.wraps(fn)
         def runner(*args, **kwargs):
             bound = signature.bind(*args, **kwargs)
-            for name, value in bound.arguments.items():
-                p = declared.get(name)
+            settings = declared()
+            extra = [n for n, v in signature.parameters.items() if v.kind is inspect.Parameter.VAR_KEYWORD]
+            given = dict(bound.arguments)
+            for n in extra:  # **settings of extensions: each must be declared
+                for name in given.pop(n, {}):
+                    if name not in settings:
+                        raise ParameterError(f"{fn.__name__}: unexpected setting {name!r}")
+                    given[name] = bound.arguments[n][name]
+            for name, value in given.items():
+                p = settings.get(name)
                 if p is not None:
                     try:
                         p.check(_plain(value), name)
@@ -519,7 +529,7 @@ def validate_params(params):
                         raise ParameterError(str(exc)) from None
             return fn(*args, **kwargs)
 
-        runner.params = tuple(params)
+        runner.params = params
         return runner
 
     return decorate

@@ -29,11 +29,15 @@ def _require(path, what: str) -> Path:
 
 @dataclass
 class Stage:
-    """A pipeline stage: its parameters and the runner that executes it."""
+    """A pipeline stage: its parameters and the runner that executes it.
+
+    :attr:`params` are the stage's own declarations plus those of its
+    extensions (*more_params*: the settings registered trackers declare).
+    """
 
     name: str
     help: str
-    params: list
+    declared: list
     runner: Callable
     extra_inputs: Callable = field(default=lambda kw: [])
     #: Maps a declared input (param name, path) to the files it stands for (an image-sequence pattern).
@@ -43,6 +47,12 @@ class Stage:
     uses_base_dir: bool = False
     #: The runner takes ``cache_dir`` (the run's ``<output_dir>/.retarget/cache``, for parsed rigs).
     uses_cache: bool = False
+    #: Declarations that extensions add, read at each use (a registry may grow after import).
+    more_params: Callable = field(default=lambda: [])
+
+    @property
+    def params(self) -> list:
+        return [*self.declared, *self.more_params()]
 
     def param(self, name: str) -> Param:
         return next(p for p in self.params if p.name == name)

@@ -11,7 +11,7 @@ import numpy as np
 from ..config import Param, check_indices, check_size, check_strings, validate_params
 from ..errors import InputError, ParameterError
 from ..io.atomic import check_not_input, digest_files, sha256_file
-from ..track import method_choices, method_help
+from ..track import method_choices, method_help, tracker_params
 from ._common import Stage, _no_progress, _require
 from .filtering import FILTER_DEFAULTS, FILTER_PARAMS
 
@@ -102,7 +102,13 @@ IMPORT_PARAMS = [
 ]
 
 
-@validate_params(PARAMS)
+
+def _all_track_params() -> list:
+    """``track``'s declarations and the settings registered trackers add."""
+    return [*PARAMS, *tracker_params(p.name for p in PARAMS)]
+
+
+@validate_params(_all_track_params)
 def run_track(*, video, init=None, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
               rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
               fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, base_dir=None,
@@ -111,7 +117,7 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
               filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
               filter_robust=FILTER_DEFAULTS["filter_robust"], filter_min_cutoff=FILTER_DEFAULTS["filter_min_cutoff"],
               filter_beta=FILTER_DEFAULTS["filter_beta"], filter_d_cutoff=FILTER_DEFAULTS["filter_d_cutoff"],
-              ) -> list[Path]:
+              **settings) -> list[Path]:
     """Track landmarks through *video* (a video file or an image-sequence pattern).
 
     *init* and *annotations* are ``.pts`` or ``frame,point,x,y`` CSV files; a
@@ -141,8 +147,9 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     from .filtering import apply_filter
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
+    settings = {p.name: p.default for p in tracker_params(q.name for q in PARAMS)} | settings
     tracker_settings = {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
-                        "rigid_points": rigid_points, "downscale": downscale, "fuse": fuse}
+                        "rigid_points": rigid_points, "downscale": downscale, "fuse": fuse, **settings}
     auto = is_auto(init)
     if not auto:
         init = _require(init, "annotation file")
@@ -181,7 +188,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
                        "downscale": downscale, "start": start, "end": end, "step": step,
-                       "smooth_head": smooth_head, **({"fuse": fuse} if "fuse" in spec.settings else {})},
+                       "smooth_head": smooth_head, **({"fuse": fuse} if "fuse" in spec.settings else {}),
+                       **{k: v for k, v in settings.items() if k in spec.settings}},
         "filter": fmeta,
         "source": Path(video).name,
         "source_sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
@@ -243,7 +251,7 @@ def _prepare(spec, method, *, need_auto, ann, src, model, init) -> dict:
 
 def _warn_unused(spec, method, settings: dict, model) -> None:
     """A warning for each tracker setting away from its default that *method* does not use."""
-    defaults = {p.name: p.default for p in PARAMS}
+    defaults = {p.name: p.default for p in _all_track_params()}
     for name, value in settings.items():
         if name != "rigid_points" and name not in spec.settings and value != defaults[name]:
             log.warning("%s %s is not used by method %s; ignored", name, value, method)
@@ -532,6 +540,7 @@ STAGE = Stage(
     "Track landmarks through a video from an annotated first frame.",
     PARAMS,
     run_track,
+    more_params=lambda: tracker_params(p.name for p in PARAMS),
     extra_inputs=_track_files,
     expand_input=_track_expand,
     uses_progress=True,

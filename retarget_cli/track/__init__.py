@@ -37,3 +37,14 @@ def method_help() -> str:
     """The help of ``track.method``, made from :data:`TRACKERS`."""
     return ("Tracker: " + " or ".join(f"{name} ({spec.help})" for name, spec in TRACKERS.items())
             + "; auto: detect where the extra is installed, else lk.")
+
+
+def tracker_params(known=()) -> list:
+    """The settings registered trackers declare (:attr:`TrackerSpec.params`) that are not among *known* names."""
+    out, seen = [], set(known)
+    for spec in TRACKERS.values():
+        for p in spec.params:
+            if p.name not in seen:
+                seen.add(p.name)
+                out.append(p)
+    return out

@@ -1,7 +1,10 @@
 """The two extension points: a tracker and an export registered from outside, touching no other file."""
 
 import numpy as np
+import pytest
 
+from retarget_cli.config import Param
+from retarget_cli.errors import ParameterError
 from retarget_cli.io.exports import EXPORTS, Exporter, format_choices
 from retarget_cli.io.landmarks import load_landmarks
 from retarget_cli.io.obj import format_obj, read_obj
@@ -11,23 +14,28 @@ from retarget_cli.stages import run_apply, run_track
 from retarget_cli.track import TRACKERS, TrackerSpec, method_choices, method_help
 
 
-def _still(frames, annotations, *, progress, downscale):
-    """A tracker that holds the first annotation in every frame, confidence 0.5."""
+def _still(frames, annotations, *, progress, downscale, still_confidence):
+    """A tracker that holds the first annotation in every frame, at a confidence of its own setting."""
     P = annotations[0]
     pts = []
     for _ in frames:
         pts.append(P)
         progress(len(pts))
     assert downscale == 1.0
-    return np.stack(pts), np.full((len(pts), len(P)), 0.5)
+    return np.stack(pts), np.full((len(pts), len(P)), still_confidence)
+
+
+STILL = TrackerSpec("holds the first annotation", _still, settings=("downscale", "still_confidence"),
+                    params=(Param("still_confidence", "setting", float, 0.5, "Confidence of every point.",
+                                  min=0, max=1),))
 
 
 def test_a_registered_tracker_is_a_method_everywhere(small_take, tmp_path, monkeypatch):
-    monkeypatch.setitem(TRACKERS, "still", TrackerSpec("holds the first annotation", _still,
-                                                       settings=("downscale",)))
+    monkeypatch.setitem(TRACKERS, "still", STILL)
     assert "still" in method_choices() and "still (holds the first annotation)" in method_help()
-    # the stage's declared setting (YAML validation, CLI choices) follows the registry
+    # the stage's declarations (YAML validation, CLI choices, docs) follow the registry, its own setting too
     assert STAGES["track"].param("method").check("still", "config.yaml: track.method") == "still"
+    assert STAGES["track"].param("still_confidence").default == 0.5
     out = tmp_path / "lm.npz"
     written = run_track(video=small_take / "face.mp4", init=small_take / "face_00000.pts", output=out,
                         method="still", filter="none")
@@ -36,6 +44,15 @@ def test_a_registered_tracker_is_a_method_everywhere(small_take, tmp_path, monke
     assert lm.meta["tracker"] == "still" and lm.n_frames == 60
     first = lm.points[0]
     assert np.allclose(lm.points, first[None]) and np.allclose(lm.confidence, 0.5)
+    run_track(video=small_take / "face.mp4", init=small_take / "face_00000.pts", output=out, method="still",
+              filter="none", still_confidence=0.25)
+    assert np.allclose(load_landmarks(out).confidence, 0.25)
+    assert load_landmarks(out).meta["parameters"]["still_confidence"] == 0.25
+    with pytest.raises(ParameterError, match="still_confidence"):
+        run_track(video=small_take / "face.mp4", init=small_take / "face_00000.pts", output=out, method="still",
+                  still_confidence=2.0)
+    with pytest.raises(ParameterError, match="unexpected setting 'nonsense'"):
+        run_track(video=small_take / "face.mp4", init=small_take / "face_00000.pts", output=out, nonsense=1)
 
 
 class _NpyExport(Exporter):
