@@ -114,8 +114,19 @@ def c_region_absolute_in_keys(d):
 
     def edit(k):
         k["regions"] = {region: k["regions"]["mouth"]}
+    keys = _keys(d, edit)  # one region: pose-keys needs no mask
+    return Case(["pose-keys", str(keys), str(d / "rig.yaml"), "--poses", str(d / "truth.npz"), "-o",
+                 str(d / "out/t2")], ("badkeys.json", "abs-region"))
+
+
+def c_region_absolute_in_masks(d):
+    # the --mask option's region name is checked as the setting it is, before any file is read
+    region = str(d.parent / "abs-region")
+
+    def edit(k):
+        k["regions"] = {region: k["regions"]["mouth"]}
     return Case(_pose_keys(d, _keys(d, edit), f"{region}={d / 'target/regions/mouth.txt'}"),
-                ("badkeys.json", "abs-region"))
+                ("masks", "abs-region", "not a valid region name"))
 
 
 def c_output_key_escapes(d):
