@@ -35,10 +35,11 @@ def command_params(command: str) -> list[Param]:
 
     if command in STAGES:
         return STAGES[command].params
-    from .stages import detect, edit, solve_rig, track
+    from .stages import detect, edit, see, solve_rig, track
 
     return {"train-tracker": track.TRAIN_PARAMS, "import": track.IMPORT_PARAMS, "annotate": detect.PARAMS,
-            "edit": edit.PARAMS, "solve-rig": solve_rig.PARAMS}[command]
+            "edit": edit.PARAMS, "solve-rig": solve_rig.PARAMS, "render": see.RENDER_PARAMS,
+            "preview": see.PREVIEW_PARAMS, "report": see.REPORT_PARAMS, "synth": see.SYNTH_PARAMS}[command]
 
 
 def setting(command: str, name: str, *decls, **extra):
@@ -59,7 +60,8 @@ def _option_spec(p: Param, decls=(), extra=None) -> tuple[tuple, dict]:
         if p.options:
             kw["type"] = click.Choice(p.options)
         elif p.type in (int, float) and (p.min is not None or p.max is not None):
-            kw["type"] = (click.IntRange if p.type is int else click.FloatRange)(p.min, p.max)
+            kw["type"] = (click.IntRange if p.type is int else click.FloatRange)(p.min, p.max, min_open=p.min_open,
+                                                                                 max_open=p.max_open)
         else:
             kw["type"] = _TYPES.get(p.type, click.STRING)
         kw["default"] = p.default
@@ -749,18 +751,7 @@ def batch(shots, jobs, scheduler, retries, only, force, emit_commands, report, o
 
 def _camera_options(f):
     """--yaw/--pitch/--fov/--distance/--shading, shared by render, preview and report."""
-    opts = [
-        click.option("--yaw", type=float, default=-20.0, show_default=True,
-                     help="Camera turn about the mesh's vertical axis, in degrees."),
-        click.option("--pitch", type=float, default=10.0, show_default=True,
-                     help="Camera tilt in degrees (positive looks down on the mesh)."),
-        click.option("--fov", type=click.FloatRange(0, 170, max_open=True), default=30.0, show_default=True,
-                     help="Vertical field of view in degrees; 0 for an orthographic view."),
-        click.option("--distance", type=click.FloatRange(1, min_open=True), default=None,
-                     help="Camera distance in bounding radii (default: the mesh fills the view)."),
-        click.option("--shading", type=click.Choice(["gouraud", "flat"]), default="gouraud", show_default=True,
-                     help="Interpolated (gouraud) or per-face (flat) lighting."),
-    ]
+    opts = [setting("render", name) for name in ("yaw", "pitch", "fov", "distance", "shading")]
     for opt in reversed(opts):
         f = opt(f)
     return f
@@ -775,10 +766,8 @@ def _camera(yaw, pitch, fov, distance):
 @main.command()
 @click.argument("mesh", metavar="MESH_OR_SEQUENCE")
 @output_option(None, "Image (.png, .jpg) for one OBJ; video (.mp4, .avi) for a sequence.")
-@click.option("--size", type=Size(square=True, example="512x512"), default="512", metavar="WxH", show_default=True,
-              help="Image size WxH, or N for N x N pixels.")
-@click.option("--fps", type=click.FloatRange(0, 240, min_open=True), default=30.0, show_default=True,
-              help="Frame rate of a video output.")
+@setting("render", "size", type=Size(square=True, example="512x512"), default="512", metavar="WxH")
+@setting("render", "fps")
 @_camera_options
 def render(mesh, output, size, fps, yaw, pitch, fov, distance, shading):
     """Render an OBJ (to an image) or an OBJ sequence (a directory or glob, to a video).
@@ -796,15 +785,12 @@ def render(mesh, output, size, fps, yaw, pitch, fov, distance, shading):
 @main.command()
 @click.argument("run_path", metavar="RUN_DIR_OR_CONFIG", type=click.Path(exists=True))
 @output_option("preview.mp4", "Video file.", required=False)
-@click.option("--frames", "frame_range", metavar="A:B", default=None, help="Frame range (Python slice), e.g. 0:120.")
-@click.option("--size", type=click.IntRange(32, 2160), default=360, show_default=True,
-              help="Height of each panel in pixels.")
-@click.option("--fps", type=click.FloatRange(0, 240, min_open=True), default=None,
-              help="Frame rate (default: the take's).")
-@click.option("--video", type=click.Path(dir_okay=False), default=None,
-              help="Source video (default: the one the run's config or track manifest names).")
+@setting("preview", "frames", metavar="A:B", show_default=False)
+@setting("preview", "size")
+@setting("preview", "fps")
+@setting("preview", "video", type=click.Path(dir_okay=False))
 @_camera_options
-def preview(run_path, output, frame_range, size, fps, video, yaw, pitch, fov, distance, shading):
+def preview(run_path, output, frames, size, fps, video, yaw, pitch, fov, distance, shading):
     """Side-by-side video of a run: tracked source | retargeted character | weights.
 
     RUN_DIR_OR_CONFIG is a config YAML (paths resolved as `retarget run` does) or
@@ -815,7 +801,7 @@ def preview(run_path, output, frame_range, size, fps, video, yaw, pitch, fov, di
 
     run_files = locate_run(run_path, video=video)
     try:
-        out = write_preview(run_files, output, frames=frame_range, height=size, fps=fps,
+        out = write_preview(run_files, output, frames=frames, height=size, fps=fps,
                             camera=_camera(yaw, pitch, fov, distance), shading=shading, progress=progress)
     except ValueError as exc:
         if str(exc).startswith("--frames"):
@@ -827,10 +813,8 @@ def preview(run_path, output, frame_range, size, fps, video, yaw, pitch, fov, di
 @main.command()
 @click.argument("run_path", metavar="RUN_DIR_OR_CONFIG", type=click.Path(exists=True))
 @output_option("report.html", "HTML file (self-contained: images embedded).", required=False)
-@click.option("--video", type=click.Path(dir_okay=False), default=None,
-              help="Source video (default: the one the run's config or track manifest names).")
-@click.option("--worst", type=click.IntRange(0, 50), default=6, show_default=True,
-              help="Worst frames listed and thumbnailed.")
+@setting("report", "video", type=click.Path(dir_okay=False))
+@setting("report", "worst")
 @_camera_options
 def report(run_path, output, video, worst, yaw, pitch, fov, distance, shading):
     """One self-contained HTML page about a run: summary, tracking, keys, weights, residuals.
@@ -848,9 +832,9 @@ def report(run_path, output, video, worst, yaw, pitch, fov, distance, shading):
 
 @main.command()
 @click.argument("outdir", type=click.Path(file_okay=False))
-@click.option("--frames", type=click.IntRange(2, 100000), default=240, show_default=True, help="Number of frames.")
-@click.option("--size", type=Size(lo=64, hi=4096), default="320x320", metavar="WxH", show_default=True, help="Frame size WxH in pixels.")
-@click.option("--seed", type=click.IntRange(0), default=0, show_default=True, help="Random seed.")
+@setting("synth", "frames")
+@setting("synth", "size", type=Size(lo=64, hi=4096), default="320x320", metavar="WxH")
+@setting("synth", "seed")
 def synth(outdir, frames, size, seed):
     """Write a synthetic performance (video, truth, target rig, config) into OUTDIR."""
     w, h = size

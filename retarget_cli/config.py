@@ -38,7 +38,7 @@ class Param:
     default : object
         :data:`REQUIRED` when the key must be given.
     choices, min, max : optional
-        Allowed values / inclusive range. *choices* may be a function returning
+        Allowed values / range, inclusive unless *min_open* / *max_open*. *choices* may be a function returning
         them, read at each check (a registry such as
         :data:`retarget_cli.track.TRACKERS` that may grow after import).
     link : str, optional
@@ -60,6 +60,8 @@ class Param:
     choices: tuple | Callable | None = None
     min: float | None = None
     max: float | None = None
+    min_open: bool = False
+    max_open: bool = False
     nullable: bool = False
     link: str | None = None
     words: tuple = ()
@@ -79,7 +81,7 @@ class Param:
             return "one of " + ", ".join(map(str, self.options))
         lo = "-inf" if self.min is None else f"{self.min:g}"
         hi = "inf" if self.max is None else f"{self.max:g}"
-        return f"{self.type.__name__} in [{lo}, {hi}]"
+        return f"{self.type.__name__} in {'(' if self.min_open else '['}{lo}, {hi}{')' if self.max_open else ']'}"
 
     def check(self, value: Any, where: str) -> Any:
         """Validate and coerce *value*; *where* names it in errors (``file: stage.key``)."""
@@ -93,7 +95,8 @@ class Param:
         if self.options is not None:
             self._check_choices(value, where)
         if self.type in (int, float) and (
-            (self.min is not None and value < self.min) or (self.max is not None and value > self.max)
+            (self.min is not None and (value <= self.min if self.min_open else value < self.min))
+            or (self.max is not None and (value >= self.max if self.max_open else value > self.max))
         ):
             raise ConfigError(f"{where}: {value!r} is out of range; expected {self.describe_range()}")
         if self.validate is not None:

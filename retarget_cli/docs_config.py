@@ -93,7 +93,7 @@ def _range(p) -> str:
     elif p.min is not None or p.max is not None:
         lo = "−∞" if p.min is None else _num(p.min)
         hi = "∞" if p.max is None else _num(p.max)
-        parts.append(f"[{lo}, {hi}]")
+        parts.append(f"{'(' if p.min_open else '['}{lo}, {hi}{')' if p.max_open else ']'}")
     words = getattr(p, "words", ())
     if words:
         parts.append("or " + ", ".join(_code(w) for w in words))
