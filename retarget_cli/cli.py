@@ -39,7 +39,20 @@ def command_params(command: str) -> list[Param]:
 
     return {"train-tracker": track.TRAIN_PARAMS, "import": track.IMPORT_PARAMS, "annotate": detect.PARAMS,
             "edit": edit.PARAMS, "solve-rig": solve_rig.PARAMS, "render": see.RENDER_PARAMS,
-            "preview": see.PREVIEW_PARAMS, "report": see.REPORT_PARAMS, "synth": see.SYNTH_PARAMS}[command]
+            "preview": see.PREVIEW_PARAMS, "report": see.REPORT_PARAMS, "synth": see.SYNTH_PARAMS,
+            "batch": _batch_params(), "run": _run_params()}[command]
+
+
+def _batch_params():
+    from .stages.batch import PARAMS
+
+    return PARAMS
+
+
+def _run_params():
+    from .pipeline import RUN_PARAMS
+
+    return RUN_PARAMS
 
 
 def setting(command: str, name: str, *decls, **extra):
@@ -641,14 +654,11 @@ def solve_rig(rig, meshes, output, solver, alpha, tol, max_iter, metrics, no_cac
 
 @main.command()
 @click.argument("config", type=click.Path(dir_okay=False))
-@click.option("--force", is_flag=True, help="Rerun every selected stage even if it is up to date.")
-@click.option("--from", "start", metavar="STAGE", help="First stage to consider.")
-@click.option("--until", "stop", metavar="STAGE", help="Last stage to consider.")
-@click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE",
-              help="Override a config value (YAML syntax), e.g. --set select.k=8 or --set output_dir=/scratch/"
-                   "take01. Repeatable.")
-@click.option("--no-cache", is_flag=True,
-              help="Read rigs' OBJs every time instead of keeping them parsed in <output_dir>/.retarget/cache.")
+@setting("run", "force", "--force", show_default=False)
+@setting("run", "start", "--from", metavar="STAGE", show_default=False)
+@setting("run", "stop", "--until", metavar="STAGE", show_default=False)
+@setting("run", "overrides", "--set", multiple=True, metavar="STAGE.KEY=VALUE", show_default=False, default=None)
+@setting("run", "no_cache", "--no-cache", show_default=False)
 def run(config, force, start, stop, overrides, no_cache):
     """Run the pipeline described by CONFIG, skipping stages that are up to date."""
     from .config import load_config
@@ -665,23 +675,14 @@ def run(config, force, start, stop, overrides, no_cache):
 
 @main.command()
 @click.argument("shots", type=click.Path(dir_okay=False))
-@click.option("-j", "--jobs", type=click.IntRange(1, 1024), default=None,
-              help="Worker processes of the local cluster, one thread each (default: the CPUs available).")
-@click.option("--scheduler", metavar="ADDRESS", default=None,
-              help="Use an existing Dask scheduler (tcp://host:8786, or a scheduler file .json) instead of a "
-                   "local cluster; every path must be visible to its workers.")
-@click.option("--retries", type=click.IntRange(0, 100), default=1, show_default=True,
-              help="Further attempts of a shot that failed (or whose worker died) before it is reported.")
-@click.option("--only", "only", multiple=True, metavar="PATTERN",
-              help="Only the shots whose name matches (fnmatch, e.g. 'take0*'). Repeatable.")
-@click.option("--force", is_flag=True, help="Rerun every stage of the selected shots even if it is up to date.")
-@click.option("--emit-commands", is_flag=True,
-              help="Print one self-contained 'retarget run ...' per pending shot (for a farm manager) and exit.")
-@click.option("--report", "report", is_flag=True,
-              help="Also write each shot's report.html (needs the extra report), linked from index.html.")
-@click.option("-o", "--output-dir", type=click.Path(file_okay=False), default=None,
-              help="Batch folder for batch.json and index.html, and default parent of the shot folders "
-                   "(default: the shot list's output_dir, else 'out' beside it).")
+@setting("batch", "jobs", "-j", "--jobs", show_default=False)
+@setting("batch", "scheduler", metavar="ADDRESS", show_default=False)
+@setting("batch", "retries")
+@setting("batch", "only", multiple=True, metavar="PATTERN", show_default=False, default=None)
+@setting("batch", "force", "--force", show_default=False)
+@setting("batch", "emit_commands", "--emit-commands", show_default=False)
+@setting("batch", "report", "--report", show_default=False)
+@setting("batch", "output_dir", "-o", "--output-dir", type=click.Path(file_okay=False), show_default=False)
 def batch(shots, jobs, scheduler, retries, only, force, emit_commands, report, output_dir):
     """Run every shot of the shot list SHOTS (YAML or CSV) through the pipeline on Dask.
 

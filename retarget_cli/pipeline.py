@@ -51,6 +51,20 @@ ORDER = list(STAGES)
 
 
 
+#: Declared options of ``run``.
+RUN_PARAMS = [
+    Param("config", "input", str, help="The run's YAML config."),
+    Param("force", "setting", bool, False, "Rerun every selected stage even if it is up to date."),
+    Param("start", "setting", str, None, "First stage to consider.", nullable=True),
+    Param("stop", "setting", str, None, "Last stage to consider.", nullable=True),
+    Param("overrides", "setting", list, None,
+          "Override a config value (YAML syntax), e.g. --set select.k=8 or --set output_dir=/scratch/take01. "
+          "Repeatable.", nullable=True),
+    Param("no_cache", "setting", bool, False,
+          "Read rigs' OBJs every time instead of keeping them parsed in <output_dir>/.retarget/cache."),
+]
+
+
 def stage_params() -> dict[str, list[Param]]:
     """Stage name to its parameter list (for :func:`retarget_cli.config.load_config`)."""
     return {name: s.params for name, s in STAGES.items()}

@@ -23,9 +23,33 @@ import socket
 import time
 from pathlib import Path
 
+from ..config import Param
 from ..errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
+
+#: Declared options of ``batch``.
+PARAMS = [
+    Param("shots", "input", str, help="Shot list (YAML or CSV)."),
+    Param("jobs", "setting", int, None,
+          "Worker processes of the local cluster, one thread each (default: the CPUs available).", min=1, max=1024,
+          nullable=True),
+    Param("scheduler", "setting", str, None,
+          "Use an existing Dask scheduler (tcp://host:8786, or a scheduler file .json) instead of a local cluster; "
+          "every path must be visible to its workers.", nullable=True),
+    Param("retries", "setting", int, 1,
+          "Further attempts of a shot that failed (or whose worker died) before it is reported.", min=0, max=100),
+    Param("only", "setting", list, None, "Only the shots whose name matches (fnmatch, e.g. 'take0*'). Repeatable.",
+          nullable=True),
+    Param("force", "setting", bool, False, "Rerun every stage of the selected shots even if it is up to date."),
+    Param("emit_commands", "setting", bool, False,
+          "Print one self-contained 'retarget run ...' per pending shot (for a farm manager) and exit."),
+    Param("report", "setting", bool, False,
+          "Also write each shot's report.html (needs the extra report), linked from index.html."),
+    Param("output_dir", "output", str, None,
+          "Batch folder for batch.json and index.html, and default parent of the shot folders (default: the shot "
+          "list's output_dir, else 'out' beside it).", nullable=True),
+]
 
 #: Environment of LocalCluster workers: one thread for BLAS, OpenMP, numba and OpenCV (one shot per core).
 WORKER_ENV = {
