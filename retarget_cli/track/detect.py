@@ -411,77 +411,115 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
     FaceLostError
         No face on the first frame (``frame`` 0, nothing tracked) or for *lost_frames* frames in a row.
     """
+    ann = _checked_annotations(annotations, downscale)
+    det = detector or Detector()
+    k = float(downscale)
+    fuser = FlowFusion(fusion) if fuse else None
+    track = _DetectTrack(det, ann, k, fuser, tau=tau, max_jump=max_jump, max_disagreement=max_disagreement,
+                         lost_frames=lost_frames)
+    for t, frame in enumerate(frames):
+        track.frame(t, _scaled(_gray(frame), k))
+        if progress is not None:
+            progress(t)
+    if not track.pts:
+        raise ShapeError("frames: the sequence is empty")
+    out = np.stack(track.pts)
+    if fuser is not None:
+        out = _from_scaled(fuser.smooth(), k)
+    for t in ann:  # annotated frames exactly as given
+        if t < len(out):
+            out[t] = ann[t]
+    return out, np.clip(np.stack(track.conf), 0, 1)
+
+
+def _checked_annotations(annotations, downscale: float) -> dict[int, np.ndarray]:
+    """*downscale* checked and the annotations of :func:`track_detect` as float arrays (68, 2) by frame."""
     if not 0 < downscale <= 1:
         raise ShapeError(f"downscale: expected a value in (0, 1], got {downscale}")
     ann = {int(t): np.asarray(P, np.float64) for t, P in (annotations or {}).items()}
     for t, P in ann.items():
         if P.shape != (68, 2):
             raise ShapeError(f"annotations: frame {t} has shape {P.shape}; the detector places (68, 2) points")
-    det = detector or Detector()
-    k = float(downscale)
-    fuser = FlowFusion(fusion) if fuse else None
-    pts, conf = [], []
-    calib, P_prev, box_prev, missing = DEFAULT_BOX, None, None, 0
-    for t, frame in enumerate(frames):
-        g = _scaled(_gray(frame), k)
+    return ann
+
+
+class _DetectTrack:
+    """State of :func:`track_detect` between frames (face box, frames without a face) and its per-frame step.
+
+    Landmarks are at the detection scale *k* inside and at full resolution in
+    :attr:`pts`; :attr:`conf` holds the confidences. Parameters as in
+    :func:`track_detect`.
+    """
+
+    def __init__(self, det, ann, k, fuser, *, tau, max_jump, max_disagreement, lost_frames):
+        self.det, self.ann, self.k, self.fuser = det, ann, k, fuser
+        self.tau, self.max_jump, self.max_disagreement, self.lost_frames = tau, max_jump, max_disagreement, lost_frames
+        self.calib, self.P_prev, self.box_prev, self.missing = DEFAULT_BOX, None, None, 0
+        self.pts: list[np.ndarray] = []
+        self.conf: list[np.ndarray] = []
+
+    def frame(self, t: int, g) -> None:
+        """Landmarks of frame *t* (grayscale at the detection scale) appended to :attr:`pts` and :attr:`conf`."""
         P, c, fresh = None, None, False
-        if t in ann:
-            P, c, fresh = _to_scaled(ann[t], k), np.ones(68), True
-        elif P_prev is not None and missing == 0:
-            box = box_from_points(P_prev, calib)
-            first = det.landmarks(g, box)
-            box1 = box_from_points(first, calib)
-            second = det.landmarks(g, box1)
-            _, s, _ = _frame_of(second)
-            d = np.linalg.norm(second - first, axis=1)
-            jump = np.linalg.norm((box1[:2] + box1[2:] / 2) - (box[:2] + box[2:] / 2)) / box[2]
-            grow = abs(np.log(box1[2] / box[2]))
-            if np.median(d) <= max_disagreement * s and jump <= max_jump and grow <= np.log1p(max_jump):
-                P, c = second, np.exp(-d / (tau * s))
-            else:
-                log.debug("frame %d: landmarks look lost (disagreement %.3f, jump %.2f); detecting the face",
-                          t, np.median(d) / s, jump)
+        if t in self.ann:
+            P, c, fresh = _to_scaled(self.ann[t], self.k), np.ones(68), True
+        elif self.P_prev is not None and self.missing == 0:
+            P, c = self._follow(t, g)
         if P is None:
-            found, fbox = detect_landmarks(g, detector=det, previous=box_prev)
-            if found is not None:
-                calib = calibrate_box(found, fbox)
-                P, fresh = found, True
-                again = det.landmarks(g, box_from_points(found, calib))
-                _, s, _ = _frame_of(again)
-                c = np.exp(-np.linalg.norm(again - found, axis=1) / (tau * s))
-            elif t == 0:
-                raise FaceLostError("frame 0: no face found by the detector (annotate this frame by hand with --init, "
-                                    "or start at another frame)", 0, np.zeros((0, 68, 2)),
-                                    np.zeros((0, 68)))
-            else:
-                missing += 1
-                if missing >= lost_frames:
-                    f0 = t - missing + 1
-                    raise FaceLostError(f"the face was lost from frame {f0}: no face found for {missing} frames "
-                                        f"in a row", f0, np.stack(pts[:f0]), np.stack(conf[:f0]))
-                held = pts[-1] if fuser is None else _from_scaled(fuser.step(g, None, None, exact=False), k)
-                pts.append(held)
-                conf.append(np.zeros(68))
-                if progress is not None:
-                    progress(t)
-                continue
-        missing = 0
-        P_prev, box_prev = P, box_from_points(P, calib)
-        if fuser is not None:
-            P = fuser.step(g, P, c, exact=t in ann, reset=fresh and t not in ann)
-        pts.append(_from_scaled(P, k))
-        conf.append(c)
-        if progress is not None:
-            progress(t)
-    if not pts:
-        raise ShapeError("frames: the sequence is empty")
-    out = np.stack(pts)
-    if fuser is not None:
-        out = _from_scaled(fuser.smooth(), k)
-    for t in ann:  # annotated frames exactly as given
-        if t < len(out):
-            out[t] = ann[t]
-    return out, np.clip(np.stack(conf), 0, 1)
+            P, c = self._detect(g)
+            fresh = True
+        if P is None:
+            self._no_face(t, g)
+            return
+        self.missing = 0
+        self.P_prev, self.box_prev = P, box_from_points(P, self.calib)
+        if self.fuser is not None:
+            P = self.fuser.step(g, P, c, exact=t in self.ann, reset=fresh and t not in self.ann)
+        self.pts.append(_from_scaled(P, self.k))
+        self.conf.append(c)
+
+    def _follow(self, t: int, g):
+        """Fit twice from the previous frame's box: (points, confidence), or (None, None) when they look lost."""
+        det, calib = self.det, self.calib
+        box = box_from_points(self.P_prev, calib)
+        first = det.landmarks(g, box)
+        box1 = box_from_points(first, calib)
+        second = det.landmarks(g, box1)
+        _, s, _ = _frame_of(second)
+        d = np.linalg.norm(second - first, axis=1)
+        jump = np.linalg.norm((box1[:2] + box1[2:] / 2) - (box[:2] + box[2:] / 2)) / box[2]
+        grow = abs(np.log(box1[2] / box[2]))
+        if np.median(d) <= self.max_disagreement * s and jump <= self.max_jump and grow <= np.log1p(self.max_jump):
+            return second, np.exp(-d / (self.tau * s))
+        log.debug("frame %d: landmarks look lost (disagreement %.3f, jump %.2f); detecting the face",
+                  t, np.median(d) / s, jump)
+        return None, None
+
+    def _detect(self, g):
+        """The face detector on the whole frame (and the box recalibrated): (points, confidence), or (None, None)."""
+        det = self.det
+        found, fbox = detect_landmarks(g, detector=det, previous=self.box_prev)
+        if found is None:
+            return None, None
+        self.calib = calibrate_box(found, fbox)
+        again = det.landmarks(g, box_from_points(found, self.calib))
+        _, s, _ = _frame_of(again)
+        return found, np.exp(-np.linalg.norm(again - found, axis=1) / (self.tau * s))
+
+    def _no_face(self, t: int, g) -> None:
+        """Frame *t* has no face: keep the previous landmarks with confidence 0, or raise :class:`FaceLostError`."""
+        if t == 0:
+            raise FaceLostError("frame 0: no face found by the detector (annotate this frame by hand with --init, "
+                                "or start at another frame)", 0, np.zeros((0, 68, 2)),
+                                np.zeros((0, 68)))
+        self.missing += 1
+        if self.missing >= self.lost_frames:
+            f0 = t - self.missing + 1
+            raise FaceLostError(f"the face was lost from frame {f0}: no face found for {self.missing} frames "
+                                f"in a row", f0, np.stack(self.pts[:f0]), np.stack(self.conf[:f0]))
+        fuser = self.fuser
+        self.pts.append(self.pts[-1] if fuser is None else _from_scaled(fuser.step(g, None, None, exact=False), self.k))
+        self.conf.append(np.zeros(68))
 
 
 def eye_opening(points) -> np.ndarray:

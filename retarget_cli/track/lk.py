@@ -500,8 +500,39 @@ def track_lk(
     FaceLostError
         The face was lost (carries what was tracked before).
     """
-    import cv2
+    ann, s = _scaled_annotations(annotations, window, downscale)
+    P0 = ann[0]
+    L = len(P0)
+    rigid = default_rigid_points(L) if rigid_points is None else np.asarray(rigid_points, dtype=int)
+    if rigid.size < 2 or rigid.min() < 0 or rigid.max() >= L:
+        raise ShapeError(f"rigid_points: need at least 2 indices in [0, {L}), got {rigid.tolist()}")
+    contour = _contour_points(L) if contour_points is None else np.asarray(contour_points, dtype=int)
+    offset0, boundary = _carrier_offsets(P0, contour, window)
+    it = iter(frames)
+    try:
+        first = _prepare(next(it), s)
+    except StopIteration:
+        raise ShapeError("frames: the sequence is empty") from None
+    h, w = first.shape[:2]
+    check_inside(P0, (w, h), "annotations: frame 0")
+    track = _LKTrack(first, ann, s, rigid, offset0, boundary, window=window, levels=levels, fb_threshold=fb_threshold,
+                     anchor=anchor, shape_prior=shape_prior, contour_refine=contour_refine,
+                     rigid_tolerance=rigid_tolerance, lost_frames=lost_frames, roi=roi)
+    for t, frame in enumerate(it, start=1):
+        cur = _prepare(frame, s)
+        if cur.shape != first.shape:
+            raise ShapeError(f"frames: frame {t} is {cur.shape[1]}x{cur.shape[0]}, the first was {w}x{h}")
+        if t in ann:
+            track.annotated(t, cur)
+        else:
+            track.step(t, cur)
+        if progress is not None:
+            progress(t)
+    return track.finish()
 
+
+def _scaled_annotations(annotations, window: int, downscale: float) -> tuple[dict[int, np.ndarray], float]:
+    """The annotations checked and moved to the tracking resolution, and the scale factor (see :func:`track_lk`)."""
     ann = normalize_annotations(annotations)
     if 0 not in ann:
         raise ShapeError(f"annotations: the first frame must be annotated; annotated frames are {list(ann)[:5]}")
@@ -510,23 +541,23 @@ def track_lk(
     if not 0 < downscale <= 1:
         raise ShapeError(f"downscale: expected a factor in (0, 1], got {downscale}")
     s = float(downscale)
-    ann = {f: (P + 0.5) * s - 0.5 for f, P in ann.items()}  # OpenCV resize keeps pixel-centre alignment
-    P0 = ann[0]
-    L = len(P0)
-    rigid = default_rigid_points(L) if rigid_points is None else np.asarray(rigid_points, dtype=int)
-    if rigid.size < 2 or rigid.min() < 0 or rigid.max() >= L:
-        raise ShapeError(f"rigid_points: need at least 2 indices in [0, {L}), got {rigid.tolist()}")
-    contour = _contour_points(L) if contour_points is None else np.asarray(contour_points, dtype=int)
-    lk = dict(winSize=(window, window), maxLevel=levels,
-              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-    lk_predicted = dict(lk, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    lk_back = dict(lk_predicted, maxLevel=min(levels, _BACK_LEVELS))
-    lk_anchor = dict(lk, maxLevel=min(levels, _ANCHOR_LEVELS))
-    lk_anchor_init = dict(lk_anchor, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    return {f: (P + 0.5) * s - 0.5 for f, P in ann.items()}, s  # OpenCV resize keeps pixel-centre alignment
+
+
+def _carrier_offsets(P0: np.ndarray, contour: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets of the tracked carriers (proxies) from the landmarks of *P0*, and the boundary points.
+
+    Returns
+    -------
+    offsets : ndarray, shape (L, 2)
+    boundary : ndarray of int
+        The silhouette and inner-lip points (their proxies border appearance
+        the annotated frames do not show).
+    """
     # Silhouette points (the jaw line) have background under half their window,
     # which drags them when the head moves. Track a proxy moved inward by about
     # half a window instead and move the landmark by the proxy's displacement.
-    offset0 = np.zeros((L, 2))
+    offset0 = np.zeros((len(P0), 2))
     if contour.size:
         inward = P0.mean(0) - P0[contour]
         inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-9)
@@ -538,155 +569,232 @@ def track_lk(
     # and the outer lips, whose windows may reach across the seam into the other lip
     for i, o in _outer_lip_offsets(P0, window // 2 + 2).items():
         offset0[i] = o
-    boundary = np.concatenate([contour, list(lips)]).astype(int)
-    is_boundary = np.isin(np.arange(L), boundary)
+    return offset0, np.concatenate([contour, list(lips)]).astype(int)
 
-    def prep(frame):
-        g = _gray(frame)
-        if s != 1:
-            g = cv2.resize(g, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
-        return g
 
-    last_fit: list = [None, None]
+def _prepare(frame, s: float) -> np.ndarray:
+    """A frame as grayscale at the tracking resolution (scaled by *s*)."""
+    g = _gray(frame)
+    if s != 1:
+        import cv2
 
-    def similarity(src, dst, wts):
+        g = cv2.resize(g, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+    return g
+
+
+class _HeadFit:
+    """Head similarity on the rigid points (:func:`fit_similarity`), reusing the last fit when the inputs repeat."""
+
+    def __init__(self, rigid: np.ndarray):
+        self.rigid = rigid
+        self._key: bytes | None = None
+        self._M = None
+
+    def __call__(self, src, dst, wts) -> np.ndarray:
         # the head fit of the anchor pass often repeats the previous one
         # exactly (same rigid points and weights): reuse it
+        rigid = self.rigid
         args = (src[rigid], dst[rigid], wts[rigid])
         key = b"".join(np.ascontiguousarray(a).tobytes() for a in args)
-        if key != last_fit[0]:
-            last_fit[:] = key, fit_similarity(args[0], args[1][None], args[2][None])[0]
-        return last_fit[1].copy()
+        if key != self._key:
+            self._key, self._M = key, fit_similarity(args[0], args[1][None], args[2][None])[0]
+        return self._M.copy()
 
-    it = iter(frames)
-    try:
-        first = prep(next(it))
-    except StopIteration:
-        raise ShapeError("frames: the sequence is empty") from None
-    h, w = first.shape[:2]
-    scale_back = lambda P: (P + 0.5) / s - 0.5  # noqa: E731
-    check_inside(P0, (w, h), "annotations: frame 0")
-    prior = ShapePrior(np.stack(list(ann.values()))) if shape_prior else ShapePrior(P0[None])
-    refs = [_Reference(first, P0, offset0, window)]
-    # Silhouette and inner-lip points are then refined along their normal by
-    # matching the annotated frame's intensity profile across the edge (ASM-style).
-    profile = _Profiles(first, P0[boundary], offset0[boundary]) if boundary.size and contour_refine else None
-    pts, conf = [scale_back(P0)], [np.ones(L)]
-    Q0 = P0 + offset0
-    prev, c_prev = first, Q0.copy()
-    velocity = np.zeros((L, 2))  # carriers' last displacement, the motion prediction
-    is_rigid = np.isin(np.arange(L), rigid)
-    lost_run = 0
-    retried = 0
-    for t, frame in enumerate(it, start=1):
-        cur = prep(frame)
-        if cur.shape != first.shape:
-            raise ShapeError(f"frames: frame {t} is {cur.shape[1]}x{cur.shape[0]}, the first was {w}x{h}")
-        if t in ann:
-            check_inside(ann[t], (w, h), f"annotations: frame {t}")
-            p = ann[t]
-            off = offset0 @ similarity(P0, p, np.ones(L))[:, :2].T
-            refs.append(_Reference(cur, p, off, window))
-            pts.append(scale_back(p))
-            conf.append(np.ones(L))
-            prev, c_prev, lost_run = cur, p + off, 0
-            velocity[:] = 0
-            if progress is not None:
-                progress(t)
-            continue
-        # 1. frame-to-frame flow of the carriers, checked forward-backward:
-        # forward on the full pyramid from the constant-velocity prediction,
-        # backward from the forward result less the prediction on the base
-        # image only; points that fail the check are tracked again by plain
-        # forward-backward flow on the full pyramid
+
+class _LKTrack:
+    """State of :func:`track_lk` between frames, and its per-frame steps.
+
+    Coordinates are at the tracking resolution (frames scaled by *s*) until
+    :meth:`finish`. Parameters as in :func:`track_lk`; *first* is the
+    prepared first frame, *ann* the scaled annotations, *offset0* and
+    *boundary* from :func:`_carrier_offsets`.
+    """
+
+    def __init__(self, first, ann, s, rigid, offset0, boundary, *, window, levels, fb_threshold, anchor,
+                 shape_prior, contour_refine, rigid_tolerance, lost_frames, roi):
+        import cv2
+
+        P0 = ann[0]
+        L = len(P0)
+        self.s, self.window, self.levels, self.fb_threshold = s, window, levels, fb_threshold
+        self.anchor, self.rigid_tolerance, self.lost_frames, self.roi = anchor, rigid_tolerance, lost_frames, roi
+        self.size = first.shape[1], first.shape[0]
+        self.lk = dict(winSize=(window, window), maxLevel=levels,
+                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        self.lk_predicted = dict(self.lk, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        self.lk_back = dict(self.lk_predicted, maxLevel=min(levels, _BACK_LEVELS))
+        self.lk_anchor = dict(self.lk, maxLevel=min(levels, _ANCHOR_LEVELS))
+        self.lk_anchor_init = dict(self.lk_anchor, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        self.ann, self.P0, self.L = ann, P0, L
+        self.rigid, self.is_rigid = rigid, np.isin(np.arange(L), rigid)
+        self.offset0, self.boundary, self.is_boundary = offset0, boundary, np.isin(np.arange(L), boundary)
+        self.similarity = _HeadFit(rigid)
+        self.prior = ShapePrior(np.stack(list(ann.values()))) if shape_prior else ShapePrior(P0[None])
+        self.refs = [_Reference(first, P0, offset0, window)]
+        # Silhouette and inner-lip points are then refined along their normal by
+        # matching the annotated frame's intensity profile across the edge (ASM-style).
+        self.profile = _Profiles(first, P0[boundary], offset0[boundary]) if boundary.size and contour_refine else None
+        self.pts, self.conf = [self._scale_back(P0)], [np.ones(L)]
+        self.Q0 = P0 + offset0
+        self.prev, self.c_prev = first, self.Q0.copy()
+        self.velocity = np.zeros((L, 2))  # carriers' last displacement, the motion prediction
+        self.lost_run = 0
+        self.retried = 0
+
+    def _scale_back(self, P):
+        return (P + 0.5) / self.s - 0.5
+
+    def annotated(self, t: int, cur) -> None:
+        """Frame *t* is annotated: re-anchor the track there and make it a reference."""
+        check_inside(self.ann[t], self.size, f"annotations: frame {t}")
+        p = self.ann[t]
+        off = self.offset0 @ self.similarity(self.P0, p, np.ones(self.L))[:, :2].T
+        self.refs.append(_Reference(cur, p, off, self.window))
+        self.pts.append(self._scale_back(p))
+        self.conf.append(np.ones(self.L))
+        self.prev, self.c_prev, self.lost_run = cur, p + off, 0
+        self.velocity[:] = 0
+
+    def step(self, t: int, cur) -> None:
+        """Track the landmarks into frame *t* (not annotated); raise :class:`FaceLostError` when lost too long."""
+        c_est, fwd, err, wts = self._flow(cur)
+        off = self.offset0 @ self.similarity(self.Q0, c_est, wts)[:, :2].T
+        est = c_est - off
+        ref = self._closest_reference(est, wts)
+        # 2. drift correction against the reference closest in shape, warped
+        # onto the current estimate
+        if self.anchor:
+            c_est, err = self._anchor(cur, ref, est, c_est, fwd, err)
+            est = c_est - off
+        if self.profile is not None:
+            est[self.boundary] = self.profile.refine(cur, est[self.boundary], off[self.boundary])
+        # 3. aperture-aware smoothing of the displacements from the reference
+        est = self._smooth(est, ref, err, wts)
+        # 4. rigid points that left the head's similarity are unreliable, then
+        # unreliable points are recovered from the shape prior
+        good, c = self._reliable(est, err)
+        est = self._recover(est, good, c)
+        c_est = est + off
+        self._count_lost(t, good)
+        self.pts.append(self._scale_back(est))
+        self.conf.append(c)
+        self.velocity = c_est - self.c_prev
+        self.prev, self.c_prev = cur, c_est
+
+    def _flow(self, cur):
+        """Step 1: frame-to-frame flow of the carriers, checked forward-backward.
+
+        Forward on the full pyramid from the constant-velocity prediction,
+        backward from the forward result less the prediction on the base
+        image only; points that fail the check are tracked again by plain
+        forward-backward flow on the full pyramid. Returns the carriers
+        ``c_est`` (L, 2), the flow ``fwd`` (L, 1, 2) float32, the errors
+        (L,) and the fit weights (L,).
+        """
+        c_prev, velocity, fb = self.c_prev, self.velocity, self.fb_threshold
         c0 = c_prev.astype(np.float32).reshape(-1, 1, 2)
         v = velocity.astype(np.float32).reshape(-1, 1, 2)
-        box = _Box(np.concatenate([c_prev, c_prev + velocity]) if roi else [], (w, h), window, levels)
-        fwd, err = box.flow(box.crop(prev), box.crop(cur), c0, lk, guess=c0 + v, lk_init=lk_predicted,
-                            back_guess=-v, lk_back=lk_back)
-        retry = ~(err < 3 * fb_threshold)
-        if _BACK_LEVELS < levels and retry.any():
-            retried += int(retry.sum())
-            box = _Box(c0[retry] if roi else [], (w, h), window, levels)
-            fwd2, err2 = box.flow(box.crop(prev), box.crop(cur), c0[retry], lk)
-            better = err2 < err[retry]
-            idx = np.flatnonzero(retry)[better]
-            fwd[idx], err[idx] = fwd2[better], err2[better]
+        box = _Box(np.concatenate([c_prev, c_prev + velocity]) if self.roi else [], self.size, self.window, self.levels)
+        fwd, err = box.flow(box.crop(self.prev), box.crop(cur), c0, self.lk, guess=c0 + v, lk_init=self.lk_predicted,
+                            back_guess=-v, lk_back=self.lk_back)
+        retry = ~(err < 3 * fb)
+        if _BACK_LEVELS < self.levels and retry.any():
+            self._retry(cur, c0, retry, fwd, err)
         c_est = fwd.reshape(-1, 2).astype(np.float64)
-        good = err < 3 * fb_threshold
-        wts = good.astype(float) if good[rigid].sum() >= 2 else np.ones(L)
+        good = err < 3 * fb
+        wts = good.astype(float) if good[self.rigid].sum() >= 2 else np.ones(self.L)
         # points whose flow fails the check start from where the motion of
         # the others (a similarity) takes them, not from the failed flow
-        jump = err > fb_threshold
+        jump = err > fb
         if jump.any() and (~jump).sum() >= 3:
             Mf = fit_similarity(c_prev[~jump], c_est[None, ~jump])[0]
             c_est[jump] = c_prev[jump] @ Mf[:, :2].T + Mf[:, 2]
             fwd = c_est.astype(np.float32).reshape(-1, 1, 2)
-        off = offset0 @ similarity(Q0, c_est, wts)[:, :2].T
-        est = c_est - off
-        ref = refs[0] if len(refs) == 1 else min(
+        return c_est, fwd, err, wts
+
+    def _retry(self, cur, c0, retry, fwd, err) -> None:
+        """Track the *retry* points again by plain flow on the full pyramid; keep the better result in *fwd*, *err*."""
+        self.retried += int(retry.sum())
+        box = _Box(c0[retry] if self.roi else [], self.size, self.window, self.levels)
+        fwd2, err2 = box.flow(box.crop(self.prev), box.crop(cur), c0[retry], self.lk)
+        better = err2 < err[retry]
+        idx = np.flatnonzero(retry)[better]
+        fwd[idx], err[idx] = fwd2[better], err2[better]
+
+    def _closest_reference(self, est, wts) -> _Reference:
+        refs = self.refs
+        return refs[0] if len(refs) == 1 else min(
             refs, key=lambda r: _shape_distance(r.points, est, wts) * (_FIRST_REFERENCE if r is refs[0] else 1.0))
-        # 2. drift correction against the reference closest in shape, warped
-        # onto the current estimate
-        if anchor:
-            tmpl, c_tmpl = ref.template(est, c_est, window * 2**_ANCHOR_LEVELS // 2 + 8)
-            c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
-            box = _Box(np.concatenate([c_tmpl, fwd.reshape(-1, 2)]) if roi else [], (w, h), window, _ANCHOR_LEVELS)
-            crop = box.crop(cur)
-            tmpl = _match_lighting(box.crop(tmpl), crop, est - box.offset)
-            afw, aerr = box.flow(tmpl, crop, c_t, lk_anchor, guess=fwd, lk_init=lk_anchor_init)
-            # A match that passes the forward-backward check is drift-free;
-            # frame-to-frame flow always has the smaller error, so comparing
-            # the two would keep the drift. Proxies next to appearance the
-            # reference does not show (background, mouth opening) keep that
-            # comparison: their anchor matches are less reliable.
-            use = np.where(is_boundary, aerr <= np.minimum(err, 3 * fb_threshold), aerr <= fb_threshold)
-            c_est = np.where(use[:, None], c_est + _ANCHOR_GAIN * (afw.reshape(-1, 2) - c_est), c_est)
-            err = np.where(use, aerr, err)
-            est = c_est - off
-        if boundary.size and profile is not None:
-            est[boundary] = profile.refine(cur, est[boundary], off[boundary])
-        # 3. aperture-aware smoothing of the displacements from the reference
-        fb_conf = np.exp(-np.where(np.isfinite(err), err, 1e3) / fb_threshold)
-        Mh = similarity(ref.points, est, fb_conf if fb_conf[rigid].sum() > 0.5 else wts)
-        est = _regularize(est, ref, Mh, fb_conf, is_rigid, _SMOOTH_HUBER * s)
-        c_est = est + off
-        # 4. rigid points that left the head's similarity are unreliable, then
-        # unreliable points are recovered from the shape prior
-        good = err < 3 * fb_threshold
-        Mr = similarity(P0, est, good.astype(float) if good[rigid].sum() >= 2 else np.ones(L))
-        dev = np.linalg.norm(est[rigid] - (P0[rigid] @ Mr[:, :2].T + Mr[:, 2]), axis=1)
-        good[rigid[dev > rigid_tolerance * s]] = False
-        c = np.where(good, np.exp(-np.where(good, err, 0) / fb_threshold), 0.0)
+
+    def _anchor(self, cur, ref, est, c_est, fwd, err):
+        """Step 2: match the carriers against *ref* warped onto the estimate; the new carriers and errors."""
+        fb = self.fb_threshold
+        tmpl, c_tmpl = ref.template(est, c_est, self.window * 2**_ANCHOR_LEVELS // 2 + 8)
+        c_t = c_tmpl.astype(np.float32).reshape(-1, 1, 2)
+        box = _Box(np.concatenate([c_tmpl, fwd.reshape(-1, 2)]) if self.roi else [], self.size, self.window,
+                   _ANCHOR_LEVELS)
+        crop = box.crop(cur)
+        tmpl = _match_lighting(box.crop(tmpl), crop, est - box.offset)
+        afw, aerr = box.flow(tmpl, crop, c_t, self.lk_anchor, guess=fwd, lk_init=self.lk_anchor_init)
+        # A match that passes the forward-backward check is drift-free;
+        # frame-to-frame flow always has the smaller error, so comparing
+        # the two would keep the drift. Proxies next to appearance the
+        # reference does not show (background, mouth opening) keep that
+        # comparison: their anchor matches are less reliable.
+        use = np.where(self.is_boundary, aerr <= np.minimum(err, 3 * fb), aerr <= fb)
+        c_est = np.where(use[:, None], c_est + _ANCHOR_GAIN * (afw.reshape(-1, 2) - c_est), c_est)
+        return c_est, np.where(use, aerr, err)
+
+    def _smooth(self, est, ref, err, wts):
+        """Step 3: aperture-aware smoothing of the displacements from *ref* (:func:`_regularize`)."""
+        fb_conf = np.exp(-np.where(np.isfinite(err), err, 1e3) / self.fb_threshold)
+        Mh = self.similarity(ref.points, est, fb_conf if fb_conf[self.rigid].sum() > 0.5 else wts)
+        return _regularize(est, ref, Mh, fb_conf, self.is_rigid, _SMOOTH_HUBER * self.s)
+
+    def _reliable(self, est, err):
+        """Step 4a: which points are reliable (flow check passed, rigid points on the head), and the confidences."""
+        rigid, fb = self.rigid, self.fb_threshold
+        good = err < 3 * fb
+        Mr = self.similarity(self.P0, est, good.astype(float) if good[rigid].sum() >= 2 else np.ones(self.L))
+        dev = np.linalg.norm(est[rigid] - (self.P0[rigid] @ Mr[:, :2].T + Mr[:, 2]), axis=1)
+        good[rigid[dev > self.rigid_tolerance * self.s]] = False
+        return good, np.where(good, np.exp(-np.where(good, err, 0) / fb), 0.0)
+
+    def _recover(self, est, good, c):
+        """Step 4b: the unreliable points of *est* recovered from the shape prior (*est* itself when all are good)."""
         if (~good).any():
             fitw = np.where(good, c, 0.0)
             if fitw.sum() > 0:
+                prior, is_rigid = self.prior, self.is_rigid
                 rec = prior.fit(est, fitw)
-                if len(prior.sd) == 0 and fitw[rigid].sum() > 0 and (~good & is_rigid).any():
+                if len(prior.sd) == 0 and fitw[self.rigid].sum() > 0 and (~good & is_rigid).any():
                     # the mean shape cannot follow expressions: place lost rigid
                     # points by the reliable rigid points only
                     rec[is_rigid] = prior.fit(est, np.where(is_rigid, fitw, 0.0))[is_rigid]
-                est = np.where(good[:, None], est, rec)
-                c_est = est + off
-        if good.sum() < max(3, L // 4) or good[rigid].sum() < 2:
-            lost_run += 1
-            if lost_run >= lost_frames:
-                f0 = t - lost_run + 1
+                return np.where(good[:, None], est, rec)
+        return est
+
+    def _count_lost(self, t: int, good) -> None:
+        """Lost-face bookkeeping for frame *t*: raise :class:`FaceLostError` after ``lost_frames`` lost frames in a row."""
+        L = self.L
+        if good.sum() < max(3, L // 4) or good[self.rigid].sum() < 2:
+            self.lost_run += 1
+            if self.lost_run >= self.lost_frames:
+                f0 = t - self.lost_run + 1
                 raise FaceLostError(
                     f"the face was lost from frame {f0}: fewer than {max(3, L // 4)} of {L} landmarks "
-                    f"tracked for {lost_run} frames", f0, np.stack(pts[:f0]), np.stack(conf[:f0]))
+                    f"tracked for {self.lost_run} frames", f0, np.stack(self.pts[:f0]), np.stack(self.conf[:f0]))
         else:
-            lost_run = 0
-        pts.append(scale_back(est))
-        conf.append(c)
-        velocity = c_est - c_prev
-        prev, c_prev = cur, c_est
-        if progress is not None:
-            progress(t)
-    log.debug("%d of %d point-frames tracked again on the full pyramid", retried, L * max(len(pts) - 1, 1))
-    if 0 < lost_run:
-        log.warning("the last %d frames have fewer than %d reliable landmarks", lost_run, max(3, L // 4))
-    return np.stack(pts), np.clip(np.stack(conf), 0.0, 1.0)
+            self.lost_run = 0
+
+    def finish(self):
+        """The tracked points at full resolution (T, L, 2) and their confidences (T, L)."""
+        L = self.L
+        log.debug("%d of %d point-frames tracked again on the full pyramid", self.retried,
+                  L * max(len(self.pts) - 1, 1))
+        if 0 < self.lost_run:
+            log.warning("the last %d frames have fewer than %d reliable landmarks", self.lost_run, max(3, L // 4))
+        return np.stack(self.pts), np.clip(np.stack(self.conf), 0.0, 1.0)
 
 
 class _Profiles:
