@@ -104,6 +104,25 @@ def _numeric(data: dict, key: str, path) -> np.ndarray:
     return a
 
 
+def peek_frames(path: str | os.PathLike) -> int | None:
+    """Number of frames in a ``landmarks.npz`` from its ``points`` header alone, or None if unreadable.
+
+    Reads a few hundred bytes (no array data, no checks): for decisions made
+    before the file is loaded, such as whether to start loading the compiled
+    kernel in the background; :func:`load_landmarks` reports any problem.
+    """
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as zf, zf.open("points.npy") as fh:
+            version = np.lib.format.read_magic(fh)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape = read(fh)[0]
+        return int(shape[0]) if len(shape) else None
+    except Exception:
+        return None
+
+
 def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     """Read a ``landmarks.npz`` file, completing optional keys.
 

@@ -592,14 +592,25 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
     neutral key's column holds ``1 − Σ`` of the others, so ``apply`` needs no
     change (Lewis et al. 2005, §3).
     """
-    from ..decompose import cardinality, decompose, interpolate_lost, jitter, mean_acceleration, row_residuals
-    from ..io.landmarks import load_landmarks
+    from ..decompose import (
+        cardinality,
+        decompose,
+        interpolate_lost,
+        jitter,
+        mean_acceleration,
+        prefetch_kernel,
+        row_residuals,
+    )
+    from ..io.landmarks import load_landmarks, peek_frames
     from ..io.stagefiles import read_keys, save_weights, weights_csv
 
     landmarks, keys = _require(landmarks, "landmarks file"), _require(keys, "keys file")
     check_not_input(output, [landmarks, keys])
-    lm = load_landmarks(landmarks)
     kf = read_keys(keys)
+    if solver in ("nnls", "bounded", "sparse") and formulation != "convex":  # a long take: load the kernel meanwhile
+        n_keys = max((len(r["frames"]) for r in kf.regions.values()), default=0)
+        prefetch_kernel((peek_frames(landmarks) or 0) * n_keys, weighted=confidence)
+    lm = load_landmarks(landmarks)
     stab, conf = lm.stabilized, lm.confidence  # float32; a region's rows become float64 once, below
     T = lm.n_frames
     if formulation == "delta" and not 0 <= neutral_frame < T:
