@@ -568,6 +568,71 @@ def read_obj(path: str | os.PathLike) -> ObjMesh:
     return mesh if mesh is not None else _parse_lines(path, data)
 
 
+def read_vertices_like(path: str | os.PathLike, like: ObjMesh) -> np.ndarray:
+    """Vertex positions of an OBJ file, parsing only its ``v`` lines when it is a pose of *like*.
+
+    A pose written by :func:`write_obj` from *like* (a sequence of frames of
+    one mesh) differs from it in the coordinates of its ``v`` lines only.
+    When every other byte of the file is *like*'s (one run of ``v`` lines,
+    the same text before and after it) and the run is *like*'s number of
+    plain ``v x y z`` lines, the faces need no second look: only the
+    coordinates are converted (by the same call as :func:`read_obj`, so the
+    result is identical). Anything else is read by :func:`read_obj`.
+
+    Parameters
+    ----------
+    path : path-like
+    like : ObjMesh
+        A mesh of the same sequence (e.g. its first frame).
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        ``read_obj(path).vertices``; *M* differs from ``like.n_vertices``
+        only when the file is not a pose of *like* (the caller checks).
+
+    Raises
+    ------
+    InputError
+        As :func:`read_obj`.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: OBJ file not found") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read OBJ ({exc.strerror})") from exc
+    vertices = _vertices_like(data, like)
+    if vertices is not None:
+        return vertices
+    mesh = _parse_fast(path, data)
+    return (mesh if mesh is not None else _parse_lines(path, data)).vertices
+
+
+def _vertices_like(data: bytes, like: ObjMesh) -> np.ndarray | None:
+    """The ``v`` block of *data* converted, if *data* is *like* with other coordinates; else None."""
+    if len(like.runs) != 1 or like.runs[0] != (0, like.n_vertices):
+        return None
+    head, tail = like.segments
+    n = like.n_vertices
+    if len(data) <= len(head) + len(tail) or not data.startswith(head) or not data.endswith(tail):
+        return None
+    vblock = data[len(head):len(data) - len(tail)]
+    if (vblock.count(b"\n") != n or not vblock.endswith(b"\n") or vblock.count(b" ") != 3 * n
+            or vblock.count(b"v") != n or not vblock.startswith(b"v ") or vblock.count(b"\nv ") != n - 1
+            or vblock.translate(None, b"0123456789+-.eEv \n")):
+        return None  # every line "v" and three numbers (the byte whitelist of _parse_fast)
+    try:
+        vertices = np.loadtxt(io.BytesIO(vblock), dtype=np.float64, delimiter=" ", usecols=(1, 2, 3),
+                              comments=None, ndmin=2)
+    except ValueError:
+        return None
+    if vertices.shape != (n, 3) or not np.all(np.isfinite(vertices)):
+        return None
+    return vertices
+
+
 def _parse_lines(path: Path, data: bytes) -> ObjMesh:
     """Reference parser of :func:`read_obj`: one Python pass over the lines.
 

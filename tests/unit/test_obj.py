@@ -413,3 +413,41 @@ def test_uniform_face_fast_path_agrees_with_the_reference(tmp_path, shape):
                 ref.segments, ref.runs, ref.tails, ref.topology, ref.n_faces), data
             assert m.faces() == ref.faces(), data
     assert used >= 60 and refused >= 20 and errors >= 10, (used, refused, errors)
+
+
+def test_read_vertices_like_equals_read_obj_on_poses_and_odd_files(tmp_path):
+    """Poses of a template parse only their v lines; anything else is read in full, with the same result."""
+    from retarget_cli.io.obj import _vertices_like, read_vertices_like, write_obj
+
+    base = tmp_path / "base.obj"
+    base.write_bytes(b"# head\nmtllib m.mtl\n" + b"".join(b"v %d 0.5 -1\n" % i for i in range(5))
+                     + b"vt 0 0\nvt 1 0\nf 1/1 2/2 3/1\nf 3/1 4/2 5/1\n")
+    like = read_obj(base)
+    rng = np.random.default_rng(3)
+    pose = tmp_path / "pose.obj"
+    write_obj(pose, like, like.vertices + rng.normal(size=like.vertices.shape) * 1e3)
+    data = pose.read_bytes()
+    assert _vertices_like(data, like) is not None  # the fast path takes a pose
+    variants = {
+        "pose": data,
+        "other face": data.replace(b"f 3/1 4/2 5/1", b"f 3/1 4/2 1/1"),
+        "fewer v": data.replace(data[data.index(b"v "):data.index(b"\n", data.index(b"v ")) + 1], b"", 1),
+        "colour column": data.replace(b"\nvt 0 0", b"\nv 1 2 3 4\nvt 0 0"),
+        "v not first": data.replace(b"\nv ", b"\n1v ", 1),
+        "crlf": data.replace(b"\n", b"\r\n"),
+        "exponent": data.replace(b"\nv ", b"\nv 1.5e-3 ", 1).replace(b"1.5e-3 -", b"1.5e-3 ", 1),
+        "bad exponent": data.replace(b"\nv ", b"\nv 1e ", 1),
+    }
+    for name, d in variants.items():
+        pose.write_bytes(d)
+        try:
+            want = read_obj(pose).vertices
+        except InputError as exc:
+            with pytest.raises(InputError) as got:
+                read_vertices_like(pose, like)
+            assert str(got.value) == str(exc), name
+            continue
+        got = read_vertices_like(pose, like)
+        assert got.tobytes() == want.tobytes(), name
+    with pytest.raises(InputError, match="not found"):
+        read_vertices_like(tmp_path / "missing.obj", like)
