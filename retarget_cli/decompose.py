@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import threading
 
 import numpy as np
@@ -769,15 +770,33 @@ def _solve_weighted(S, B, C, *, solver, eq, lam, upper):
     compiled = T * K >= _KERNEL_MIN_WORK_WEIGHTED
     step = max(256, 2**24 // (K * (K + 1) * 4))
     X = np.empty((T, K))
-    for c0 in range(0, T, step):
-        sl = slice(c0, c0 + step)
+    chunks = [slice(c0, c0 + step) for c0 in range(0, T, step)]
+
+    def solve(sl):
         with _one_blas_thread(T):
             Htri = weighted_hessians(B, C[sl])
             Q = (S[sl] * C[sl]) @ B.T
         if solver == "sparse":
             Q -= lam / 2
         X[sl] = box_qp_weighted(Htri, Q, lower=0.0, upper=hi, sum_to=eq, compiled=compiled)
+
+    # The chunks are fixed by size and solved independently, so solving them side by side (the
+    # kernel and BLAS release the GIL) gives the same result as one after the other.
+    workers = min(_SOLVE_THREADS, len(chunks)) if compiled and eq is None else 1
+    if workers > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        # BLAS limited once here: nested limits entered and left by the workers would race
+        with small_blas(), ThreadPoolExecutor(max_workers=workers, thread_name_prefix="retarget-qp") as pool:
+            list(pool.map(solve, chunks))
+    else:
+        for sl in chunks:
+            solve(sl)
     return X
+
+
+#: Threads :func:`_solve_weighted` solves chunks of a long take on (with the compiled kernel).
+_SOLVE_THREADS = min(2, os.cpu_count() or 1)
 
 
 def _equality_ls_pinv_stacked(H, Q, eq):

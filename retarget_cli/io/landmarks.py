@@ -142,7 +142,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     data = load_npz(path)
     if "points" not in data:
         raise InputError(f"{path}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
-    points = _numeric(data, "points", path).astype(np.float32)
+    points = _numeric(data, "points", path).astype(np.float32, copy=False)  # (freshly read: no copy needed)
     if points.ndim != 3 or points.shape[2] != 2 or points.shape[0] == 0 or points.shape[1] == 0:
         raise InputError(f"{path}: 'points' must have shape (T, L, 2) with T, L >= 1, got {points.shape}")
     T, L, _ = points.shape
@@ -213,7 +213,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
             raise InputError(f"{path}: 'meta' must be a JSON object, got {type(meta).__name__}")
     return Landmarks(
         points=points,
-        confidence=conf.astype(np.float32),
+        confidence=conf.astype(np.float32, copy=False),
         head=np.asarray(head, dtype=np.float32),
         stabilized=np.asarray(stab, dtype=np.float32),
         fps=fps,
@@ -221,5 +221,5 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         names=names,
         frames=frames,
         meta=meta,
-        points_raw=None if raw is None else raw.astype(np.float32),
+        points_raw=None if raw is None else raw.astype(np.float32, copy=False),
     )

@@ -659,7 +659,7 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
                                  f"among the key frames {reg['frames']} (set decompose.neutral_frame to one of them)")
             kw["neutral"] = X[neutral_frame]
         try:
-            W, _ = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
+            W, res = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
                              confidence=None if np.all(weight == 1) else weight, smooth_space=smooth_space,
                              robust=robust, **kw)
         except ValueError as exc:
@@ -671,7 +671,8 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
             W = interpolate_lost(W, lost)
             log.warning("region %s: lost in %d of %d frames (first: %d); weights interpolated",
                         name, int(lost.sum()), T, int(np.flatnonzero(lost)[0]))
-        res = row_residuals(X, W, X[frames])
+        if lost.any() or formulation == "delta":  # (else decompose's residual is this one already)
+            res = row_residuals(X, W, X[frames])
         card = cardinality(W)
         regions[name] = (W, frames, res)
         extras[name] = {"cardinality": card, "lost": lost}
