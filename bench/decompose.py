@@ -42,6 +42,7 @@ expression displacement), the table behind the README's choice of defaults.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -223,7 +224,8 @@ def process_row(T: int, repeat: int, K: int = 22) -> float:
     gap = weighted_gap(Xf, B, Cf, W, np.sum(Cf * (Xf - ref @ B) ** 2, axis=1))
     print(f"\nWhole process, {T:,} frames, K = {K}, confidences in [0.7, 1]: `retarget decompose` {t_ours:.2f} s, "
           f"scipy nnls loop process {t_peer:.2f} s: {t_peer / t_ours:.1f}x; max rel. objective gap {gap:.2e} "
-          f"(best of {repeat})")
+          f"(best of {repeat}; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores: both processes "
+          f"wait for a core on a busy machine)")
     return gap
 
 

@@ -325,3 +325,21 @@ def _axpy(alpha, H, j, y, n):  # pragma: no cover - compiled
     """``y[:n] += alpha·H[j, :n]``."""
     for i in range(n):
         y[i] += alpha * H[j, i]
+
+
+def warm_up(weighted: bool) -> None:
+    """Load (on a new machine, compile) the kernel for the argument types the solvers pass.
+
+    Solves a two-variable problem: :func:`pdas_frames_weighted` when
+    *weighted*, else :func:`pdas_frames` with a ``Hinv``. Used by
+    :func:`retarget_cli.decompose.prefetch_kernel` to load the code in the
+    background while a take is read.
+    """
+    K = 2
+    X, done = np.empty((1, K)), np.empty(1, dtype=np.bool_)
+    lo, hi = np.zeros(K), np.full(K, np.inf)
+    if weighted:
+        pdas_frames_weighted(np.array([[2.0, 0.0, 2.0]]), np.ones((1, K)), lo, hi, 30, X, done)
+    else:
+        H = np.eye(K)
+        pdas_frames(H, np.ones((1, K)), lo, hi, np.ones((1, K)), 1.0, 30, X, done, H)

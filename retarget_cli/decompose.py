@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
+import threading
 
 import numpy as np
 
@@ -331,7 +333,17 @@ def mean_acceleration(x) -> float:
         raise ShapeError(f"x: expected shape (T, N, d) or (T, D), got {X.shape}")
     if len(X) < 3:
         return 0.0
-    return float(np.mean(np.linalg.norm(np.diff(X, n=2, axis=0), axis=-1)))
+    # a block of frames at a time (no (T, N, d) temporaries); per point the root of the summed
+    # squares over the last axis, as numpy.linalg.norm computes it
+    T, N, d = X.shape
+    step = max(1, 2**20 // max(N * d, 1))
+    total = 0.0
+    for c0 in range(0, T - 2, step):
+        blk = X[c0:min(c0 + step, T - 2) + 2]
+        acc = (blk[2:] - blk[1:-1]) - (blk[1:-1] - blk[:-2])
+        acc *= acc
+        total += float(np.sqrt(acc.sum(-1) if d != 2 else acc[..., 0] + acc[..., 1]).sum())
+    return total / ((T - 2) * N)
 
 
 def interpolate_lost(weights, lost) -> np.ndarray:
@@ -524,6 +536,55 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     return np.clip(X, lo, hi)
 
 
+_PREFETCH: dict[bool, threading.Thread] = {}
+
+
+def prefetch_kernel(work: int, *, weighted: bool) -> bool:
+    """Start loading the compiled kernel in a background thread if a solve of size *work* will use it.
+
+    Loading numba and the kernel's cached code takes about half a second of
+    mostly Python work; started before a long take is read (decompression
+    releases the GIL) the two overlap. The kernel is chosen by the solve's
+    size alone (``T·K`` against :data:`_KERNEL_MIN_WORK_WEIGHTED` with
+    confidences, :data:`_KERNEL_MIN_WORK` without), so this only moves the
+    load earlier and never changes a result; a prefetch the solve turns out
+    not to need is wasted work in the background.
+
+    Parameters
+    ----------
+    work : int
+        ``T·K`` of the coming solve (frames times keys).
+    weighted : bool
+        Whether the frames will carry confidences (:func:`box_qp_weighted`).
+
+    Returns
+    -------
+    bool
+        Whether a load was started (or already had been).
+    """
+    if work < (_KERNEL_MIN_WORK_WEIGHTED if weighted else _KERNEL_MIN_WORK):
+        return False
+    if weighted not in _PREFETCH:
+        def load():
+            try:
+                from ._qp_kernel import warm_up
+
+                warm_up(weighted)
+            except Exception as exc:  # pragma: no cover - the solve itself reports a broken kernel
+                log.debug("kernel prefetch failed: %s", exc)
+
+        _PREFETCH[weighted] = thread = threading.Thread(target=load, name="retarget-kernel-load", daemon=True)
+        thread.start()
+    return True
+
+
+def _await_kernel(weighted: bool) -> None:
+    """Wait for a background load of the kernel (:func:`prefetch_kernel`), if one was started."""
+    thread = _PREFETCH.get(weighted)
+    if thread is not None:
+        thread.join()
+
+
 def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk, compiled):
     """The iterations of :func:`box_qp`; returns (X, frames left for the per-frame method)."""
     T, K = Q.shape
@@ -538,6 +599,7 @@ def _box_qp(H, Q, lo, hi, sum_to, max_iter, chunk, compiled):
         Hinv = (Hinv + Hinv.T) / 2
     rows = np.arange(T)
     if compiled:
+        _await_kernel(False)
         from ._qp_kernel import pdas_frames
 
         done = np.empty(T, dtype=bool)
@@ -639,6 +701,7 @@ def box_qp_weighted(Htri, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: 
     rows = np.arange(T)
     with _one_blas_thread(T):
         if use and sum_to is None:
+            _await_kernel(True)
             from ._qp_kernel import pdas_frames_weighted
 
             done = np.empty(T, dtype=bool)
@@ -707,15 +770,33 @@ def _solve_weighted(S, B, C, *, solver, eq, lam, upper):
     compiled = T * K >= _KERNEL_MIN_WORK_WEIGHTED
     step = max(256, 2**24 // (K * (K + 1) * 4))
     X = np.empty((T, K))
-    for c0 in range(0, T, step):
-        sl = slice(c0, c0 + step)
+    chunks = [slice(c0, c0 + step) for c0 in range(0, T, step)]
+
+    def solve(sl):
         with _one_blas_thread(T):
             Htri = weighted_hessians(B, C[sl])
             Q = (S[sl] * C[sl]) @ B.T
         if solver == "sparse":
             Q -= lam / 2
         X[sl] = box_qp_weighted(Htri, Q, lower=0.0, upper=hi, sum_to=eq, compiled=compiled)
+
+    # The chunks are fixed by size and solved independently, so solving them side by side (the
+    # kernel and BLAS release the GIL) gives the same result as one after the other.
+    workers = min(_SOLVE_THREADS, len(chunks)) if compiled and eq is None else 1
+    if workers > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        # BLAS limited once here: nested limits entered and left by the workers would race
+        with small_blas(), ThreadPoolExecutor(max_workers=workers, thread_name_prefix="retarget-qp") as pool:
+            list(pool.map(solve, chunks))
+    else:
+        for sl in chunks:
+            solve(sl)
     return X
+
+
+#: Threads :func:`_solve_weighted` solves chunks of a long take on (with the compiled kernel).
+_SOLVE_THREADS = min(2, os.cpu_count() or 1)
 
 
 def _equality_ls_pinv_stacked(H, Q, eq):

@@ -235,13 +235,14 @@ class RunData:
         return self._mesh
 
     def frame_vertices(self, t: int) -> np.ndarray:
-        from .io.obj import read_obj
+        """Frame *t*'s vertex positions; a pose of the first frame's mesh has only its ``v`` lines parsed."""
+        from .io.obj import read_vertices_like
 
-        m = read_obj(self.frame_files[t])
-        if m.n_vertices != self.mesh().n_vertices:
-            raise InputError(f"{self.frame_files[t]}: {m.n_vertices} vertices, but "
+        v = read_vertices_like(self.frame_files[t], self.mesh())
+        if len(v) != self.mesh().n_vertices:
+            raise InputError(f"{self.frame_files[t]}: {len(v)} vertices, but "
                              f"{self.frame_files[0]} has {self.mesh().n_vertices}")
-        return m.vertices
+        return v
 
     def weights_at(self, t: int) -> dict:
         return {name: (W[t], fr) for name, (W, fr) in self.regions.items()}
@@ -421,7 +422,7 @@ def write_render(source, output, *, size=(512, 512), fps: float = 30.0, camera=N
     import cv2
 
     from .io.atomic import check_not_input, write_bytes
-    from .io.obj import read_obj
+    from .io.obj import read_obj, read_vertices_like
     from .io.video import atomic_video_writer
     from .render import Camera, MeshRenderer
 
@@ -448,10 +449,10 @@ def write_render(source, output, *, size=(512, 512), fps: float = 30.0, camera=N
     bar_cm = progress(len(files), "render") if progress else nullcontext(None)
     with bar_cm as bar, atomic_video_writer(out, fps, renderer.size) as writer:
         for i, f in enumerate(files):
-            m = first if i == 0 else read_obj(f)
-            if m.n_vertices != first.n_vertices:
-                raise InputError(f"{f}: {m.n_vertices} vertices, but {files[0]} has {first.n_vertices}")
-            writer.write(renderer.render(m.vertices))
+            v = first.vertices if i == 0 else read_vertices_like(f, first)  # the faces of the first reused
+            if len(v) != first.n_vertices:
+                raise InputError(f"{f}: {len(v)} vertices, but {files[0]} has {first.n_vertices}")
+            writer.write(renderer.render(v))
             if bar:
                 bar.update(1)
     return out

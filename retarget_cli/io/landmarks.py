@@ -111,7 +111,7 @@ def _points(data: dict, path) -> np.ndarray:
     """``points`` as float32 (T, L, 2) with T, L >= 1."""
     if "points" not in data:
         raise InputError(f"{path}: missing key 'points' (float (T, L, 2)); found {sorted(data)}")
-    points = _numeric(data, "points", path).astype(np.float32)
+    points = _numeric(data, "points", path).astype(np.float32, copy=False)  # (freshly read: no copy needed)
     if points.ndim != 3 or points.shape[2] != 2 or points.shape[0] == 0 or points.shape[1] == 0:
         raise InputError(f"{path}: 'points' must have shape (T, L, 2) with T, L >= 1, got {points.shape}")
     return points
@@ -214,6 +214,25 @@ def _meta(data: dict, path) -> dict:
     return meta
 
 
+def peek_frames(path: str | os.PathLike) -> int | None:
+    """Number of frames in a ``landmarks.npz`` from its ``points`` header alone, or None if unreadable.
+
+    Reads a few hundred bytes (no array data, no checks): for decisions made
+    before the file is loaded, such as whether to start loading the compiled
+    kernel in the background; :func:`load_landmarks` reports any problem.
+    """
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as zf, zf.open("points.npy") as fh:
+            version = np.lib.format.read_magic(fh)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape = read(fh)[0]
+        return int(shape[0]) if len(shape) else None
+    except Exception:
+        return None
+
+
 def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     """Read a ``landmarks.npz`` file, completing optional keys.
 
@@ -243,7 +262,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     meta = _meta(data, path)
     return Landmarks(
         points=points,
-        confidence=conf.astype(np.float32),
+        confidence=conf.astype(np.float32, copy=False),
         head=np.asarray(head, dtype=np.float32),
         stabilized=np.asarray(stab, dtype=np.float32),
         fps=fps,
@@ -251,5 +270,5 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         names=names,
         frames=frames,
         meta=meta,
-        points_raw=None if raw is None else raw.astype(np.float32),
+        points_raw=None if raw is None else raw.astype(np.float32, copy=False),
     )

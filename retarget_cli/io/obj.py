@@ -290,6 +290,64 @@ def _blocks(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
 
 
+_DIGITS = b"0123456789"
+#: Token shapes of uniform element lines (the token with its digits removed) and the slots
+#: (0 v, 1 vt, 2 vn) of a token's indices; " //" is "a/b/c", or "a//c" with two indices.
+_UNIFORM_SLOTS = {b" ": (0,), b" /": (0, 1), b" //": (0, 1, 2)}
+
+
+def _uniform_refs(eblock: bytes, skeleton: bytes, heads: np.ndarray):
+    """Indices and slots of element lines that all share one token shape, or None.
+
+    The fast path for meshes whose faces are all written alike (``a b c``,
+    ``a/b c/d …``, ``a//b …`` or ``a/b/c …``, any number of tokens per line):
+    LF line ends, single spaces, no signs, no comments. With the digits
+    removed every line is then its head followed by the same token repeated,
+    which two whole-block byte operations check, and every slot of every
+    token holds an index exactly when the block holds ``tokens × slots``
+    integers, so the slot of each index is its place in its token.
+
+    Parameters
+    ----------
+    eblock : bytes
+        The element lines, joined, already known to hold only a head, digits,
+        ``/``, ``-`` and whitespace per line.
+    skeleton : bytes
+        *eblock* without its digits (``f / / /`` for the line ``f 1/2 3/4 5/6``).
+    heads : ndarray of uint8, shape (n_lines,)
+        First byte of each line (``f``, ``l`` or ``p``).
+
+    Returns
+    -------
+    (value, slots) : ndarray of int64, tuple of int
+        Every index in file order, and the slots of a token's indices (index
+        ``i`` is in slot ``slots[i % len(slots)]``); or None when the lines
+        are not uniform (the general path then decides).
+    """
+    if not eblock.endswith(b"\n") or b"-" in eblock or b"\t" in eblock or b"\r" in eblock:
+        return None
+    if b"f\n" in skeleton or b"l\n" in skeleton or b"p\n" in skeleton:
+        return None  # a line without indices
+    token = b" " + skeleton[2:skeleton.find(b"\n")].split(b" ", 1)[0]  # the first line's first token
+    slots = _UNIFORM_SLOTS.get(token)
+    if slots is None:
+        return None
+    rest = np.empty(2 * len(heads), np.uint8)
+    rest[0::2], rest[1::2] = heads, 10
+    if skeleton.replace(token, b"") != rest.tobytes():
+        return None  # a token of another shape, or doubled or trailing spaces
+    n_tokens = skeleton.count(b" ")
+    # (an index too large for int64 saturates, and is then out of range like any other)
+    value = np.fromstring(eblock.translate(_ELEM_SEP), dtype=np.int64, sep=" ")
+    if value.size != n_tokens * len(slots):
+        if not (token == b" //" and value.size == 2 * n_tokens and eblock.count(b"//") == n_tokens):
+            return None  # an empty slot (other than every token's vt in "a//c")
+        slots = (0, 2)
+    if value.size == 0 or value.min() < 1:
+        return None
+    return value, slots
+
+
 def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
     """Vectorised :func:`read_obj` for the common layout, or None to use :func:`_parse_lines`.
 
@@ -308,8 +366,7 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
     buf = np.frombuffer(data + b"\n\n\n", np.uint8)  # padding: look-ahead past the last line
     body = buf[:n]
     nl = np.flatnonzero(body == 10)
-    cr = np.flatnonzero(body == 13)
-    if cr.size and np.any(buf[cr + 1] != 10):
+    if b"\r" in data and np.any(buf[np.flatnonzero(body == 13) + 1] != 10):
         return None  # a lone CR ends a line for bytes.splitlines
     starts = np.concatenate(([0], nl + 1))
     ends = np.concatenate((nl + 1, [n]))
@@ -367,59 +424,66 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
     topo = hashlib.sha256()
     if el.size:
         eblock = b"".join(data[int(starts[i]):int(ends[j - 1])] for i, j in _blocks(is_el))
-        if len(eblock.translate(None, b"0123456789/- \t\r\n")) != el.size:
+        skeleton = eblock.translate(None, _DIGITS)
+        if len(skeleton.translate(None, b"/- \t\r\n")) != el.size:
             return None  # some byte other than the heads is not an index, '/', '-' or whitespace
-        lens = ends[el] - starts[el]
-        lstart = np.cumsum(lens) - lens
-        eb = np.frombuffer(eblock + b"   ", np.uint8).copy()
-        eb[lstart] = 32  # heads become separators
-        ws = eb < 45
-        tok = ~ws
-        tok[1:] &= ws[:-1]
-        if not np.logical_or.reduceat(tok, lstart).all():
-            return None  # an element line without indices
-        part = (eb >= 48) | (eb == 45)
-        pstart = part.copy()
-        pstart[1:] &= ~part[:-1]
-        pend = part.copy()
-        pend[:-1] &= ~part[1:]
-        ps, pe = np.flatnonzero(pstart), np.flatnonzero(pend)
-        if ps.size == 0 or (pe - ps).max() > 14:
-            return None
-        if b"-" in eblock:
-            mpos = np.flatnonzero(eb == 45)
-            if not (pstart[mpos].all() and np.all(eb[mpos + 1] >= 48)):
-                return None  # '-' not the sign of an index
-        if b"/" in eblock:
-            if b"///" in eblock or b" /" in eblock or b"\t/" in eblock:
-                return None  # an empty vertex slot, or more than v/vt/vn
-            # slot of each index: its place among the token's indices, plus one after an empty vt ("v//vn")
-            j = np.arange(ps.size)
-            kind = j - np.maximum.accumulate(np.where(ws[ps - 1], j, 0))
-            kind += (eb[ps - 1] == 47) & (eb[ps - 2] == 47)
-            after = eb[pe + 1] == 47
-            if (kind.max() > 2 or np.any(after & (kind == 2))
-                    or np.any(after & (kind == 1) & (eb[pe + 2] == 47))):
-                return None  # a fourth slot
+        uniform = _uniform_refs(eblock, skeleton, c0[el])
+        if uniform is not None:
+            value, slots = uniform
+            by_slot = {k: value[j::len(slots)] for j, k in enumerate(slots)}
         else:
-            kind = np.zeros(ps.size, np.int64)
-        value = np.fromstring(eblock.translate(_ELEM_SEP), dtype=np.int64, sep=" ")
-        if value.size != ps.size or np.any(value == 0):
-            return None
+            lens = ends[el] - starts[el]
+            lstart = np.cumsum(lens) - lens
+            eb = np.frombuffer(eblock + b"   ", np.uint8).copy()
+            eb[lstart] = 32  # heads become separators
+            ws = eb < 45
+            tok = ~ws
+            tok[1:] &= ws[:-1]
+            if not np.logical_or.reduceat(tok, lstart).all():
+                return None  # an element line without indices
+            part = (eb >= 48) | (eb == 45)
+            pstart = part.copy()
+            pstart[1:] &= ~part[:-1]
+            pend = part.copy()
+            pend[:-1] &= ~part[1:]
+            ps, pe = np.flatnonzero(pstart), np.flatnonzero(pend)
+            if ps.size == 0 or (pe - ps).max() > 14:
+                return None
+            if b"-" in eblock:
+                mpos = np.flatnonzero(eb == 45)
+                if not (pstart[mpos].all() and np.all(eb[mpos + 1] >= 48)):
+                    return None  # '-' not the sign of an index
+            if b"/" in eblock:
+                if b"///" in eblock or b" /" in eblock or b"\t/" in eblock:
+                    return None  # an empty vertex slot, or more than v/vt/vn
+                # slot of each index: its place among the token's indices, plus one after an empty vt ("v//vn")
+                j = np.arange(ps.size)
+                kind = j - np.maximum.accumulate(np.where(ws[ps - 1], j, 0))
+                kind += (eb[ps - 1] == 47) & (eb[ps - 2] == 47)
+                after = eb[pe + 1] == 47
+                if (kind.max() > 2 or np.any(after & (kind == 2))
+                        or np.any(after & (kind == 1) & (eb[pe + 2] == 47))):
+                    return None  # a fourth slot
+            else:
+                kind = np.zeros(ps.size, np.int64)
+            value = np.fromstring(eblock.translate(_ELEM_SEP), dtype=np.int64, sep=" ")
+            if value.size != ps.size or np.any(value == 0):
+                return None
+            by_slot = {k: value[kind == k] for k in range(3)}
         for k, (name, mask) in enumerate((("v", is_v), ("vt", is_vt), ("vn", is_vn))):
-            vals = value[kind == k]
-            if vals.size == 0:
+            vals = by_slot.get(k)
+            if vals is None or vals.size == 0:
                 continue
             if vals.max() > counts[name]:
                 return None
-            neg = vals < 0
-            if neg.any():
+            neg = None if uniform is not None else vals < 0  # (uniform lines have no signs)
+            if neg is not None and neg.any():
                 line = el[np.searchsorted(lstart, ps[kind == k][neg], side="right") - 1]
                 if np.any(np.cumsum(mask)[line] + vals[neg] < 0):
                     return None
         # topology: element lines with whitespace normalised, as _parse_lines hashes them
-        plain = b"\t" not in eblock and b"\r" not in eblock
-        if plain:
+        plain = uniform is not None or (b"\t" not in eblock and b"\r" not in eblock)
+        if plain and uniform is None:
             ob = np.frombuffer(eblock + b"\n", np.uint8)
             sp = ob == 32
             plain = not np.any(sp[:-1] & (sp[1:] | (ob[1:] == 10)))  # no double or trailing space
@@ -502,6 +566,71 @@ def read_obj(path: str | os.PathLike) -> ObjMesh:
         raise InputError(f"{path}: cannot read OBJ ({exc.strerror})") from exc
     mesh = _parse_fast(path, data)
     return mesh if mesh is not None else _parse_lines(path, data)
+
+
+def read_vertices_like(path: str | os.PathLike, like: ObjMesh) -> np.ndarray:
+    """Vertex positions of an OBJ file, parsing only its ``v`` lines when it is a pose of *like*.
+
+    A pose written by :func:`write_obj` from *like* (a sequence of frames of
+    one mesh) differs from it in the coordinates of its ``v`` lines only.
+    When every other byte of the file is *like*'s (one run of ``v`` lines,
+    the same text before and after it) and the run is *like*'s number of
+    plain ``v x y z`` lines, the faces need no second look: only the
+    coordinates are converted (by the same call as :func:`read_obj`, so the
+    result is identical). Anything else is read by :func:`read_obj`.
+
+    Parameters
+    ----------
+    path : path-like
+    like : ObjMesh
+        A mesh of the same sequence (e.g. its first frame).
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        ``read_obj(path).vertices``; *M* differs from ``like.n_vertices``
+        only when the file is not a pose of *like* (the caller checks).
+
+    Raises
+    ------
+    InputError
+        As :func:`read_obj`.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: OBJ file not found") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read OBJ ({exc.strerror})") from exc
+    vertices = _vertices_like(data, like)
+    if vertices is not None:
+        return vertices
+    mesh = _parse_fast(path, data)
+    return (mesh if mesh is not None else _parse_lines(path, data)).vertices
+
+
+def _vertices_like(data: bytes, like: ObjMesh) -> np.ndarray | None:
+    """The ``v`` block of *data* converted, if *data* is *like* with other coordinates; else None."""
+    if len(like.runs) != 1 or like.runs[0] != (0, like.n_vertices):
+        return None
+    head, tail = like.segments
+    n = like.n_vertices
+    if len(data) <= len(head) + len(tail) or not data.startswith(head) or not data.endswith(tail):
+        return None
+    vblock = data[len(head):len(data) - len(tail)]
+    if (vblock.count(b"\n") != n or not vblock.endswith(b"\n") or vblock.count(b" ") != 3 * n
+            or vblock.count(b"v") != n or not vblock.startswith(b"v ") or vblock.count(b"\nv ") != n - 1
+            or vblock.translate(None, b"0123456789+-.eEv \n")):
+        return None  # every line "v" and three numbers (the byte whitelist of _parse_fast)
+    try:
+        vertices = np.loadtxt(io.BytesIO(vblock), dtype=np.float64, delimiter=" ", usecols=(1, 2, 3),
+                              comments=None, ndmin=2)
+    except ValueError:
+        return None
+    if vertices.shape != (n, 3) or not np.all(np.isfinite(vertices)):
+        return None
+    return vertices
 
 
 def _parse_lines(path: Path, data: bytes) -> ObjMesh:

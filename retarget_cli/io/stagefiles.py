@@ -127,7 +127,9 @@ def save_weights(path, regions: dict, meta: dict, extras: dict | None = None) ->
         if "lost" in ex:
             arrays[f"{name}_lost"] = np.asarray(ex["lost"], dtype=bool)
     arrays["meta"] = np.array(json.dumps({"version": __version__, **meta}, sort_keys=True))
-    savez(path, arrays)
+    # stored, not deflated: weight curves are float64 noise to zlib (about 2:1 at 40 MB/s, a fifth
+    # of a second for a 50,000-frame take) and the file is an intermediate
+    savez(path, arrays, compress=False)
 
 
 def load_weights(path) -> tuple[dict, dict]:
@@ -185,10 +187,12 @@ def weights_csv(regions: dict, fps: float) -> str:
     names = sorted(regions)
     T = regions[names[0]][0].shape[0]
     header = ["frame", "time"] + [f"{n}:{int(f)}" for n in names for f in regions[n][1]]
-    cols = np.concatenate([regions[n][0] for n in names], axis=1)
+    cols = np.concatenate([regions[n][0] for n in names], axis=1).astype(np.float64)
+    # one %-format per row (the same text as f"{v:.6f}" per value, about 4x faster)
+    row = "%d,%.6f" + ",%.6f" * cols.shape[1]
+    times = [t / fps for t in range(T)]
     lines = [",".join(header)]
-    for t in range(T):
-        lines.append(f"{t},{t / fps:.6f}," + ",".join(f"{v:.6f}" for v in cols[t]))
+    lines += [row % (t, times[t], *vals) for t, vals in enumerate(cols.tolist())]
     return "\n".join(lines) + "\n"
 
 

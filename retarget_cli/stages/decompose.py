@@ -65,13 +65,17 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
     neutral key's column holds ``1 − Σ`` of the others, so ``apply`` needs no
     change (Lewis et al. 2005, §3).
     """
-    from ..io.landmarks import load_landmarks
+    from ..decompose import prefetch_kernel
+    from ..io.landmarks import load_landmarks, peek_frames
     from ..io.stagefiles import read_keys, save_weights, weights_csv
 
     landmarks, keys = _require(landmarks, "landmarks file"), _require(keys, "keys file")
     check_not_input(output, [landmarks, keys])
-    lm = load_landmarks(landmarks)
     kf = read_keys(keys)
+    if solver in ("nnls", "bounded", "sparse") and formulation != "convex":  # a long take: load the kernel meanwhile
+        n_keys = max((len(r["frames"]) for r in kf.regions.values()), default=0)
+        prefetch_kernel((peek_frames(landmarks) or 0) * n_keys, weighted=confidence)
+    lm = load_landmarks(landmarks)
     stab, conf = lm.stabilized, lm.confidence  # float32; a region's rows become float64 once, below
     T = lm.n_frames
     if formulation == "delta" and not 0 <= neutral_frame < T:
@@ -149,7 +153,7 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
                              f"among the key frames {reg['frames']} (set decompose.neutral_frame to one of them)")
         kw["neutral"] = X[neutral_frame]
     try:
-        W, _ = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
+        W, res = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
                          confidence=None if np.all(weight == 1) else weight, smooth_space=smooth_space,
                          robust=robust, **kw)
     except ValueError as exc:
@@ -161,7 +165,8 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
         W = interpolate_lost(W, lost)
         log.warning("region %s: lost in %d of %d frames (first: %d); weights interpolated",
                     name, int(lost.sum()), T, int(np.flatnonzero(lost)[0]))
-    res = row_residuals(X, W, X[frames])
+    if lost.any() or formulation == "delta":  # (else decompose's residual is this one already)
+        res = row_residuals(X, W, X[frames])
     card = cardinality(W)
     diagnostics = {  # 6 significant digits keep the JSON short and deterministic
         "mean_residual_px": float(f"{res[~lost].mean() / np.sqrt(len(pts)):.6g}"),

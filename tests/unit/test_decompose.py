@@ -496,3 +496,37 @@ def test_box_qp_fast_paths_agree_with_lapack_path(bounds, compiled, monkeypatch)
     f = lambda W: 0.5 * np.einsum("tk,kl,tl->t", W, H, W) - np.einsum("tk,tk->t", Q, W)  # noqa: E731
     assert np.all(f(fast) <= f(slow) + 1e-9 * np.abs(f(slow)))
     np.testing.assert_allclose(fast, slow, atol=1e-6)
+
+
+def test_long_weighted_take_same_result_on_one_or_two_threads(monkeypatch):
+    """The chunks of a long weighted take are fixed by size: solving them side by side changes nothing."""
+    import retarget_cli.decompose as dm
+
+    rng = np.random.default_rng(5)
+    K, T = 22, dm._KERNEL_MIN_WORK_WEIGHTED // 22 + 300  # compiled kernel, several chunks
+    B = rng.normal(size=(K, 40))
+    S = rng.uniform(0, 1, (T, K)) @ B + rng.normal(scale=0.05, size=(T, 40))
+    C = rng.uniform(0.7, 1.0, (T, 20)).repeat(2, axis=1)
+    out = {}
+    for n in (1, 2):
+        monkeypatch.setattr(dm, "_SOLVE_THREADS", n)
+        out[n], _ = decompose(S, B, confidence=C)
+    assert out[1].tobytes() == out[2].tobytes()
+    assert np.all(out[1] >= 0) and np.abs(out[1]).sum() > 0
+    # the per-frame optimum: as good as scipy's on a sample of frames
+    for t in rng.choice(T, 20, replace=False):
+        r = np.sqrt(C[t])
+        ref = nnls(B.T * r[:, None], S[t] * r)[0]
+        f = lambda w, t=t: np.sum(C[t] * (S[t] - w @ B) ** 2)  # noqa: E731
+        assert f(out[1][t]) <= f(ref) * (1 + 1e-8) + 1e-12
+
+
+def test_prefetch_kernel_only_for_solves_that_use_it():
+    import retarget_cli.decompose as dm
+
+    assert not dm.prefetch_kernel(dm._KERNEL_MIN_WORK_WEIGHTED - 1, weighted=True)
+    assert not dm.prefetch_kernel(dm._KERNEL_MIN_WORK - 1, weighted=False)
+    assert dm.prefetch_kernel(dm._KERNEL_MIN_WORK_WEIGHTED, weighted=True)
+    dm._await_kernel(True)
+    assert not dm._PREFETCH[True].is_alive()  # loaded in the background; a solve waits for it
+    assert False not in dm._PREFETCH  # no load started for the uniform-confidence kernel

@@ -335,3 +335,119 @@ def test_fast_reader_agrees_with_the_reference_on_generated_files(tmp_path):
         assert (m.segments, m.runs, m.tails, m.topology, m.n_faces) == (
             ref.segments, ref.runs, ref.tails, ref.topology, ref.n_faces), data
     assert n_fast >= 100 and n_errors >= 20, (n_fast, n_errors)  # both paths exercised
+
+
+def _uniform_obj(rng, shape: bytes) -> bytes:
+    """A mesh whose faces all share one token shape (``a``, ``a/b``, ``a//c``, ``a/b/c``), sometimes with one oddity."""
+    nv, nt, nn = 6, 5, 4
+    lines = [b"# uniform"] + [b"v %d 0.5 -1" % i for i in range(nv)] + [b"vt 0 0"] * nt + [b"vn 0 0 1"] * nn
+
+    def token():
+        v, t, n = (int(rng.integers(1, m + 1)) for m in (nv, nt, nn))
+        return {b"a": b"%d" % v, b"a/b": b"%d/%d" % (v, t), b"a//c": b"%d//%d" % (v, n),
+                b"a/b/c": b"%d/%d/%d" % (v, t, n)}[shape]
+
+    faces = [b"f " + b" ".join(token() for _ in range(int(rng.integers(3, 6)))) for _ in range(int(rng.integers(1, 9)))]
+    if rng.random() < 0.1:
+        faces.insert(int(rng.integers(len(faces) + 1)), b"l " + b" ".join(token() for _ in range(2)))
+    if rng.random() < 0.6:  # one odd token or line, of the kinds the uniform check must refuse or get right
+        odd = [b"1", b"1/1", b"1//1", b"1/1/1", b"1/", b"/1", b"1/1/", b"1//", b"//1", b"1///1", b"007",
+               b"0", b"-1", b"99", b"99999999999999999999", b"1/1/1/1", b"1/9", b"1//9", b"1/1/9"]
+        k = int(rng.integers(len(faces)))
+        toks = faces[k].split(b" ")
+        toks[int(rng.integers(1, len(toks)))] = odd[int(rng.integers(len(odd)))]
+        faces[k] = b" ".join(toks)
+        r = rng.random()
+        if r < 0.1:
+            faces[k] += b" "
+        elif r < 0.2:
+            faces[k] = faces[k].replace(b" ", b"  ", 1)
+        elif r < 0.25:
+            faces[k] = b"f"
+    return b"\n".join(lines + faces) + b"\n"
+
+
+@pytest.mark.parametrize("shape", [b"a", b"a/b", b"a//c", b"a/b/c"])
+def test_uniform_face_fast_path_agrees_with_the_reference(tmp_path, shape):
+    """The one-pass check of uniform face lines (_uniform_refs) against the line parser, odd files included."""
+    from retarget_cli.io import obj
+
+    rng = np.random.default_rng(11)
+    p = tmp_path / "u.obj"
+    used = refused = errors = 0
+    seen = []
+    real = obj._uniform_refs
+    obj_calls = []
+
+    def spy(*args):
+        out = real(*args)
+        obj_calls.append(out is not None)
+        return out
+
+    for _ in range(300):
+        data = _uniform_obj(rng, shape)
+        p.write_bytes(data)
+        obj_calls.clear()
+        try:
+            ref = obj._parse_lines(p, data)
+        except InputError as exc:
+            errors += 1
+            with pytest.raises(InputError) as got:
+                read_obj(p)
+            assert str(got.value) == str(exc), data
+            continue
+        obj._uniform_refs = spy
+        try:
+            fast = obj._parse_fast(p, data)
+        finally:
+            obj._uniform_refs = real
+        if obj_calls and obj_calls[0]:
+            used += 1
+            assert fast is not None, data
+        else:
+            refused += 1
+        seen.append(data)
+        for m in (fast, read_obj(p)) if fast is not None else (read_obj(p),):
+            assert m.vertices.tobytes() == ref.vertices.tobytes(), data
+            assert (m.segments, m.runs, m.tails, m.topology, m.n_faces) == (
+                ref.segments, ref.runs, ref.tails, ref.topology, ref.n_faces), data
+            assert m.faces() == ref.faces(), data
+    assert used >= 60 and refused >= 20 and errors >= 10, (used, refused, errors)
+
+
+def test_read_vertices_like_equals_read_obj_on_poses_and_odd_files(tmp_path):
+    """Poses of a template parse only their v lines; anything else is read in full, with the same result."""
+    from retarget_cli.io.obj import _vertices_like, read_vertices_like, write_obj
+
+    base = tmp_path / "base.obj"
+    base.write_bytes(b"# head\nmtllib m.mtl\n" + b"".join(b"v %d 0.5 -1\n" % i for i in range(5))
+                     + b"vt 0 0\nvt 1 0\nf 1/1 2/2 3/1\nf 3/1 4/2 5/1\n")
+    like = read_obj(base)
+    rng = np.random.default_rng(3)
+    pose = tmp_path / "pose.obj"
+    write_obj(pose, like, like.vertices + rng.normal(size=like.vertices.shape) * 1e3)
+    data = pose.read_bytes()
+    assert _vertices_like(data, like) is not None  # the fast path takes a pose
+    variants = {
+        "pose": data,
+        "other face": data.replace(b"f 3/1 4/2 5/1", b"f 3/1 4/2 1/1"),
+        "fewer v": data.replace(data[data.index(b"v "):data.index(b"\n", data.index(b"v ")) + 1], b"", 1),
+        "colour column": data.replace(b"\nvt 0 0", b"\nv 1 2 3 4\nvt 0 0"),
+        "v not first": data.replace(b"\nv ", b"\n1v ", 1),
+        "crlf": data.replace(b"\n", b"\r\n"),
+        "exponent": data.replace(b"\nv ", b"\nv 1.5e-3 ", 1).replace(b"1.5e-3 -", b"1.5e-3 ", 1),
+        "bad exponent": data.replace(b"\nv ", b"\nv 1e ", 1),
+    }
+    for name, d in variants.items():
+        pose.write_bytes(d)
+        try:
+            want = read_obj(pose).vertices
+        except InputError as exc:
+            with pytest.raises(InputError) as got:
+                read_vertices_like(pose, like)
+            assert str(got.value) == str(exc), name
+            continue
+        got = read_vertices_like(pose, like)
+        assert got.tobytes() == want.tobytes(), name
+    with pytest.raises(InputError, match="not found"):
+        read_vertices_like(tmp_path / "missing.obj", like)
