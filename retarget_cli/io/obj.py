@@ -360,6 +360,35 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
     every error, it returns None so that the reference parser decides (and
     names the line).
     """
+    lines = _line_table(data)
+    if lines is None:
+        return None
+    buf, starts, ends, c0, is_v, is_vt, is_vn, is_el = lines
+    fast_v = _fast_vertices(data, buf, starts, ends, is_v)
+    if fast_v is None:
+        return None
+    vertices, runs_l, spans, n_cr = fast_v
+    nv = len(vertices)
+    tails = [b"\r\n" if n_cr else b"\n"] * nv
+    runs, segments = _runs_and_segments(data, runs_l, spans)
+    counts = {"v": nv, "vt": int(is_vt.sum()), "vn": int(is_vn.sum())}
+    el = np.flatnonzero(is_el)
+    topo = hashlib.sha256()
+    if el.size:
+        eblock = b"".join(data[int(starts[i]):int(ends[j - 1])] for i, j in _blocks(is_el))
+        refs = _element_refs(eblock, c0, el, starts, ends)
+        if refs is None or not _refs_in_range(refs, counts, (is_v, is_vt, is_vn), el):
+            return None
+        _hash_elements(topo, data, eblock, el, starts, ends, uniform=refs[1])
+    n_faces = int(np.count_nonzero(c0[el] == 102))
+    return ObjMesh(path, vertices, segments, runs, tails, topo.hexdigest(), n_faces)
+
+
+def _line_table(data: bytes):
+    """Line starts and ends of *data* and what each line is (``v``, ``vt``, ``vn``, element), or None.
+
+    None when a line starts with whitespace, a lone CR ends a line, or there is no ``v`` line.
+    """
     n = len(data)
     if n == 0:
         return None
@@ -378,13 +407,20 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
     if np.any((c0 == 32) | (c0 == 9) | (c0 == 11) | (c0 == 12)):
         return None
     is_v = (c0 == 118) & ((c1 == 32) | (c1 == 9))
+    if not is_v.any():
+        return None
     is_vt = (c0 == 118) & (c1 == 116) & _WS[c2]
     is_vn = (c0 == 118) & (c1 == 110) & _WS[c2]
     is_el = ((c0 == 102) | (c0 == 108) | (c0 == 112)) & _WS[c1]
+    return buf, starts, ends, c0, is_v, is_vt, is_vn, is_el
+
+
+def _fast_vertices(data: bytes, buf, starts, ends, is_v):
+    """The ``v`` lines, each ``v x y z`` + LF or CRLF, converted as the reference parser does; or None.
+
+    Returns the vertices (V, 3), the runs of consecutive ``v`` lines, their byte spans and the count of CRs.
+    """
     nv = int(is_v.sum())
-    if nv == 0:
-        return None
-    # ---- v lines: "v x y z" + LF or CRLF, converted exactly like the reference parser.
     runs_l = _blocks(is_v)
     spans = [(int(starts[a]), int(ends[b - 1])) for a, b in runs_l]
     if buf[spans[-1][1] - 1] != 10:
@@ -405,12 +441,13 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
                               comments=None, ndmin=2)
     except ValueError:
         return None
-    if vertices.shape != (nv, 3):
+    if vertices.shape != (nv, 3) or not np.all(np.isfinite(vertices)):
         return None
-    if not np.all(np.isfinite(vertices)):
-        return None
-    tail = b"\r\n" if n_cr else b"\n"
-    tails = [tail] * nv
+    return vertices, runs_l, spans, n_cr
+
+
+def _runs_and_segments(data: bytes, runs_l, spans):
+    """The vertex runs (first, end) and the text segments between them, as :class:`ObjMesh` keeps them."""
     runs, segments, prev, cum = [], [], 0, 0
     for (a, b), (s, e) in zip(runs_l, spans):
         segments.append(data[prev:s])
@@ -418,82 +455,107 @@ def _parse_fast(path: Path, data: bytes) -> ObjMesh | None:
         cum += b - a
         prev = e
     segments.append(data[prev:])
-    # ---- element lines: indices checked against the v/vt/vn lines, as _check_refs does.
-    counts = {"v": nv, "vt": int(is_vt.sum()), "vn": int(is_vn.sum())}
-    el = np.flatnonzero(is_el)
-    topo = hashlib.sha256()
-    if el.size:
-        eblock = b"".join(data[int(starts[i]):int(ends[j - 1])] for i, j in _blocks(is_el))
-        skeleton = eblock.translate(None, _DIGITS)
-        if len(skeleton.translate(None, b"/- \t\r\n")) != el.size:
-            return None  # some byte other than the heads is not an index, '/', '-' or whitespace
-        uniform = _uniform_refs(eblock, skeleton, c0[el])
-        if uniform is not None:
-            value, slots = uniform
-            by_slot = {k: value[j::len(slots)] for j, k in enumerate(slots)}
-        else:
-            lens = ends[el] - starts[el]
-            lstart = np.cumsum(lens) - lens
-            eb = np.frombuffer(eblock + b"   ", np.uint8).copy()
-            eb[lstart] = 32  # heads become separators
-            ws = eb < 45
-            tok = ~ws
-            tok[1:] &= ws[:-1]
-            if not np.logical_or.reduceat(tok, lstart).all():
-                return None  # an element line without indices
-            part = (eb >= 48) | (eb == 45)
-            pstart = part.copy()
-            pstart[1:] &= ~part[:-1]
-            pend = part.copy()
-            pend[:-1] &= ~part[1:]
-            ps, pe = np.flatnonzero(pstart), np.flatnonzero(pend)
-            if ps.size == 0 or (pe - ps).max() > 14:
-                return None
-            if b"-" in eblock:
-                mpos = np.flatnonzero(eb == 45)
-                if not (pstart[mpos].all() and np.all(eb[mpos + 1] >= 48)):
-                    return None  # '-' not the sign of an index
-            if b"/" in eblock:
-                if b"///" in eblock or b" /" in eblock or b"\t/" in eblock:
-                    return None  # an empty vertex slot, or more than v/vt/vn
-                # slot of each index: its place among the token's indices, plus one after an empty vt ("v//vn")
-                j = np.arange(ps.size)
-                kind = j - np.maximum.accumulate(np.where(ws[ps - 1], j, 0))
-                kind += (eb[ps - 1] == 47) & (eb[ps - 2] == 47)
-                after = eb[pe + 1] == 47
-                if (kind.max() > 2 or np.any(after & (kind == 2))
-                        or np.any(after & (kind == 1) & (eb[pe + 2] == 47))):
-                    return None  # a fourth slot
-            else:
-                kind = np.zeros(ps.size, np.int64)
-            value = np.fromstring(eblock.translate(_ELEM_SEP), dtype=np.int64, sep=" ")
-            if value.size != ps.size or np.any(value == 0):
-                return None
-            by_slot = {k: value[kind == k] for k in range(3)}
-        for k, (name, mask) in enumerate((("v", is_v), ("vt", is_vt), ("vn", is_vn))):
-            vals = by_slot.get(k)
-            if vals is None or vals.size == 0:
-                continue
-            if vals.max() > counts[name]:
-                return None
-            neg = None if uniform is not None else vals < 0  # (uniform lines have no signs)
-            if neg is not None and neg.any():
-                line = el[np.searchsorted(lstart, ps[kind == k][neg], side="right") - 1]
-                if np.any(np.cumsum(mask)[line] + vals[neg] < 0):
-                    return None
-        # topology: element lines with whitespace normalised, as _parse_lines hashes them
-        plain = uniform is not None or (b"\t" not in eblock and b"\r" not in eblock)
-        if plain and uniform is None:
-            ob = np.frombuffer(eblock + b"\n", np.uint8)
-            sp = ob == 32
-            plain = not np.any(sp[:-1] & (sp[1:] | (ob[1:] == 10)))  # no double or trailing space
-        if plain:
-            topo.update(eblock if eblock.endswith(b"\n") else eblock + b"\n")
-        else:
-            for i in el.tolist():
-                topo.update(b" ".join(data[int(starts[i]):int(ends[i])].split()) + b"\n")
-    n_faces = int(np.count_nonzero(c0[el] == 102))
-    return ObjMesh(path, vertices, segments, runs, tails, topo.hexdigest(), n_faces)
+    return runs, segments
+
+
+def _element_refs(eblock: bytes, c0, el, starts, ends):
+    """The indices of the element lines by slot (0 v, 1 vt, 2 vn), or None when they need the reference parser.
+
+    Returns ``(by_slot, uniform, signs)``: *uniform* is whether every line shares one token shape (then no
+    index has a sign); *signs* locates the indices for negative (relative) references otherwise.
+    """
+    skeleton = eblock.translate(None, _DIGITS)
+    if len(skeleton.translate(None, b"/- \t\r\n")) != el.size:
+        return None  # some byte other than the heads is not an index, '/', '-' or whitespace
+    uniform = _uniform_refs(eblock, skeleton, c0[el])
+    if uniform is not None:
+        value, slots = uniform
+        return {k: value[j::len(slots)] for j, k in enumerate(slots)}, True, None
+    general = _general_refs(eblock, el, starts, ends)
+    if general is None:
+        return None
+    value, kind, lstart, ps = general
+    return {k: value[kind == k] for k in range(3)}, False, (kind, lstart, ps)
+
+
+def _general_refs(eblock: bytes, el, starts, ends):
+    """Indices of element lines of any token shape and the slot of each; or None."""
+    lens = ends[el] - starts[el]
+    lstart = np.cumsum(lens) - lens
+    eb = np.frombuffer(eblock + b"   ", np.uint8).copy()
+    eb[lstart] = 32  # heads become separators
+    ws = eb < 45
+    tok = ~ws
+    tok[1:] &= ws[:-1]
+    if not np.logical_or.reduceat(tok, lstart).all():
+        return None  # an element line without indices
+    part = (eb >= 48) | (eb == 45)
+    pstart = part.copy()
+    pstart[1:] &= ~part[:-1]
+    pend = part.copy()
+    pend[:-1] &= ~part[1:]
+    ps, pe = np.flatnonzero(pstart), np.flatnonzero(pend)
+    if ps.size == 0 or (pe - ps).max() > 14:
+        return None
+    if b"-" in eblock:
+        mpos = np.flatnonzero(eb == 45)
+        if not (pstart[mpos].all() and np.all(eb[mpos + 1] >= 48)):
+            return None  # '-' not the sign of an index
+    kind = _slots(eblock, eb, ws, ps, pe) if b"/" in eblock else np.zeros(ps.size, np.int64)
+    if kind is None:
+        return None
+    value = np.fromstring(eblock.translate(_ELEM_SEP), dtype=np.int64, sep=" ")
+    if value.size != ps.size or np.any(value == 0):
+        return None
+    return value, kind, lstart, ps
+
+
+def _slots(eblock: bytes, eb, ws, ps, pe):
+    """The slot (0 v, 1 vt, 2 vn) of each index in ``v/vt/vn`` tokens, or None for an empty or fourth slot."""
+    if b"///" in eblock or b" /" in eblock or b"\t/" in eblock:
+        return None  # an empty vertex slot, or more than v/vt/vn
+    # slot of each index: its place among the token's indices, plus one after an empty vt ("v//vn")
+    j = np.arange(ps.size)
+    kind = j - np.maximum.accumulate(np.where(ws[ps - 1], j, 0))
+    kind += (eb[ps - 1] == 47) & (eb[ps - 2] == 47)
+    after = eb[pe + 1] == 47
+    if kind.max() > 2 or np.any(after & (kind == 2)) or np.any(after & (kind == 1) & (eb[pe + 2] == 47)):
+        return None  # a fourth slot
+    return kind
+
+
+def _refs_in_range(refs, counts: dict, masks, el) -> bool:
+    """Whether every index names an existing v/vt/vn line (negative ones counted back from their line)."""
+    by_slot, uniform, signs = refs
+    for k, (name, mask) in enumerate(zip(("v", "vt", "vn"), masks)):
+        vals = by_slot.get(k)
+        if vals is None or vals.size == 0:
+            continue
+        if vals.max() > counts[name]:
+            return False
+        if uniform:
+            continue  # (uniform lines have no signs)
+        kind, lstart, ps = signs
+        neg = vals < 0
+        if neg.any():
+            line = el[np.searchsorted(lstart, ps[kind == k][neg], side="right") - 1]
+            if np.any(np.cumsum(mask)[line] + vals[neg] < 0):
+                return False
+    return True
+
+
+def _hash_elements(topo, data: bytes, eblock: bytes, el, starts, ends, *, uniform: bool) -> None:
+    """Add the element lines to the topology hash with whitespace normalised, as :func:`_parse_lines` does."""
+    plain = uniform or (b"\t" not in eblock and b"\r" not in eblock)
+    if plain and not uniform:
+        ob = np.frombuffer(eblock + b"\n", np.uint8)
+        sp = ob == 32
+        plain = not np.any(sp[:-1] & (sp[1:] | (ob[1:] == 10)))  # no double or trailing space
+    if plain:
+        topo.update(eblock if eblock.endswith(b"\n") else eblock + b"\n")
+    else:
+        for i in el.tolist():
+            topo.update(b" ".join(data[int(starts[i]):int(ends[i])].split()) + b"\n")
 
 
 def count_vertices(path: str | os.PathLike) -> int:
