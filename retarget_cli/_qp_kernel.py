@@ -132,87 +132,30 @@ def _frame(H, q, lo, hi, x0, start_free, warm, Hinv, hscale, max_iter, out,
     value), *dinv* (reciprocals of L's diagonal) and the rest are scratch.
     """
     K = len(q)
-    qs = 0.0
-    for i in range(K):
-        qs = max(qs, abs(q[i]))
-        if start_free:
-            status[i] = 0
-        elif warm:  # x0 is a previous solution: variables at a bound start bound
-            status[i] = -1 if x0[i] <= lo[i] else (1 if x0[i] >= hi[i] else 0)
-        elif x0[i] < lo[i]:
-            status[i] = -1
-        elif x0[i] > hi[i]:
-            status[i] = 1
-        else:
-            status[i] = 0
+    qs = _initial_status(q, lo, hi, x0, start_free, warm, status)
     best = K + 2
     tries = 3
     pm = 0  # rows of L valid for prevF[:pm]
     for it in range(max_iter):
-        m = 0
-        nn = 0
-        for i in range(K):
-            if status[i] == 0:
-                F[m] = i
-                m += 1
-                x[i] = 0.0
-            else:
-                x[i] = lo[i] if status[i] == -1 else hi[i]
-                if x[i] != 0.0:
-                    N[nn] = i
-                    nn += 1
+        m, nn = _split(status, lo, hi, F, N, x)
         schur = False
         if it == 0 and Hinv is not None and K - m < m:
             schur = _schur_point(Hinv, x0, status, x, Z, L, dinv, b)
             pm = 0
         if not schur:
-            # reduced system H_FF x_F = q_F − H_FB x_B, by Cholesky; the rows of
-            # the factor for a prefix of F unchanged since the last iteration are kept
-            for a in range(m):
-                s = q[F[a]]
-                for c in range(nn):
-                    s -= H[F[a], N[c]] * x[N[c]]
-                b[a] = s
-            r = 0
-            while r < min(m, pm) and F[r] == prevF[r]:
-                r += 1
-            if not _factor(H, F, r, m, L, dinv):
+            pm = _reduced_solve(H, q, F, N, m, nn, x, prevF, pm, L, dinv, b)
+            if pm < 0:
                 break  # numerically singular: the caller finishes this frame
-            for a in range(m):
-                prevF[a] = F[a]
-            pm = m
-            _solve(L, dinv, m, b)
-            for a in range(m):
-                x[F[a]] = b[a]
         xm = 0.0
         for i in range(K):
             xm = max(xm, abs(x[i]))
         tolx = 1e-10 * (1.0 + xm)
         tolg = 1e-11 * (qs + hscale * (1.0 + xm))
-        # KKT check: count the infeasible variables, remember the last one
-        ninf = 0
-        last = -1
         # a Schur point is accurate to about cond(H)·eps only: there, values
         # within 1e-8 of a bound are taken to be at it (a wrong guess is
         # undone by the multiplier check of the next, direct, iteration)
         tolf = -1e-8 * (1.0 + xm) if schur else tolx
-        # gradient Hx − q, as a sum of rows of H (H is symmetric) over the
-        # nonzero entries of x: contiguous loops the compiler vectorises
-        for i in range(K):
-            grad[i] = -q[i]
-        for a in range(m):
-            _axpy(x[F[a]], H, F[a], grad, K)
-        for c in range(nn):
-            _axpy(x[N[c]], H, N[c], grad, K)
-        for i in range(K):
-            if status[i] == 0:
-                bad[i] = x[i] < lo[i] - tolf or x[i] > hi[i] + tolf
-            else:
-                g = grad[i]
-                bad[i] = (status[i] == -1 and g < -tolg) or (status[i] == 1 and g > tolg)
-            if bad[i]:
-                ninf += 1
-                last = i
+        ninf, last = _violations(H, q, lo, hi, status, x, F, N, m, nn, grad, bad, tolf, tolg)
         if ninf == 0 and not schur:
             for i in range(K):
                 out[i] = x[i]
@@ -225,16 +168,110 @@ def _frame(H, q, lo, hi, x0, start_free, warm, Hinv, hscale, max_iter, out,
             tries -= 1
         else:
             full = False
-        for i in range(K):
-            if not bad[i] or not (full or i == last):
-                continue
-            if status[i] != 0:
-                status[i] = 0
-            elif x[i] < lo[i] - tolf:
-                status[i] = -1
-            else:
-                status[i] = 1
+        _flip(status, bad, x, lo, full, last, tolf)
     return False
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of _frame, inlined into it)
+def _initial_status(q, lo, hi, x0, start_free, warm, status):  # pragma: no cover - compiled
+    """The first active set of :func:`_frame` into *status*; returns max |q|."""
+    qs = 0.0
+    for i in range(len(q)):
+        qs = max(qs, abs(q[i]))
+        if start_free:
+            status[i] = 0
+        elif warm:  # x0 is a previous solution: variables at a bound start bound
+            status[i] = -1 if x0[i] <= lo[i] else (1 if x0[i] >= hi[i] else 0)
+        elif x0[i] < lo[i]:
+            status[i] = -1
+        elif x0[i] > hi[i]:
+            status[i] = 1
+        else:
+            status[i] = 0
+    return qs
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of _frame, inlined into it)
+def _split(status, lo, hi, F, N, x):  # pragma: no cover - compiled
+    """Free variables into *F*, bound ones with a nonzero bound into *N*; bound values into *x*. Returns (m, nn)."""
+    m = 0
+    nn = 0
+    for i in range(len(status)):
+        if status[i] == 0:
+            F[m] = i
+            m += 1
+            x[i] = 0.0
+        else:
+            x[i] = lo[i] if status[i] == -1 else hi[i]
+            if x[i] != 0.0:
+                N[nn] = i
+                nn += 1
+    return m, nn
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of _frame, inlined into it)
+def _reduced_solve(H, q, F, N, m, nn, x, prevF, pm, L, dinv, b):  # pragma: no cover - compiled
+    """Solve ``H_FF x_F = q_F − H_FB x_B`` by Cholesky into *x*; the new *pm*, or -1 when singular.
+
+    The rows of the factor for a prefix of F unchanged since the last
+    iteration (``prevF[:pm]``) are kept.
+    """
+    for a in range(m):
+        s = q[F[a]]
+        for c in range(nn):
+            s -= H[F[a], N[c]] * x[N[c]]
+        b[a] = s
+    r = 0
+    while r < min(m, pm) and F[r] == prevF[r]:
+        r += 1
+    if not _factor(H, F, r, m, L, dinv):
+        return -1
+    for a in range(m):
+        prevF[a] = F[a]
+    _solve(L, dinv, m, b)
+    for a in range(m):
+        x[F[a]] = b[a]
+    return m
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of _frame, inlined into it)
+def _violations(H, q, lo, hi, status, x, F, N, m, nn, grad, bad, tolf, tolg):  # pragma: no cover - compiled
+    """KKT check: mark the infeasible variables in *bad*; returns their count and the last one (-1: none)."""
+    K = len(q)
+    # gradient Hx − q, as a sum of rows of H (H is symmetric) over the
+    # nonzero entries of x: contiguous loops the compiler vectorises
+    for i in range(K):
+        grad[i] = -q[i]
+    for a in range(m):
+        _axpy(x[F[a]], H, F[a], grad, K)
+    for c in range(nn):
+        _axpy(x[N[c]], H, N[c], grad, K)
+    ninf = 0
+    last = -1
+    for i in range(K):
+        if status[i] == 0:
+            bad[i] = x[i] < lo[i] - tolf or x[i] > hi[i] + tolf
+        else:
+            g = grad[i]
+            bad[i] = (status[i] == -1 and g < -tolg) or (status[i] == 1 and g > tolg)
+        if bad[i]:
+            ninf += 1
+            last = i
+    return ninf, last
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of _frame, inlined into it)
+def _flip(status, bad, x, lo, full, last, tolf):  # pragma: no cover - compiled
+    """Move the infeasible variables (all, or only the last when *full* is false) to the other set."""
+    for i in range(len(status)):
+        if not bad[i] or not (full or i == last):
+            continue
+        if status[i] != 0:
+            status[i] = 0
+        elif x[i] < lo[i] - tolf:
+            status[i] = -1
+        else:
+            status[i] = 1
 
 
 @njit(cache=True, nogil=True)
