@@ -18,6 +18,7 @@ from retarget_cli.synth import (
 )
 
 EYES = REGION_PRESETS_68["brows-eyes"]
+LIDS = [37, 38, 40, 41, 43, 44, 46, 47]   # upper and lower eyelids of the 68-point layout
 
 
 def _take(T=300, seed=2, noise=0.3):
@@ -48,6 +49,9 @@ def test_three_frame_blink_keeps_90_percent_through_filter_and_temporal_solver()
     curves, head, pts = _take()
     conf = np.ones(pts.shape[:2])
     filt, raw, _ = apply_filter(pts, conf, fps=30.0, settings=dict(FILTER_DEFAULTS), where="take", anchors=[0])
+    # the filter alone: the eyelid landmarks keep the blink (against the noise-free points)
+    clean = _take(noise=0.0)[2]
+    assert _amplitude(filt[:, LIDS], clean[:, LIDS]) >= 0.9
     _, stab = estimate_head(filt, conf)
     X = stab[:, EYES].reshape(len(stab), -1)
     keys = select_keys(X, 8, method="greedy", include=(0,))
