@@ -30,7 +30,8 @@ masks, as ``apply`` does. Reported per smoother × solver:
   blink displacement (peak frame against the frames just before and after)
   onto the truth's, over the vertices the blink moves; mean over events, %.
 
-Run: ``python bench/temporal.py [--frames 600] [--seeds 0,1,2] [--takes synthetic,stressed,ict] [--tracker lk] [--all]``.
+Run: ``python bench/temporal.py [--frames 600] [--seeds 0,1,2] [--takes synthetic,stressed,ict] [--tracker lk]
+[--fixed-keys] [--all]``.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ SMOOTHERS = {
     "rts (plain)": {"filter": "rts", "filter_robust": 0.0},
     "rts (default)": {"filter": "rts"},
 }
-#: Solvers: name -> decompose settings (the stage defaults for the rest: temporal robust 2, alpha 1 in shape space).
+#: Solvers: name -> decompose settings (the stage defaults for the rest: temporal robust 1, alpha 1 in shape space).
 SOLVERS = {
     "sparse delta 0.05": dict(solver="sparse", formulation="delta", alpha=0.05),
     "nnls whole": dict(solver="nnls", formulation="whole"),
@@ -71,11 +72,13 @@ SOLVERS = {
                                  robust=0.0),
     "temporal shape r0": dict(solver="temporal", formulation="delta", robust=0.0),
     "temporal shape": dict(solver="temporal", formulation="delta"),
+    "temporal shape r2": dict(solver="temporal", formulation="delta", robust=2.0),
     "temporal-causal shape": dict(solver="temporal-causal", formulation="delta"),
 }
 #: Rows measured by default: (smoother, solver). The baseline is the first: today's sample config, unfiltered.
 ROWS = [("none", "sparse delta 0.05"), ("none", "nnls whole"), ("none", "temporal shape"),
-        ("rts (default)", "sparse delta 0.05"), ("rts (default)", "temporal shape")]
+        ("rts (default)", "sparse delta 0.05"), ("rts (default)", "temporal shape r2"),
+        ("rts (default)", "temporal shape")]
 #: Every combination (--all).
 ALL_ROWS = ([("none", s) for s in SOLVERS] + [(f, s) for f in ("one-euro", "rts (plain)", "rts (default)")
                                               for s in SOLVERS if s != "temporal weights 0.1"])
@@ -293,7 +296,7 @@ def retarget(take: Take, lm: Path, keys: Path, out: Path, settings: dict) -> np.
     return blend_regions(parts, [take.masks[r][take.measure] for r in names], take.neutral[take.measure])
 
 
-def bench_take(name: str, take: Take, d: Path, rows_wanted=ROWS) -> list[tuple]:
+def bench_take(name: str, take: Take, d: Path, rows_wanted=ROWS, fixed_keys: bool = False) -> list[tuple]:
     truth = take.mesh(take.curves)[:, take.measure]
     V0 = take.neutral[take.measure]
     disp = np.linalg.norm(truth - V0, axis=2).mean()
@@ -301,11 +304,16 @@ def bench_take(name: str, take: Take, d: Path, rows_wanted=ROWS) -> list[tuple]:
     regions = {r: REGION_PRESETS_68[r] for r in ("brows-eyes", "mouth")}
     rows = []
     files = {}
+    if fixed_keys:  # one key set for every row: selected on the unfiltered landmarks
+        fixed = d / "keys-fixed.json"
+        run_select(landmarks=landmarks_file(take, SMOOTHERS["none"], d / "fixed.landmarks.npz"), output=fixed,
+                   template=None, method="greedy", k=12, regions=regions)
     for fname, solver in rows_wanted:
         if fname not in files:
             lm = landmarks_file(take, SMOOTHERS[fname], d / f"{fname.split()[0]}{len(files)}.landmarks.npz")
-            keys = d / f"keys{len(files)}.json"
-            run_select(landmarks=lm, output=keys, template=None, method="greedy", k=12, regions=regions)
+            keys = fixed if fixed_keys else d / f"keys{len(files)}.json"
+            if not fixed_keys:
+                run_select(landmarks=lm, output=keys, template=None, method="greedy", k=12, regions=regions)
             files[fname] = (lm, keys, lid_blink(load_landmarks(lm).points, take))
         lm, keys, lids = files[fname]
         t0 = time.perf_counter()
@@ -324,6 +332,9 @@ def main() -> None:
     ap.add_argument("--takes", default="synthetic,stressed,ict")
     ap.add_argument("--tracker", default="lk", help="retarget track --method of the synthetic takes")
     ap.add_argument("--all", action="store_true", help="every smoother x solver (about 4x longer)")
+    ap.add_argument("--fixed-keys", action="store_true",
+                    help="select the keys once per take on the unfiltered landmarks (isolates smoother and solver "
+                         "from key selection)")
     args = ap.parse_args()
     takes = args.takes.split(",")
     seeds = [int(s) for s in args.seeds.split(",")]
@@ -344,10 +355,11 @@ def main() -> None:
                 else:
                     raise SystemExit(f"unknown take {name!r}; expected synthetic, stressed, ict")
                 base = None
-                for row in bench_take(name, take, d, ALL_ROWS if args.all else ROWS):
+                for row in bench_take(name, take, d, ALL_ROWS if args.all else ROWS, args.fixed_keys):
                     base = row[3] if base is None else base
                     rows.setdefault(row[:3], []).append((*row[3:], 100 * (row[3] / base - 1)))
-    print(f"temporal quality, {args.frames} frames, seeds {args.seeds}, tracker {args.tracker} "
+    print(f"temporal quality, {args.frames} frames, seeds {args.seeds}, tracker {args.tracker}"
+          f"{', keys fixed (selected on the unfiltered landmarks)' if args.fixed_keys else ''} "
           f"({time.perf_counter() - t_all:.0f} s); mesh error in % of the mean true expression displacement; "
           f"jitter = mean vertex acceleration / truth's; blink = mesh blink amplitude, lid blink = of the eyelid "
           f"landmarks after tracking and filtering; means over the seeds, vs baseline also its worst seed")

@@ -212,7 +212,7 @@ STAGES: dict[str, Stage] = {
                 Param("smooth_space", "setting", str, "shape",
                       "What temporal and temporal-causal smooth: shape (the reconstructed landmarks, ||D2 W S||^2; "
                       "alpha is then absolute) or weights (||D2 W||^2).", choices=("shape", "weights")),
-                Param("robust", "setting", float, 2.0,
+                Param("robust", "setting", float, 1.0,
                       "temporal only: release the smoothness penalty around frames whose excess residual (over the "
                       "unsmoothed fit, in units of its median) exceeds this, so blinks keep their amplitude; 0: off.",
                       min=0),

@@ -580,7 +580,7 @@ LOST_CONFIDENCE = 1e-3
 
 def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulation="whole", alpha=None, upper=None,
                   neutral_frame=0, confidence=True, lost_fraction=0.5, smooth_space="shape",
-                  robust=2.0) -> list[Path]:
+                  robust=1.0) -> list[Path]:
     """Weights over the key shapes for every frame and region; writes ``weights.npz``.
 
     Per region: landmarks with NaN coordinates and confidence 0 are lost;

@@ -1,10 +1,12 @@
 """A 3-frame blink in a synthetic take survives the default landmark filter and the temporal solver."""
 
+import inspect
+
 import numpy as np
 
 from retarget_cli.decompose import decompose
 from retarget_cli.select import select_keys
-from retarget_cli.stages import REGION_PRESETS_68
+from retarget_cli.stages import REGION_PRESETS_68, run_decompose
 from retarget_cli.stages.filtering import FILTER_DEFAULTS, apply_filter
 from retarget_cli.synth import (
     EXPRESSIONS,
@@ -55,7 +57,8 @@ def test_three_frame_blink_keeps_90_percent_through_filter_and_temporal_solver()
     _, stab = estimate_head(filt, conf)
     X = stab[:, EYES].reshape(len(stab), -1)
     keys = select_keys(X, 8, method="greedy", include=(0,))
-    W, _ = decompose(X, X[keys], solver="temporal", formulation="delta", neutral=X[0], robust=2.0)
+    robust = inspect.signature(run_decompose).parameters["robust"].default   # decompose's default
+    W, _ = decompose(X, X[keys], solver="temporal", formulation="delta", neutral=X[0], robust=robust)
     # the character: the synthetic target rig driven by the weights over its keys posed at the true curves
     rig = target_rig(seed=2)
     K = rig["vertices"][None] + np.einsum("ke,end->knd", curves[keys], rig["deltas"])
