@@ -30,7 +30,8 @@ masks, as ``apply`` does. Reported per smoother × solver:
   blink displacement (peak frame against the frames just before and after)
   onto the truth's, over the vertices the blink moves; mean over events, %.
 
-Run: ``python bench/temporal.py [--frames 600] [--takes synthetic,stressed,ict] [--all]``.
+Run: ``python bench/temporal.py [--frames 600] [--seeds 0,1,2] [--takes synthetic,stressed,ict] [--tracker lk]
+[--fixed-keys] [--all]``.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ SMOOTHERS = {
     "rts (plain)": {"filter": "rts", "filter_robust": 0.0},
     "rts (default)": {"filter": "rts"},
 }
-#: Solvers: name -> decompose settings (the stage defaults for the rest: temporal robust 2, alpha 1 in shape space).
+#: Solvers: name -> decompose settings (the stage defaults for the rest: temporal robust 1, alpha 1 in shape space).
 SOLVERS = {
     "sparse delta 0.05": dict(solver="sparse", formulation="delta", alpha=0.05),
     "nnls whole": dict(solver="nnls", formulation="whole"),
@@ -71,11 +72,13 @@ SOLVERS = {
                                  robust=0.0),
     "temporal shape r0": dict(solver="temporal", formulation="delta", robust=0.0),
     "temporal shape": dict(solver="temporal", formulation="delta"),
+    "temporal shape r2": dict(solver="temporal", formulation="delta", robust=2.0),
     "temporal-causal shape": dict(solver="temporal-causal", formulation="delta"),
 }
 #: Rows measured by default: (smoother, solver). The baseline is the first: today's sample config, unfiltered.
 ROWS = [("none", "sparse delta 0.05"), ("none", "nnls whole"), ("none", "temporal shape"),
-        ("rts (default)", "sparse delta 0.05"), ("rts (default)", "temporal shape")]
+        ("rts (default)", "sparse delta 0.05"), ("rts (default)", "temporal shape r2"),
+        ("rts (default)", "temporal shape")]
 #: Every combination (--all).
 ALL_ROWS = ([("none", s) for s in SOLVERS] + [(f, s) for f in ("one-euro", "rts (plain)", "rts (default)")
                                               for s in SOLVERS if s != "temporal weights 0.1"])
@@ -93,6 +96,7 @@ class Take:
     masks: dict               # region -> (N,) character vertex weights
     blinks: list              # curve columns of the blinks
     measure: np.ndarray       # vertex indices the metrics use
+    truth_points: np.ndarray  # (T, 68, 2) true image landmarks (before tracking / noise)
 
     def mesh(self, curves):
         return self.neutral[None] + np.einsum("te,end->tnd", curves, self.deltas)
@@ -101,19 +105,19 @@ class Take:
 # --------------------------------------------------------------------------- takes
 
 
-def synthetic_take(d: Path, frames: int, seed: int, perturb: dict) -> Take:
+def synthetic_take(d: Path, frames: int, seed: int, perturb: dict, tracker: str = "lk") -> Take:
     from retarget_cli.io.atomic import load_npz
     from retarget_cli.synth import EXPRESSIONS, target_region_masks, target_rig, write_take
 
     write_take(d, n_frames=frames, seed=seed, **perturb)
-    run_track(video=d / "face.mp4", init=d / "face_00000.pts", output=d / "raw.npz", filter="none")
+    run_track(video=d / "face.mp4", init=d / "face_00000.pts", output=d / "raw.npz", filter="none", method=tracker)
     lm = load_landmarks(d / "raw.npz")
     rig = target_rig(seed=seed)
     curves = load_npz(d / "truth.npz")["curves"].astype(np.float64)
     return Take(lm.points.astype(np.float64), lm.confidence.astype(np.float64), lm.fps, tuple(lm.frame_size),
                 curves, rig["vertices"].astype(np.float64), rig["deltas"].astype(np.float64),
                 target_region_masks(rig), [EXPRESSIONS.index("blink_l"), EXPRESSIONS.index("blink_r")],
-                np.arange(len(rig["vertices"])))
+                np.arange(len(rig["vertices"])), load_landmarks(d / "truth_landmarks.npz").points.astype(np.float64))
 
 
 ICT_SHAPES = {  # region of each expression used by the ICT take
@@ -197,6 +201,7 @@ def ict_take(tmp: Path, frames: int, seed: int, fps: float = 30.0) -> Take:
         X = (L3[i] - centre) @ R.T
         P[i, :, 0] = tx[i] + scale[i] * X[:, 0]
         P[i, :, 1] = ty[i] - scale[i] * X[:, 1]   # image y down, model y up
+    P_true = P.copy()
     P += rng.normal(0, 0.5, P.shape)
     # character masks: each region's share of its expressions' displacement
     mags = {r: sum(np.linalg.norm(deltas[e], axis=1) for e, n in enumerate(ICT_SHAPES) if ICT_SHAPES[n] == r)
@@ -206,7 +211,7 @@ def ict_take(tmp: Path, frames: int, seed: int, fps: float = 30.0) -> Take:
     masks = {r: np.where(moving, m / np.where(moving, total, 1.0), 0.0) for r, m in mags.items()}
     names = list(ICT_SHAPES)
     return Take(P, np.ones(P.shape[:2]), fps, (512, 512), curves, char0, deltas, masks,
-                [names.index("eyeBlink_L"), names.index("eyeBlink_R")], np.arange(ICT_FACE_VERTICES))
+                [names.index("eyeBlink_L"), names.index("eyeBlink_R")], np.arange(ICT_FACE_VERTICES), P_true)
 
 
 # --------------------------------------------------------------------------- metrics
@@ -243,6 +248,29 @@ def blink_amplitude(got, truth, take: Take) -> float:
     return 100 * float(np.mean(amps)) if amps else float("nan")
 
 
+#: Eyelid landmarks of the 68-point Multi-PIE layout (upper and lower lid of each eye, corners left out).
+LIDS = [37, 38, 40, 41, 43, 44, 46, 47]
+
+
+def lid_blink(points, take: Take) -> float:
+    """Blink amplitude of the eyelid landmarks (%): as :func:`blink_amplitude`, image points against the true points.
+
+    Separates the loss of the tracker and the landmark filter (this column) from that of the keys and the
+    solver (the mesh's ``blink`` column).
+    """
+    amps = []
+    ref = take.truth_points[:, LIDS]
+    got = np.asarray(points)[:, LIDS]
+    for s, p, e in blink_events(take.curves[:, take.blinks[0]]):
+        a, b = s - 2, e + 1
+        if a < 0 or b >= len(got):
+            continue
+        dt = ref[p] - 0.5 * (ref[a] + ref[b])
+        dg = got[p] - 0.5 * (got[a] + got[b])
+        amps.append(float(np.sum(dg * dt) / np.sum(dt * dt)))
+    return 100 * float(np.mean(amps)) if amps else float("nan")
+
+
 # --------------------------------------------------------------------------- pipeline
 
 
@@ -268,7 +296,7 @@ def retarget(take: Take, lm: Path, keys: Path, out: Path, settings: dict) -> np.
     return blend_regions(parts, [take.masks[r][take.measure] for r in names], take.neutral[take.measure])
 
 
-def bench_take(name: str, take: Take, d: Path, rows_wanted=ROWS) -> list[tuple]:
+def bench_take(name: str, take: Take, d: Path, rows_wanted=ROWS, fixed_keys: bool = False) -> list[tuple]:
     truth = take.mesh(take.curves)[:, take.measure]
     V0 = take.neutral[take.measure]
     disp = np.linalg.norm(truth - V0, axis=2).mean()
@@ -276,54 +304,72 @@ def bench_take(name: str, take: Take, d: Path, rows_wanted=ROWS) -> list[tuple]:
     regions = {r: REGION_PRESETS_68[r] for r in ("brows-eyes", "mouth")}
     rows = []
     files = {}
+    if fixed_keys:  # one key set for every row: selected on the unfiltered landmarks
+        fixed = d / "keys-fixed.json"
+        run_select(landmarks=landmarks_file(take, SMOOTHERS["none"], d / "fixed.landmarks.npz"), output=fixed,
+                   template=None, method="greedy", k=12, regions=regions)
     for fname, solver in rows_wanted:
         if fname not in files:
             lm = landmarks_file(take, SMOOTHERS[fname], d / f"{fname.split()[0]}{len(files)}.landmarks.npz")
-            keys = d / f"keys{len(files)}.json"
-            run_select(landmarks=lm, output=keys, template=None, method="greedy", k=12, regions=regions)
-            files[fname] = (lm, keys)
-        lm, keys = files[fname]
+            keys = fixed if fixed_keys else d / f"keys{len(files)}.json"
+            if not fixed_keys:
+                run_select(landmarks=lm, output=keys, template=None, method="greedy", k=12, regions=regions)
+            files[fname] = (lm, keys, lid_blink(load_landmarks(lm).points, take))
+        lm, keys, lids = files[fname]
         t0 = time.perf_counter()
         got = retarget(take, lm, keys, d / "weights.npz", SOLVERS[solver])
         sec = time.perf_counter() - t0
         err = 100 * np.linalg.norm(got - truth, axis=2).mean() / disp
         rows.append((name, fname, solver, err, mean_acceleration(got) / acc_truth, blink_amplitude(got, truth, take),
-                     sec))
+                     lids, sec))
     return rows
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=600)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", default="0", help="comma-separated seeds; figures are means over them")
     ap.add_argument("--takes", default="synthetic,stressed,ict")
+    ap.add_argument("--tracker", default="lk", help="retarget track --method of the synthetic takes")
     ap.add_argument("--all", action="store_true", help="every smoother x solver (about 4x longer)")
+    ap.add_argument("--fixed-keys", action="store_true",
+                    help="select the keys once per take on the unfiltered landmarks (isolates smoother and solver "
+                         "from key selection)")
     args = ap.parse_args()
     takes = args.takes.split(",")
-    rows = []
+    seeds = [int(s) for s in args.seeds.split(",")]
+    rows = {}
     t_all = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        for name in takes:
-            d = tmp / name
-            d.mkdir()
-            if name == "synthetic":
-                take = synthetic_take(d, args.frames, args.seed, {})
-            elif name == "stressed":
-                take = synthetic_take(d, args.frames, args.seed, STRESS)
-            elif name == "ict":
-                take = ict_take(d, args.frames, args.seed)
-            else:
-                raise SystemExit(f"unknown take {name!r}; expected synthetic, stressed, ict")
-            rows += bench_take(name, take, d, ALL_ROWS if args.all else ROWS)
-    print(f"temporal quality, {args.frames} frames, seed {args.seed} ({time.perf_counter() - t_all:.0f} s); "
-          f"mesh error in % of the mean true expression displacement; jitter = mean vertex acceleration / truth's")
-    print(f"{'take':<10}{'smoother':<15}{'solver':<23}{'mesh error':>11}{'jitter':>9}{'blink':>8}"
-          f"{'vs baseline':>13}{'decompose s':>13}")
-    base = {}
-    for take, f, s, err, jit, blink, sec in rows:
-        base.setdefault(take, err)
-        print(f"{take:<10}{f:<15}{s:<23}{err:>10.1f}%{jit:>8.2f}x{blink:>7.0f}%{100 * (err / base[take] - 1):>+12.0f}%"
+    for seed in seeds:
+        with tempfile.TemporaryDirectory() as tmp:
+            tmp = Path(tmp)
+            for name in takes:
+                d = tmp / name
+                d.mkdir()
+                if name == "synthetic":
+                    take = synthetic_take(d, args.frames, seed, {}, args.tracker)
+                elif name == "stressed":
+                    take = synthetic_take(d, args.frames, seed, STRESS, args.tracker)
+                elif name == "ict":
+                    take = ict_take(d, args.frames, seed)
+                else:
+                    raise SystemExit(f"unknown take {name!r}; expected synthetic, stressed, ict")
+                base = None
+                for row in bench_take(name, take, d, ALL_ROWS if args.all else ROWS, args.fixed_keys):
+                    base = row[3] if base is None else base
+                    rows.setdefault(row[:3], []).append((*row[3:], 100 * (row[3] / base - 1)))
+    print(f"temporal quality, {args.frames} frames, seeds {args.seeds}, tracker {args.tracker}"
+          f"{', keys fixed (selected on the unfiltered landmarks)' if args.fixed_keys else ''} "
+          f"({time.perf_counter() - t_all:.0f} s); mesh error in % of the mean true expression displacement; "
+          f"jitter = mean vertex acceleration / truth's; blink = mesh blink amplitude, lid blink = of the eyelid "
+          f"landmarks after tracking and filtering; means over the seeds, vs baseline also its worst seed")
+    worst = "  (worst)" if len(seeds) > 1 else ""
+    print(f"{'take':<10}{'smoother':<15}{'solver':<23}{'mesh error':>11}{'jitter':>9}{'blink':>8}{'lid blink':>11}"
+          f"{'vs baseline':>13}{worst}{'decompose s':>13}")
+    for (take, f, s), vals in rows.items():
+        err, jit, blink, lids, sec, rel = np.mean(vals, axis=0)
+        w = f"{max(v[-1] for v in vals):>+8.0f}%" if worst else ""
+        print(f"{take:<10}{f:<15}{s:<23}{err:>10.1f}%{jit:>8.2f}x{blink:>7.0f}%{lids:>10.0f}%{rel:>+12.0f}%{w}"
               f"{sec:>13.2f}")
 
 

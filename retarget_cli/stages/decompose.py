@@ -43,7 +43,7 @@ PARAMS = [
     Param("smooth_space", "setting", str, "shape",
           "What temporal and temporal-causal smooth: shape (the reconstructed landmarks, ||D2 W S||^2; "
           "alpha is then absolute) or weights (||D2 W||^2).", choices=("shape", "weights")),
-    Param("robust", "setting", float, 2.0,
+    Param("robust", "setting", float, 1.0,
           "temporal only: release the smoothness penalty around frames whose excess residual (over the "
           "unsmoothed fit, in units of its median) exceeds this, so blinks keep their amplitude; 0: off.",
           min=0),
@@ -53,7 +53,7 @@ PARAMS = [
 @validate_params(PARAMS)
 def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulation="whole", alpha=None, upper=None,
                   neutral_frame=0, confidence=True, lost_fraction=0.5, smooth_space="shape",
-                  robust=2.0) -> list[Path]:
+                  robust=1.0) -> list[Path]:
     """Weights over the key shapes for every frame and region; writes ``weights.npz``.
 
     Per region: landmarks with NaN coordinates and confidence 0 are lost;

@@ -39,6 +39,10 @@ MODELS = ("cv", "ca")
 MIN_CONFIDENCE = 1e-3
 #: Largest process-noise inflation of the robust smoother.
 _MAX_SCALE = 1e8
+#: Parts of the 68-point Multi-PIE layout that move together (``rts_smooth`` *groups*): brows, each eye, the
+#: outer and the inner lip. A blink or a lip closure moves a whole part, so its event test pools the part's points.
+GROUPS_68 = (tuple(range(17, 22)), tuple(range(22, 27)), tuple(range(36, 42)), tuple(range(42, 48)),
+             tuple(range(48, 60)), tuple(range(60, 68)))
 
 
 def _check(points, confidence):
@@ -154,8 +158,12 @@ def _kalman_rts(P, C, F, Q, r, scale, m0, P0):
     return ms
 
 
-def _window_residual(P, C, X, sigma):
-    """RMS normalised residual ``√(c‖y − x̂‖² / 2σ²)`` over frames t−1, t, t+1 of each point (T, L)."""
+def _window_residual(P, C, X, sigma, groups=()):
+    """RMS normalised residual ``√(c‖y − x̂‖² / 2σ²)`` over frames t−1, t, t+1 of each point (T, L).
+
+    With *groups*, a point's value is the larger of its own and its group's (the RMS over the group's points
+    and the same frames).
+    """
     measured = C > MIN_CONFIDENCE
     r2 = np.where(measured, C * np.sum((np.where(np.isfinite(P), P, 0.0) - X) ** 2, -1) / (2 * sigma**2), 0.0)
     n = measured.astype(np.float64)
@@ -164,12 +172,17 @@ def _window_residual(P, C, X, sigma):
     num[:-1] += r2[1:]
     den[1:] += n[:-1]
     den[:-1] += n[1:]
-    return np.sqrt(num / np.maximum(den, 1.0))
+    out = np.sqrt(num / np.maximum(den, 1.0))
+    for g in groups:
+        g = list(g)
+        pooled = np.sqrt(num[:, g].sum(1) / np.maximum(den[:, g].sum(1), 1.0))
+        out[:, g] = np.maximum(out[:, g], pooled[:, None])
+    return out
 
 
 def rts_smooth(points, confidence=None, *, model: str = "ca", process_noise: float = 0.1,
                measurement_noise: float = 0.5, robust: float = 0.0, iterations: int = 5,
-               prior_var: float = 1e6, return_state: bool = False):
+               prior_var: float = 1e6, groups=(), return_state: bool = False):
     """Rauch–Tung–Striebel smoother of a landmark track (whole take).
 
     Each coordinate of each landmark is a linear-Gaussian state-space model
@@ -224,6 +237,14 @@ def rts_smooth(points, confidence=None, *, model: str = "ca", process_noise: flo
     only means less smoothing there. Everything outside the events is
     smoothed exactly as without *robust*.
 
+    *groups* (e.g. :data:`GROUPS_68`: the brows, each eye, each lip
+    contour) shares the test among points that move together: a window
+    flagged for one point of a group is flagged for all of them, and a
+    point's ``r̄_t`` is the larger of its own and the RMS over its group's
+    points and the same three frames. So a blink releases every point of the
+    eye, including the lower lid, whose own motion is too small to be
+    flagged alone.
+
     Parameters
     ----------
     points : ndarray, shape (T, L, 2)
@@ -242,6 +263,8 @@ def rts_smooth(points, confidence=None, *, model: str = "ca", process_noise: flo
         Reweighting passes when *robust* > 0.
     prior_var : float
         Prior variance of the initial state (large: uninformative).
+    groups : sequence of sequences of int
+        Point indices that share the event test (see above); default none.
     return_state : bool
         Also return the smoothed state (T, L, 2, n) and the scales ``s`` (T−1, L).
 
@@ -257,16 +280,22 @@ def rts_smooth(points, confidence=None, *, model: str = "ca", process_noise: flo
     if not robust >= 0:
         raise ParameterError(f"robust: expected a number >= 0, got {robust}")
     T, L, _ = P.shape
+    groups = [list(g) for g in groups]
+    bad = [i for g in groups for i in g if not 0 <= int(i) < L]
+    if bad:
+        raise ValueError(f"groups: point index {bad[0]} is outside the {L} points")
     F, Q = motion_model(model, process_noise)
     n = F.shape[0]
     m0, P0 = _prior(P, C, n, prior_var)
     scale = np.ones((max(T - 1, 0), L))
     ms = _kalman_rts(P, C, F, Q, measurement_noise, scale, m0, P0)
     for it in range(max(int(iterations), 0) if robust > 0 and T >= 3 else 0):
-        rbar = _window_residual(P, C, ms[..., 0], measurement_noise)
+        rbar = _window_residual(P, C, ms[..., 0], measurement_noise, groups)
         if rbar.max() <= robust:
             break
         event = rbar > robust                                           # (T, L)
+        for g in groups:                                                 # an event of one point is its part's
+            event[:, g] |= event[:, g].any(1, keepdims=True)
         event[1:] |= event[:-1].copy()
         event[:-1] |= event[1:].copy()                                   # frames t-1 .. t+1 of each window
         step = event[1:] | event[:-1]                                    # steps into and out of them
@@ -361,12 +390,12 @@ def one_euro(points, confidence=None, *, fps: float = 30.0, min_cutoff: float = 
 
 
 def filter_points(points, confidence=None, *, method: str = "rts", fps: float = 30.0, model: str = "ca",
-                  process_noise: float = 0.1, measurement_noise: float = 0.5, robust: float = 0.0,
+                  process_noise: float = 0.1, measurement_noise: float = 0.5, robust: float = 0.0, groups=(),
                   min_cutoff: float = 1.0, beta: float = 0.05, d_cutoff: float = 1.0) -> np.ndarray:
     """Apply the landmark filter chosen by *method* (``track.filter``).
 
     ``rts`` calls :func:`rts_smooth` (*model*, *process_noise*,
-    *measurement_noise*, *robust*), ``one-euro`` :func:`one_euro` (*fps*,
+    *measurement_noise*, *robust*, *groups*), ``one-euro`` :func:`one_euro` (*fps*,
     *min_cutoff*, *beta*, *d_cutoff*), ``none`` returns a copy.
 
     Parameters
@@ -380,7 +409,7 @@ def filter_points(points, confidence=None, *, method: str = "rts", fps: float = 
     """
     if method == "rts":
         return rts_smooth(points, confidence, model=model, process_noise=process_noise,
-                          measurement_noise=measurement_noise, robust=robust)
+                          measurement_noise=measurement_noise, robust=robust, groups=groups)
     if method == "one-euro":
         return one_euro(points, confidence, fps=fps, min_cutoff=min_cutoff, beta=beta, d_cutoff=d_cutoff)
     if method == "none":

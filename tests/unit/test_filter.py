@@ -96,6 +96,34 @@ def test_robust_rts_keeps_a_three_frame_blink():
     assert np.mean((robust[quiet] - truth[quiet]) ** 2) < 0.5 * np.mean((y[quiet] - truth[quiet]) ** 2)
 
 
+def test_robust_rts_groups_release_the_small_points_of_an_event():
+    """An eye: two upper-lid points move 6 px in a 3-frame blink, two lower-lid points 1.2 px."""
+    rng = np.random.default_rng(3)
+    T = 120
+    blink = np.zeros(T)
+    blink[60:63] = [0.6, 1.0, 0.6]
+    move = np.array([6.0, 6.0, 1.2, 1.2])
+    truth = np.zeros((T, 4, 2))
+    truth[:, :, 1] = blink[:, None] * move + 0.02 * np.arange(T)[:, None]
+    y = truth + rng.normal(0, 0.3, truth.shape)
+    kw = dict(model="ca", process_noise=0.05, measurement_noise=0.5, robust=3.0)
+    alone = rts_smooth(y, **kw)
+    pooled = rts_smooth(y, **kw, groups=[[0, 1, 2, 3]])
+    b = slice(60, 63)
+
+    def amp(p, i):
+        base = 0.5 * (p[55, i, 1] + p[67, i, 1]) + 0.02 * (np.arange(60, 63) - 61)
+        return float((p[b, i, 1] - base) @ blink[b] / (move[i] * blink[b] @ blink[b]))
+
+    assert min(amp(alone, 0), amp(alone, 1)) >= 0.9     # the upper lid is flagged on its own
+    assert max(amp(alone, 2), amp(alone, 3)) < 0.8      # the lower lid is not: smoothed away
+    assert min(amp(pooled, i) for i in range(4)) >= 0.9  # pooled over the eye, every point keeps the blink
+    quiet = slice(5, 50)
+    assert np.mean((pooled[quiet] - truth[quiet]) ** 2) < 0.5 * np.mean((y[quiet] - truth[quiet]) ** 2)
+    with pytest.raises(ValueError, match="groups"):
+        rts_smooth(y, **kw, groups=[[0, 4]])
+
+
 def test_one_euro_is_causal_and_smooths():
     rng = np.random.default_rng(1)
     T = 200
