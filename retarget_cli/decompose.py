@@ -162,22 +162,7 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
     T, D = S.shape
     if B.shape[1] != D:
         raise ShapeError(f"keys: expected shape (K, {D}) to match frames, got {B.shape}")
-    if solver not in SOLVERS:
-        raise ParameterError(f"solver: expected one of {SOLVERS}, got {solver!r}")
-    if formulation not in FORMULATIONS:
-        raise ParameterError(f"formulation: expected one of {FORMULATIONS}, got {formulation!r}")
-    if formulation == "convex" and solver in NO_CONVEX:
-        raise ParameterError(f"solver {solver!r} does not support formulation 'convex' "
-                         f"(use one of {tuple(s for s in SOLVERS if s not in NO_CONVEX)})")
-    if smooth_space not in SMOOTH_SPACES:
-        raise ParameterError(f"smooth_space: expected one of {SMOOTH_SPACES}, got {smooth_space!r}")
-    shape_space = smooth_space == "shape" and solver in ("temporal", "temporal-causal")
-    if alpha is None:
-        alpha = (DEFAULT_SHAPE_ALPHA if shape_space else DEFAULT_ALPHA).get(solver, 0.0)
-    if not np.isfinite(alpha) or alpha < 0:
-        raise ParameterError(f"alpha: expected a finite number >= 0, got {alpha!r}")
-    if upper is not None and not upper > 0:
-        raise ParameterError(f"upper: expected a number > 0, got {upper!r}")
+    shape_space, alpha = _check_options(solver, formulation, smooth_space, alpha, upper)
     if formulation == "delta":
         if neutral is None:
             raise ParameterError("neutral: formulation 'delta' needs the neutral shape S_0 (D,)")
@@ -185,15 +170,7 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
         if n0.shape != (D,):
             raise ShapeError(f"neutral: expected shape ({D},), got {n0.shape}")
         S, B = S - n0, B - n0
-    C = None
-    if confidence is not None:
-        C = check_array(confidence, "confidence", ndim=2)
-        if C.shape != (T, D):
-            raise ShapeError(f"confidence: expected shape ({T}, {D}) like frames, got {C.shape}")
-        if np.any(C < 0):
-            raise ParameterError("confidence: weights must be >= 0")
-        if np.all(C == 1):
-            C = None
+    C = _check_confidence(confidence, T, D)
 
     K = B.shape[0]
     used = np.arange(K)
@@ -207,6 +184,39 @@ def decompose(frames, keys, *, solver: str = "nnls", formulation: str = "whole",
                             lam=alpha if shape_space else alpha * _spread(B[used]), upper=upper,
                             shape_space=shape_space, robust=robust)
     return W, row_residuals(S, W, B)
+
+
+def _check_options(solver, formulation, smooth_space, alpha, upper) -> tuple[bool, float]:
+    """Check :func:`decompose`'s options; whether the smoothing is in shape space, and alpha (its default filled)."""
+    if solver not in SOLVERS:
+        raise ParameterError(f"solver: expected one of {SOLVERS}, got {solver!r}")
+    if formulation not in FORMULATIONS:
+        raise ParameterError(f"formulation: expected one of {FORMULATIONS}, got {formulation!r}")
+    if formulation == "convex" and solver in NO_CONVEX:
+        raise ParameterError(f"solver {solver!r} does not support formulation 'convex' "
+                             f"(use one of {tuple(s for s in SOLVERS if s not in NO_CONVEX)})")
+    if smooth_space not in SMOOTH_SPACES:
+        raise ParameterError(f"smooth_space: expected one of {SMOOTH_SPACES}, got {smooth_space!r}")
+    shape_space = smooth_space == "shape" and solver in ("temporal", "temporal-causal")
+    if alpha is None:
+        alpha = (DEFAULT_SHAPE_ALPHA if shape_space else DEFAULT_ALPHA).get(solver, 0.0)
+    if not np.isfinite(alpha) or alpha < 0:
+        raise ParameterError(f"alpha: expected a finite number >= 0, got {alpha!r}")
+    if upper is not None and not upper > 0:
+        raise ParameterError(f"upper: expected a number > 0, got {upper!r}")
+    return shape_space, alpha
+
+
+def _check_confidence(confidence, T: int, D: int) -> np.ndarray | None:
+    """Per-coordinate weights (T, D) >= 0, or None when absent or all 1."""
+    if confidence is None:
+        return None
+    C = check_array(confidence, "confidence", ndim=2)
+    if C.shape != (T, D):
+        raise ShapeError(f"confidence: expected shape ({T}, {D}) like frames, got {C.shape}")
+    if np.any(C < 0):
+        raise ParameterError("confidence: weights must be >= 0")
+    return None if np.all(C == 1) else C
 
 
 def row_residuals(S, W, B, step: int = 8192) -> np.ndarray:
