@@ -219,6 +219,17 @@ def _check_confidence(confidence, T: int, D: int) -> np.ndarray | None:
     return None if np.all(C == 1) else C
 
 
+def _bounds(lower, upper, K: int, sum_to=None) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds broadcast to (K,) float64 copies; checked against each other and *sum_to*."""
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,)).copy()
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,)).copy()
+    if np.any(lo > hi):
+        raise ParameterError("bounds: lower must not exceed upper")
+    if sum_to is not None and not (lo.sum() <= sum_to <= hi.sum()):
+        raise ParameterError(f"sum_to: {sum_to} cannot be reached within the bounds")
+    return lo, hi
+
+
 def row_residuals(S, W, B, step: int = 8192) -> np.ndarray:
     """``‖S_t − W_t B‖`` per frame, a block of frames at a time (no (T, D) temporaries)."""
     out = np.empty(len(S))
@@ -527,12 +538,7 @@ def box_qp(H, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: int = 30, ch
     T, K = Q.shape
     if H.shape != (K, K):
         raise ShapeError(f"H: expected shape ({K}, {K}), got {H.shape}")
-    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,)).copy()
-    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,)).copy()
-    if np.any(lo > hi):
-        raise ParameterError("bounds: lower must not exceed upper")
-    if sum_to is not None and not (lo.sum() <= sum_to <= hi.sum()):
-        raise ParameterError(f"sum_to: {sum_to} cannot be reached within the bounds")
+    lo, hi = _bounds(lower, upper, K, sum_to)
     X = np.empty((T, K))
     if T == 0 or K == 0:
         return X
@@ -697,12 +703,7 @@ def box_qp_weighted(Htri, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: 
     Htri = np.asarray(Htri, dtype=np.float64)
     if Htri.shape != (T, K * (K + 1) // 2):
         raise ShapeError(f"Htri: expected shape ({T}, {K * (K + 1) // 2}), got {Htri.shape}")
-    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (K,)).copy()
-    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (K,)).copy()
-    if np.any(lo > hi):
-        raise ParameterError("bounds: lower must not exceed upper")
-    if sum_to is not None and not (lo.sum() <= sum_to <= hi.sum()):
-        raise ParameterError(f"sum_to: {sum_to} cannot be reached within the bounds")
+    lo, hi = _bounds(lower, upper, K, sum_to)
     X = np.empty((T, K))
     if T == 0 or K == 0:
         return X

@@ -571,12 +571,7 @@ def count_vertices(path: str | os.PathLike) -> int:
         If the file is missing or unreadable.
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"{path}: OBJ file not found") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read OBJ ({exc.strerror})") from exc
+    data = _read_bytes(path)
     return count_vertices_bytes(data)
 
 
@@ -620,14 +615,19 @@ def read_obj(path: str | os.PathLike) -> ObjMesh:
         normal that does not exist (the line number is given).
     """
     path = Path(path)
+    data = _read_bytes(path)
+    mesh = _parse_fast(path, data)
+    return mesh if mesh is not None else _parse_lines(path, data)
+
+
+def _read_bytes(path: Path) -> bytes:
+    """An OBJ file's bytes; a missing or unreadable file is a one-line :class:`InputError`."""
     try:
-        data = path.read_bytes()
+        return path.read_bytes()
     except FileNotFoundError:
         raise InputError(f"{path}: OBJ file not found") from None
     except OSError as exc:
         raise InputError(f"{path}: cannot read OBJ ({exc.strerror})") from exc
-    mesh = _parse_fast(path, data)
-    return mesh if mesh is not None else _parse_lines(path, data)
 
 
 def read_vertices_like(path: str | os.PathLike, like: ObjMesh) -> np.ndarray:
@@ -659,12 +659,7 @@ def read_vertices_like(path: str | os.PathLike, like: ObjMesh) -> np.ndarray:
         As :func:`read_obj`.
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"{path}: OBJ file not found") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read OBJ ({exc.strerror})") from exc
+    data = _read_bytes(path)
     vertices = _vertices_like(data, like)
     if vertices is not None:
         return vertices
