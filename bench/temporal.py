@@ -30,8 +30,11 @@ masks, as ``apply`` does. Reported per smoother × solver:
   blink displacement (peak frame against the frames just before and after)
   onto the truth's, over the vertices the blink moves; mean over events, %.
 
+With ``--ideal PX`` the synthetic takes skip the tracker: their landmarks are the true ones plus PX of white
+noise (as the ICT take's), which tells what the smoothers and solvers change from what the tracker loses.
+
 Run: ``python bench/temporal.py [--frames 600] [--seeds 0,1,2] [--takes synthetic,stressed,ict] [--tracker lk]
-[--fixed-keys] [--all]``.
+[--ideal 0.5] [--fixed-keys] [--all]``.
 """
 
 from __future__ import annotations
@@ -105,19 +108,33 @@ class Take:
 # --------------------------------------------------------------------------- takes
 
 
-def synthetic_take(d: Path, frames: int, seed: int, perturb: dict, tracker: str = "lk") -> Take:
+def synthetic_take(d: Path, frames: int, seed: int, perturb: dict, tracker: str = "lk",
+                   ideal: float | None = None) -> Take:
+    """A ``retarget synth`` take tracked by *tracker*; with *ideal* (px), the true landmarks plus that much noise.
+
+    *ideal* stands in for a tracker without bias, so the smoothers and solvers are measured on what they
+    can change (white measurement noise) apart from what the tracker loses.
+    """
     from retarget_cli.io.atomic import load_npz
     from retarget_cli.synth import EXPRESSIONS, target_region_masks, target_rig, write_take
 
     write_take(d, n_frames=frames, seed=seed, **perturb)
-    run_track(video=d / "face.mp4", init=d / "face_00000.pts", output=d / "raw.npz", filter="none", method=tracker)
-    lm = load_landmarks(d / "raw.npz")
+    truth_points = load_landmarks(d / "truth_landmarks.npz").points.astype(np.float64)
+    if ideal is None:
+        run_track(video=d / "face.mp4", init=d / "face_00000.pts", output=d / "raw.npz", filter="none",
+                  method=tracker)
+        lm = load_landmarks(d / "raw.npz")
+        points, confidence = lm.points.astype(np.float64), lm.confidence.astype(np.float64)
+    else:
+        lm = load_landmarks(d / "truth_landmarks.npz")
+        points = truth_points + np.random.default_rng([seed, 18]).normal(0, ideal, truth_points.shape)
+        confidence = np.ones(points.shape[:2])
     rig = target_rig(seed=seed)
     curves = load_npz(d / "truth.npz")["curves"].astype(np.float64)
-    return Take(lm.points.astype(np.float64), lm.confidence.astype(np.float64), lm.fps, tuple(lm.frame_size),
+    return Take(points, confidence, lm.fps, tuple(lm.frame_size),
                 curves, rig["vertices"].astype(np.float64), rig["deltas"].astype(np.float64),
                 target_region_masks(rig), [EXPRESSIONS.index("blink_l"), EXPRESSIONS.index("blink_r")],
-                np.arange(len(rig["vertices"])), load_landmarks(d / "truth_landmarks.npz").points.astype(np.float64))
+                np.arange(len(rig["vertices"])), truth_points)
 
 
 ICT_SHAPES = {  # region of each expression used by the ICT take
@@ -331,6 +348,9 @@ def main() -> None:
     ap.add_argument("--seeds", default="0", help="comma-separated seeds; figures are means over them")
     ap.add_argument("--takes", default="synthetic,stressed,ict")
     ap.add_argument("--tracker", default="lk", help="retarget track --method of the synthetic takes")
+    ap.add_argument("--ideal", type=float, default=None, metavar="PX",
+                    help="synthetic takes: the true landmarks plus PX of white noise instead of the tracker "
+                         "(separates what the smoothers and solvers change from what the tracker loses)")
     ap.add_argument("--all", action="store_true", help="every smoother x solver (about 4x longer)")
     ap.add_argument("--fixed-keys", action="store_true",
                     help="select the keys once per take on the unfiltered landmarks (isolates smoother and solver "
@@ -347,9 +367,9 @@ def main() -> None:
                 d = tmp / name
                 d.mkdir()
                 if name == "synthetic":
-                    take = synthetic_take(d, args.frames, seed, {}, args.tracker)
+                    take = synthetic_take(d, args.frames, seed, {}, args.tracker, args.ideal)
                 elif name == "stressed":
-                    take = synthetic_take(d, args.frames, seed, STRESS, args.tracker)
+                    take = synthetic_take(d, args.frames, seed, STRESS, args.tracker, args.ideal)
                 elif name == "ict":
                     take = ict_take(d, args.frames, seed)
                 else:
@@ -358,7 +378,8 @@ def main() -> None:
                 for row in bench_take(name, take, d, ALL_ROWS if args.all else ROWS, args.fixed_keys):
                     base = row[3] if base is None else base
                     rows.setdefault(row[:3], []).append((*row[3:], 100 * (row[3] / base - 1)))
-    print(f"temporal quality, {args.frames} frames, seeds {args.seeds}, tracker {args.tracker}"
+    source = f"true landmarks + {args.ideal:g} px noise" if args.ideal is not None else f"tracker {args.tracker}"
+    print(f"temporal quality, {args.frames} frames, seeds {args.seeds}, {source}"
           f"{', keys fixed (selected on the unfiltered landmarks)' if args.fixed_keys else ''} "
           f"({time.perf_counter() - t_all:.0f} s); mesh error in % of the mean true expression displacement; "
           f"jitter = mean vertex acceleration / truth's; blink = mesh blink amplitude, lid blink = of the eyelid "
