@@ -816,9 +816,12 @@ def preview(run_path, output, frames, size, fps, video, yaw, pitch, fov, distanc
 @output_option("report.html", "HTML file (self-contained: images embedded).", required=False)
 @setting("report", "video", type=click.Path(dir_okay=False))
 @setting("report", "worst")
+@setting("report", "truth", type=click.Path(dir_okay=False))
 @_camera_options
-def report(run_path, output, video, worst, yaw, pitch, fov, distance, shading):
+def report(run_path, output, video, worst, truth, yaw, pitch, fov, distance, shading):
     """One self-contained HTML page about a run: summary, tracking, keys, weights, residuals.
+
+    On a synthetic take, also the mesh error and jitter against the truth.
 
     Needs matplotlib: pip install 'retarget[report]'.
     """
@@ -827,7 +830,7 @@ def report(run_path, output, video, worst, yaw, pitch, fov, distance, shading):
 
     run_files = locate_run(run_path, video=video)
     out = write_report(run_files, output, worst=worst, camera=_camera(yaw, pitch, fov, distance), shading=shading,
-                       progress=progress)
+                       progress=progress, truth=truth)
     click.echo(str(out))
 
 

@@ -13,7 +13,10 @@ opened offline. Each section appears only when the run has its data:
 - weight curves per region (``weights.npz``);
 - residual (the eq. 4 fit's error) and jitter per frame, with the worst frames
   listed and thumbnailed;
-- cardinality and objective per frame, when a rig solve stored them.
+- cardinality and objective per frame, when a rig solve stored them;
+- on a synthetic take (``truth.npz`` beside the video, or ``--truth``): mesh
+  error and mesh jitter against the true animation, as a ratio to the truth's,
+  and the same for the tracked and reconstructed landmarks (issue #16).
 
 Plots use matplotlib (optional: ``pip install 'retarget[report]'``) through
 its Agg canvas, without pyplot's global state. Output is deterministic: no
@@ -701,6 +704,93 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     return _section("residuals", "Residual and jitter per frame", body)
 
 
+def find_truth(run: RunFiles, truth=None) -> Path | None:
+    """The synthetic take's ``truth.npz``: *truth* when given, else the one beside the run's video (or ``None``)."""
+    if truth is not None:
+        return Path(truth)
+    if run.video is not None and (Path(run.video).parent / "truth.npz").is_file():
+        return Path(run.video).parent / "truth.npz"
+    return None
+
+
+def _truth_mesh_rows(data: RunData, run: RunFiles, target: np.ndarray, notes: list):
+    """The mesh row of the truth section and the per-frame error (or ``None`` with a note why not)."""
+    from .truth import mesh_against_truth
+
+    if not data.frame_files:
+        notes.append("The run has no frames (apply) to compare with the true animation.")
+        return [], None
+    head = (run.manifests.get("apply", {}).get("settings") or {}).get("head_motion", "none")
+    if head not in (None, "none"):
+        notes.append(f"Meshes not compared: apply put head motion on them (head_motion {head}); the true "
+                     "animation is in the character's own frame.")
+        return [], None
+    n_v = data.mesh().n_vertices
+    if n_v != target.shape[1]:
+        notes.append(f"Meshes not compared: the frames have {n_v} vertices, the true animation {target.shape[1]}.")
+        return [], None
+    T = min(len(data.frame_files), len(target))
+    if T < len(data.frame_files) or T < len(target):
+        notes.append(f"Compared over the first {T} frames (frames {len(data.frame_files)}, truth {len(target)}).")
+    m = mesh_against_truth(np.stack([data.frame_vertices(t) for t in range(T)]), target[:T])
+    row = ("target mesh (apply's frames)", f"{m['error_mean']:.4g} ({m['error_pct']:.1f} % of the mean true "
+           "displacement)", f"{m['jitter']:.3g}", f"{m['jitter_truth']:.3g}", f"{m['jitter_ratio']:.2f}×")
+    return [row], m["error_per_frame"]
+
+
+def _truth_landmark_rows(data: RunData, keys: dict, truth_lm) -> list:
+    """Rows of the tracked (filtered and raw) and the reconstructed landmarks against the true landmarks."""
+    from .truth import points_against_truth
+
+    lm = data.lm
+    T = min(lm.n_frames, truth_lm.n_frames)
+    rows = []
+    for label, P in (("landmarks (track)", lm.points), ("landmarks before the filter (points_raw)", lm.points_raw)):
+        if P is not None and P.shape[1:] == truth_lm.points.shape[1:]:
+            m = points_against_truth(P[:T], truth_lm.points[:T])
+            rows.append((label, f"{m['error_px']:.3g} px", f"{m['jitter']:.3g}", f"{m['jitter_truth']:.3g}",
+                         f"{m['jitter_ratio']:.2f}×"))
+    from .decompose import mean_acceleration
+
+    for name, d in sorted((data.other["meta"].get("diagnostics") or {}).items()):
+        pts = keys.get(name, {}).get("points")
+        if isinstance(d, dict) and "shape_jitter_px" in d and pts:
+            truth_jit = mean_acceleration(truth_lm.stabilized[:T, np.asarray(pts, dtype=np.int64)])
+            if truth_jit > 0:
+                rows.append((f"reconstructed landmarks, {name} (decompose)", "", f"{d['shape_jitter_px']:.3g}",
+                             f"{truth_jit:.3g}", f"{d['shape_jitter_px'] / truth_jit:.2f}×"))
+    return rows
+
+
+def _truth(data: RunData, run: RunFiles, keys: dict, truth: Path | None, target) -> str | None:
+    """Section: the run against a synthetic take's ground truth (``truth.npz``, ``truth_landmarks.npz``).
+
+    *target* is the true animation (T, N, 3) read from *truth*.
+    """
+    from .io.landmarks import load_landmarks
+
+    if truth is None:
+        return None
+    notes: list = []
+    rows, per_frame = _truth_mesh_rows(data, run, target, notes)
+    lm_path = truth.parent / "truth_landmarks.npz"
+    if data.lm is not None and lm_path.is_file():
+        rows += _truth_landmark_rows(data, keys, load_landmarks(lm_path))
+    body = (f'<p>Against the ground truth of the synthetic take: {html.escape(_show(truth))}. Jitter is the mean '
+            "acceleration of the vertices or points (model units or px per frame²).</p>")
+    body += _table(("quantity", "mean error", "jitter", "truth's jitter", "ratio"), rows, num_cols=(2, 3, 4))
+    body += "".join(f'<p class="muted">{html.escape(n)}</p>' for n in notes)
+    if per_frame is not None:
+        fig, ax = _figure(9, 2.4)
+        a = ax[0, 0]
+        a.plot(np.arange(len(per_frame)), per_frame, lw=1, color="#c33")
+        a.set_ylabel("mean vertex error")
+        a.set_xlabel("frame")
+        body += _figure_html(_png_fig(fig), "Mean vertex distance of apply's frames from the true animation, "
+                                            "per frame.")
+    return _section("truth", "Against the truth", body)
+
+
 def _find_rig_metrics(data: RunData, run: RunFiles) -> dict:
     """Per-frame ``cardinality`` / ``objective`` arrays found in the run: ``{metric: {label: (T,)}}``."""
     from .io.atomic import load_npz
@@ -772,10 +862,12 @@ SECTION_TITLES = {
     "summary": "Run summary", "tracking": "Tracking confidence", "keys": "Key shapes",
     "curve": "Reconstruction error against k", "weights": "Weight curves",
     "residuals": "Residual and jitter per frame", "rig": "Cardinality and objective",
+    "truth": "Against the truth",
 }
 
 
-def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "gouraud", progress=None) -> str:
+def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "gouraud", progress=None,
+                 truth=None) -> str:
     """The report's HTML text (deterministic for the same run).
 
     Parameters
@@ -787,10 +879,15 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
     shading : {"gouraud", "flat"}
     progress : callable, optional
         ``progress(length, label)`` context manager.
+    truth : path-like, optional
+        A synthetic take's ``truth.npz`` (default: the one beside the run's video, when there is one).
     """
     from .render import Camera, MeshRenderer
+    from .truth import load_truth_animation
 
     _matplotlib()  # fail early, before any work, when the extra is missing
+    truth = find_truth(run, truth)
+    target = None if truth is None else load_truth_animation(truth)  # a bad truth file fails before the work
     camera = camera or Camera()
     data = RunData(run)
     keys = _read_keys_lenient(run.keys)
@@ -814,7 +911,7 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
                                          or np.shape(data.extras[n]["jitter"]) != (T,)
                                          else np.asarray(data.extras[n]["jitter"], dtype=np.float64)
                                          for n, (W, _) in data.regions.items()], axis=0), worst))
-    steps = ["frames", "summary", "tracking", "keys", "curve", "weights", "residuals", "rig"]
+    steps = ["frames", "summary", "tracking", "keys", "curve", "weights", "residuals", "rig", "truth"]
     bar_cm = progress(len(steps), "report") if progress else nullcontext(None)
     sections = []
     with bar_cm as bar:
@@ -832,7 +929,8 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
                    lambda: _curve(run, keys),
                    lambda: _weights(data),
                    lambda: _residuals(data, keys, frames, worst, mesh_renderer),
-                   lambda: _rig(data, run)):
+                   lambda: _rig(data, run),
+                   lambda: _truth(data, run, keys, truth, target)):
             s = fn()
             if s:
                 sections.append(s)
@@ -853,7 +951,7 @@ def write_report(run: RunFiles, output: str | os.PathLike, **kw) -> Path:
     """Write :func:`build_report`'s HTML to *output* atomically; returns *output*."""
     from .io.atomic import check_not_input, write_text
 
-    check_not_input(output, [run.landmarks, run.weights, run.keys, run.video])
+    check_not_input(output, [run.landmarks, run.weights, run.keys, run.video, kw.get("truth")])
     text = build_report(run, **kw)
     write_text(output, text)
     log.info("wrote %s (%.1f MB)", output, len(text) / 1e6)

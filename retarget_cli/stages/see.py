@@ -49,6 +49,9 @@ REPORT_PARAMS = [
     Param("video", "input", str, None, "Source video (default: the one the run's config or track manifest names).",
           nullable=True),
     Param("worst", "setting", int, 6, "Worst frames listed and thumbnailed.", min=0, max=50),
+    Param("truth", "input", str, None,
+          "Ground truth of a synthetic take, for mesh error and jitter against it (retarget synth's truth.npz; "
+          "default: the truth.npz beside the video, when there is one).", nullable=True),
     *CAMERA_PARAMS,
 ]
 

@@ -187,7 +187,9 @@ def test_report_is_self_contained_valid_html_with_one_figure_per_section(ran_tak
     c = check_html(text)
     # every section with data; no E-vs-k curve in this run, so it is omitted; decompose's
     # per-frame cardinality (weights.npz <region>_cardinality) fills the cardinality section
-    assert c.sections == {"summary": 1, "tracking": 1, "keys": 1, "weights": 1, "residuals": 1, "rig": 1}
+    # the take is synthetic (truth.npz beside the video): the truth section too
+    assert c.sections == {"summary": 1, "tracking": 1, "keys": 1, "weights": 1, "residuals": 1, "rig": 1,
+                          "truth": 1}
     assert "Worst frames" in text and "source frame" in text and "target frame" in text
     # deterministic: same run, same bytes
     out2 = tmp_path / "again.html"
@@ -210,6 +212,7 @@ def test_report_adds_curve_and_rig_sections_when_their_data_exists(ran_take, tmp
     result = CliRunner().invoke(main, ["report", str(run), "-o", str(out)])
     assert result.exit_code == 0, result.output
     c = check_html(out.read_text(encoding="utf-8"))
+    # the copied run does not find its video, so neither the truth beside it
     assert c.sections == {"summary": 1, "tracking": 1, "keys": 1, "curve": 1, "weights": 1, "residuals": 1,
                           "rig": 1}
 
@@ -226,6 +229,54 @@ def test_report_of_weights_alone_omits_what_is_missing(ran_take, tmp_path):
     # no manifests (so no timings figure), no landmarks, no keys.json (keys come from weights.npz), no frames
     assert c.sections == {"summary": 0, "keys": 1, "weights": 1, "residuals": 1, "rig": 1}
     assert "No stage manifests" in text
+
+
+def _truth_row(text, label):
+    """The cells of the truth section's row *label* (HTML tags stripped)."""
+    import re
+
+    sec = text[text.index('id="truth"'):]
+    row = re.search(r"<tr><td>" + re.escape(label) + r"</td>(.*?)</tr>", sec).group(1)
+    return [re.sub(r"<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", row)]
+
+
+def test_report_measures_the_run_against_the_synthetic_truth(ran_take, tmp_path):
+    from retarget_cli.io.atomic import load_npz, savez
+    from retarget_cli.io.obj import read_obj
+
+    out = tmp_path / "report.html"
+    assert CliRunner().invoke(main, ["report", str(ran_take / "config.yaml"), "-o", str(out)]).exit_code == 0
+    cells = _truth_row(out.read_text(encoding="utf-8"), "target mesh (apply&#x27;s frames)")
+    # independently: the frames against truth.npz's target
+    got = np.stack([read_obj(f).vertices for f in sorted((ran_take / "out" / "frames").glob("frame_*.obj"))])
+    truth = load_npz(ran_take / "truth.npz")["target"].astype(np.float64)
+    err = np.linalg.norm(got - truth, axis=2).mean()
+    pct = 100 * err / np.linalg.norm(truth - truth[:1], axis=2).mean()
+    assert cells[0] == f"{err:.4g} ({pct:.1f} % of the mean true displacement)"
+    assert 0 < pct < 50  # the pipeline follows the synthetic face
+    ratio = float(cells[3].rstrip("×"))
+    assert 0.3 < ratio < 3.0
+    # a truth equal to the run's own frames: no error, jitter ratio 1
+    same = tmp_path / "same.npz"
+    savez(same, {"target": got.astype(np.float32)})
+    out2 = tmp_path / "same.html"
+    assert CliRunner().invoke(main, ["report", str(ran_take / "config.yaml"), "-o", str(out2),
+                                     "--truth", str(same)]).exit_code == 0
+    cells = _truth_row(out2.read_text(encoding="utf-8"), "target mesh (apply&#x27;s frames)")
+    assert float(cells[0].split()[0]) < 1e-6 and "(0.0 %" in cells[0] and cells[3] == "1.00×"
+
+
+def test_report_refuses_a_truth_file_without_the_true_animation(ran_take, tmp_path):
+    from retarget_cli.io.atomic import savez
+
+    bad = tmp_path / "truth.npz"
+    savez(bad, {"curves": np.zeros((60, 8))})
+    out = tmp_path / "r.html"
+    result = CliRunner().invoke(main, ["report", str(ran_take / "config.yaml"), "-o", str(out), "--truth", str(bad)])
+    assert result.exit_code == 1
+    msg = result.stderr.strip()
+    assert "\n" not in msg and str(bad) in msg and "'target'" in msg
+    assert not out.exists()
 
 
 def test_report_without_matplotlib_says_how_to_install_it(ran_take, tmp_path, monkeypatch):
