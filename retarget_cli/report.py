@@ -704,13 +704,25 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     return _section("residuals", "Residual and jitter per frame", body)
 
 
-def find_truth(run: RunFiles, truth=None) -> Path | None:
-    """The synthetic take's ``truth.npz``: *truth* when given, else the one beside the run's video (or ``None``)."""
+def find_truth(run: RunFiles, truth=None) -> tuple[Path | None, np.ndarray | None]:
+    """The synthetic take's ``truth.npz`` and its true animation (T, N, 3), or ``(None, None)``.
+
+    *truth* when given (a file without the true animation is an :class:`InputError`), else the
+    ``truth.npz`` beside the run's video when it holds one (another file of that name is passed
+    over with a warning).
+    """
+    from .truth import load_truth_animation
+
     if truth is not None:
-        return Path(truth)
-    if run.video is not None and (Path(run.video).parent / "truth.npz").is_file():
-        return Path(run.video).parent / "truth.npz"
-    return None
+        return Path(truth), load_truth_animation(truth)
+    beside = None if run.video is None else Path(run.video).parent / "truth.npz"
+    if beside is None or not beside.is_file():
+        return None, None
+    try:
+        return beside, load_truth_animation(beside)
+    except RetargetError as e:
+        log.warning("no comparison with the truth: %s", e)
+        return None, None
 
 
 def _truth_mesh_rows(data: RunData, run: RunFiles, target: np.ndarray, notes: list):
@@ -883,11 +895,9 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
         A synthetic take's ``truth.npz`` (default: the one beside the run's video, when there is one).
     """
     from .render import Camera, MeshRenderer
-    from .truth import load_truth_animation
 
     _matplotlib()  # fail early, before any work, when the extra is missing
-    truth = find_truth(run, truth)
-    target = None if truth is None else load_truth_animation(truth)  # a bad truth file fails before the work
+    truth, target = find_truth(run, truth)  # a bad --truth file fails before the work
     camera = camera or Camera()
     data = RunData(run)
     keys = _read_keys_lenient(run.keys)

@@ -46,3 +46,21 @@ def test_load_truth_needs_the_target_array(tmp_path):
         load_truth_animation(p)
     savez(p, {"target": np.ones((3, 5, 3), np.float32)})
     assert load_truth_animation(p).dtype == np.float64
+
+
+def test_report_passes_over_a_truth_npz_beside_the_video_that_is_not_a_synthetic_truth(tmp_path, caplog):
+    from retarget_cli.io.atomic import savez
+    from retarget_cli.io.runfiles import RunFiles
+    from retarget_cli.report import find_truth
+
+    run = RunFiles(root=tmp_path / "out", video=tmp_path / "face.mp4")
+    assert find_truth(run) == (None, None)                      # nothing beside the video
+    savez(tmp_path / "truth.npz", {"curves": np.zeros((4, 2))})  # the user's own file of that name
+    with caplog.at_level("WARNING"):
+        assert find_truth(run) == (None, None)
+    assert "no 'target' array" in caplog.text
+    with pytest.raises(InputError, match="no 'target' array"):  # named explicitly: an error
+        find_truth(run, tmp_path / "truth.npz")
+    savez(tmp_path / "truth.npz", {"target": np.zeros((4, 5, 3))})
+    path, target = find_truth(run)
+    assert path == tmp_path / "truth.npz" and target.shape == (4, 5, 3)
