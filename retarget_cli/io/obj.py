@@ -415,6 +415,18 @@ def _line_table(data: bytes):
     return buf, starts, ends, c0, is_v, is_vt, is_vn, is_el
 
 
+def _v_block(vblock: bytes, n: int) -> np.ndarray | None:
+    """The (n, 3) float64 vertices of a block of whitelisted ``v x y z`` lines, or ``None`` when it is not exactly that."""
+    try:
+        vertices = np.loadtxt(io.BytesIO(vblock), dtype=np.float64, delimiter=" ", usecols=(1, 2, 3),
+                              comments=None, ndmin=2)
+    except ValueError:
+        return None
+    if vertices.shape != (n, 3) or not np.all(np.isfinite(vertices)):
+        return None
+    return vertices
+
+
 def _fast_vertices(data: bytes, buf, starts, ends, is_v):
     """The ``v`` lines, each ``v x y z`` + LF or CRLF, converted as the reference parser does; or None.
 
@@ -436,14 +448,8 @@ def _fast_vertices(data: bytes, buf, starts, ends, is_v):
     # in one pass. Anything it rejects goes to the reference parser.
     if vblock.count(b"v") != nv or vblock.translate(None, b"0123456789+-.eEv \r\n"):
         return None
-    try:
-        vertices = np.loadtxt(io.BytesIO(vblock), dtype=np.float64, delimiter=" ", usecols=(1, 2, 3),
-                              comments=None, ndmin=2)
-    except ValueError:
-        return None
-    if vertices.shape != (nv, 3) or not np.all(np.isfinite(vertices)):
-        return None
-    return vertices, runs_l, spans, n_cr
+    vertices = _v_block(vblock, nv)
+    return None if vertices is None else (vertices, runs_l, spans, n_cr)
 
 
 def _runs_and_segments(data: bytes, runs_l, spans):
@@ -680,14 +686,7 @@ def _vertices_like(data: bytes, like: ObjMesh) -> np.ndarray | None:
             or vblock.count(b"v") != n or not vblock.startswith(b"v ") or vblock.count(b"\nv ") != n - 1
             or vblock.translate(None, b"0123456789+-.eEv \n")):
         return None  # every line "v" and three numbers (the byte whitelist of _parse_fast)
-    try:
-        vertices = np.loadtxt(io.BytesIO(vblock), dtype=np.float64, delimiter=" ", usecols=(1, 2, 3),
-                              comments=None, ndmin=2)
-    except ValueError:
-        return None
-    if vertices.shape != (n, 3) or not np.all(np.isfinite(vertices)):
-        return None
-    return vertices
+    return _v_block(vblock, n)
 
 
 def _parse_lines(path: Path, data: bytes) -> ObjMesh:
