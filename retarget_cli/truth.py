@@ -37,7 +37,11 @@ def load_truth_animation(path: str | os.PathLike) -> np.ndarray:
     target = np.asarray(data["target"])
     if target.ndim != 3 or target.shape[2] != 3 or len(target) < 1:
         raise InputError(f"{path}: 'target' has shape {target.shape}; expected (frames, vertices, 3)")
-    return target.astype(np.float64)
+    target = target.astype(np.float64)
+    bad = ~np.isfinite(target).all(axis=(1, 2))
+    if bad.any():
+        raise InputError(f"{path}: 'target' frame {int(np.flatnonzero(bad)[0])} is not finite (NaN or inf)")
+    return target
 
 
 def mesh_against_truth(got, truth) -> dict:

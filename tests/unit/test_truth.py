@@ -44,6 +44,11 @@ def test_load_truth_needs_the_target_array(tmp_path):
     savez(p, {"curves": np.zeros((3, 2))})
     with pytest.raises(InputError, match="no 'target' array"):
         load_truth_animation(p)
+    nan = np.ones((3, 5, 3))
+    nan[2, 1, 0] = np.nan
+    savez(p, {"target": nan})
+    with pytest.raises(InputError, match="'target' frame 2 is not finite"):
+        load_truth_animation(p)
     savez(p, {"target": np.ones((3, 5, 3), np.float32)})
     assert load_truth_animation(p).dtype == np.float64
 
