@@ -1,6 +1,6 @@
 """Benchmark: decomposing a long take into key-shape weights.
 
-Compares ``retarget``'s batched NNLS (:func:`retarget_cli.decompose.nnls_batched`),
+Compares ``retarget``'s batched NNLS (:func:`retarget_cli.methods.decomposition.nnls_batched`),
 both its numpy iteration and its compiled kernel (each forced), with the peer,
 a per-frame loop over ``scipy.optimize.nnls``, on the same data in the same
 run, reports the one-off cost of loading the kernel in a fresh process, and checks that both reach the same objective (relative gap
@@ -49,7 +49,7 @@ import numpy as np
 
 
 def take(T: int, seed: int = 0, noise: float = 0.5) -> np.ndarray:
-    from retarget_cli import synth
+    from retarget_cli.synth import take as synth
 
     curves = synth.expression_curves(T, fps=30.0, seed=seed)
     norm = synth.source_neutral()[None] + np.einsum("te,eld->tld", curves, synth.source_deltas())
@@ -65,10 +65,10 @@ def kernel_load() -> float:
     import sys
 
     code = ("import time, numpy as np; t = time.perf_counter(); "
-            "from retarget_cli.decompose import nnls_batched; "
+            "from retarget_cli.methods.decomposition import nnls_batched; "
             "nnls_batched(np.ones((3, 4)), np.eye(4)[:2], compiled=True); print(time.perf_counter() - t)")
     base = ("import time, numpy as np; t = time.perf_counter(); "
-            "from retarget_cli.decompose import nnls_batched; "
+            "from retarget_cli.methods.decomposition import nnls_batched; "
             "nnls_batched(np.ones((3, 4)), np.eye(4)[:2], compiled=False); print(time.perf_counter() - t)")
     run = lambda c: float(subprocess.run([sys.executable, "-c", c], capture_output=True, text=True,  # noqa: E731
                                          check=True).stdout)
@@ -101,7 +101,7 @@ def accuracy(settings) -> None:
 
     from click.testing import CliRunner
 
-    from retarget_cli.cli import main as cli
+    from retarget_cli.cli.commands import main as cli
     from retarget_cli.io.atomic import load_npz
     from retarget_cli.io.obj import read_obj
 
@@ -145,8 +145,8 @@ def weighted_row(T: int, repeat: int, K: int = 22) -> float:
     """In-process weighted NNLS against the scipy loop; returns the worst objective gap."""
     from scipy.optimize import nnls
 
-    from retarget_cli.decompose import _KERNEL_MIN_WORK_WEIGHTED, nnls_batched
-    from retarget_cli.select import select_keys
+    from retarget_cli.methods.decomposition import _KERNEL_MIN_WORK_WEIGHTED, nnls_batched
+    from retarget_cli.methods.selection import select_keys
 
     X = take(T)
     B = X[select_keys(X, K, include=(0,))]
@@ -195,7 +195,7 @@ def process_row(T: int, repeat: int, K: int = 22) -> float:
 
     from retarget_cli.io.landmarks import Landmarks, save_landmarks
     from retarget_cli.io.stagefiles import load_weights, write_keys
-    from retarget_cli.select import select_keys
+    from retarget_cli.methods.selection import select_keys
 
     X = take(T)
     L = X.shape[1] // 2
@@ -232,8 +232,8 @@ def process_row(T: int, repeat: int, K: int = 22) -> float:
 def main() -> None:
     from scipy.optimize import nnls
 
-    from retarget_cli.decompose import _KERNEL_MIN_WORK, cardinality, decompose, jitter, nnls_batched
-    from retarget_cli.select import select_keys
+    from retarget_cli.methods.decomposition import _KERNEL_MIN_WORK, cardinality, decompose, jitter, nnls_batched
+    from retarget_cli.methods.selection import select_keys
 
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--frames", type=int, default=10_000)

@@ -23,9 +23,9 @@ import time
 
 import numpy as np
 
-from retarget_cli.edit import DEFAULT_ALPHA, DEFAULT_MU, DirectManipulation, small_blas
-from retarget_cli.rig import BlendshapeRig
-from retarget_cli.synth import overlapping_rig
+from retarget_cli.methods.editing import DEFAULT_ALPHA, DEFAULT_MU, DirectManipulation, small_blas
+from retarget_cli.methods.rig import BlendshapeRig
+from retarget_cli.synth.take import overlapping_rig
 
 
 def timed(fn, repeat=1):

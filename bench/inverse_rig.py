@@ -33,7 +33,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from retarget_cli.inverse_rig import SOLVERS, QuadraticRig, solve  # noqa: E402
+from retarget_cli.methods.inverse_rig import SOLVERS, QuadraticRig, solve  # noqa: E402
 
 
 def _bump(x, y, cx, cy, rx, ry):

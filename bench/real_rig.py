@@ -16,10 +16,10 @@ in :data:`VARIANTS`):
   ``configs/real.yaml``) with this clip's video, annotation and tracker; skipped with a note while
   that config or its curves output does not exist;
 - ``absolute``: today's path: ``select`` one region ``face`` (k = ``--keys``), the absolute
-  ``auto-pose`` of every key frame (``retarget_cli.edit.auto_pose``, as ``retarget auto-pose`` does),
+  ``auto-pose`` of every key frame (``retarget_cli.methods.editing.auto_pose``, as ``retarget auto-pose`` does),
   ``decompose`` (the sample config's solver sparse, formulation delta, alpha 0.05), then
   ``curves = Σ_k w_k · sliders_k`` (what ``apply`` makes of one region);
-- ``direct``: ``retarget_cli.edit.auto_pose`` on every frame, no keys.
+- ``direct``: ``retarget_cli.methods.editing.auto_pose`` on every frame, no keys.
 
 Row ``tracker`` is the ceiling: the same measures on our tracked 68 points against MediaPipe.
 
@@ -59,7 +59,7 @@ from realrig.measures import MEASURES, MEDIAPIPE, MULTIPIE68, face_measures, fro
 DATA = ROOT.parent / "shared" / "realdata"
 BUILD = ROOT / "build" / "real_rig"
 RIG_YAML = ROOT / "sample_data" / "ict" / "rig.yaml"
-RETARGET = [sys.executable, "-m", "retarget_cli.cli"]
+RETARGET = [sys.executable, "-m", "retarget_cli.cli.commands"]
 #: Settings of the documented path's decompose (configs/sample.yaml).
 DECOMPOSE_ARGS = ["--solver", "sparse", "--formulation", "delta", "--alpha", "0.05", "--neutral-frame", "0"]
 TARGETS = {"mouth": 0.8, "eye_l": 0.7, "eye_r": 0.7}
@@ -112,7 +112,6 @@ def load_rig(rig_tar: Path) -> RigContext:
 
     import yaml
 
-    from retarget_cli.rig import BlendshapeRig
 
     d = BUILD / "ict-facekit"
     if not (d / "rig.yaml").is_file():
@@ -121,7 +120,9 @@ def load_rig(rig_tar: Path) -> RigContext:
             tar.extractall(BUILD, filter="data")
         shutil.copy(RIG_YAML, d / "rig.yaml")
     t = time.perf_counter()
-    rig = BlendshapeRig.load(d / "rig.yaml")
+    from retarget_cli.io.rig import load_rig as load_blendshape_rig
+
+    rig = load_blendshape_rig(d / "rig.yaml")
     log(f"rig: {rig.n_vertices} vertices, {rig.n_sliders} sliders, loaded in {time.perf_counter() - t:.1f} s")
     lm = np.asarray(yaml.safe_load((d / "rig.yaml").read_text())["landmarks"], dtype=np.int64)
     return RigContext(rig, lm)
@@ -132,9 +133,9 @@ def load_rig(rig_tar: Path) -> RigContext:
 
 def variant_absolute(landmarks: Path, ctx: RigContext, work: Path, *, keys: int = 16, **_) -> np.ndarray:
     """Today's documented path: select (face, k keys), absolute auto-pose, decompose, Σ w_k sliders_k."""
-    from retarget_cli.edit import auto_pose
     from retarget_cli.io.landmarks import load_landmarks
     from retarget_cli.io.stagefiles import load_weights, read_keys
+    from retarget_cli.methods.editing import auto_pose
 
     retarget("select", landmarks, "-o", work / "keys.json", "--region", "face=all", "-k", keys)
     lm = load_landmarks(landmarks)
@@ -148,9 +149,9 @@ def variant_absolute(landmarks: Path, ctx: RigContext, work: Path, *, keys: int 
 
 
 def variant_direct(landmarks: Path, ctx: RigContext, work: Path, **_) -> np.ndarray:
-    """``retarget_cli.edit.auto_pose`` on every frame from the neutral (no keys)."""
-    from retarget_cli.edit import auto_pose
+    """``retarget_cli.methods.editing.auto_pose`` on every frame from the neutral (no keys)."""
     from retarget_cli.io.landmarks import load_landmarks
+    from retarget_cli.methods.editing import auto_pose
 
     lm = load_landmarks(landmarks)
     return np.stack([auto_pose(ctx.rig, ctx.vertices, lm.stabilized[t].astype(np.float64),
@@ -160,9 +161,9 @@ def variant_direct(landmarks: Path, ctx: RigContext, work: Path, **_) -> np.ndar
 def variant_delta_direct(landmarks: Path, ctx: RigContext, work: Path, **_) -> np.ndarray:
     """The delta fit of ``auto-pose`` (same defaults) on every frame, no keys."""
     from retarget_cli.io.landmarks import load_landmarks
-    from retarget_cli.io.stagefiles import read_rig
-    from retarget_cli.regions import REGION_PRESETS_68
-    from retarget_cli.rigpose import delta_pose
+    from retarget_cli.io.rig import read_rig
+    from retarget_cli.methods.regions import REGION_PRESETS_68
+    from retarget_cli.methods.rigpose import delta_pose
     from retarget_cli.stages.auto_pose import CONTOUR_68, DEFAULT_EXCLUDE, RIGID_68, excluded_sliders
 
     lm = load_landmarks(landmarks)
@@ -389,7 +390,7 @@ def write_pngs(results: list, ctx: RigContext, outdir: Path, data: Path, size: i
     """Per clip: frame 0, the widest mouth, the most closed eyes (MediaPipe): video frame | character per variant."""
     import cv2
 
-    from retarget_cli.render import Camera, MeshRenderer, View
+    from retarget_cli.methods.render import Camera, MeshRenderer, View
 
     rig = ctx.rig
     faces = rig.template.faces()

@@ -17,10 +17,10 @@ load average at the start is printed too.
 
 A second table renders the ICT FaceKit (26,719 vertices: face, eyes, teeth,
 gums, inner mouth shells) posed by its rig at 512x512: ``retarget render``'s
-:func:`~retarget_cli.preview.write_render` end to end on an OBJ sequence
+:func:`~retarget_cli.see.preview.write_render` end to end on an OBJ sequence
 (each frame read once, the topology of the first reused, mp4 encoding
 included), the renderer alone, ``retarget preview``'s
-:func:`~retarget_cli.preview.write_preview` on the same frames as a run folder
+:func:`~retarget_cli.see.preview.write_preview` on the same frames as a run folder
 (landmarks, weights, ``frames/``; panel height = the size), and the painter
 peer on the same frames. The
 rig comes from ``--ict-dir`` (an unpacked ICT rig with rig.yaml) or the
@@ -38,7 +38,8 @@ import time
 import cv2
 import numpy as np
 
-from retarget_cli.render import Camera, MeshRenderer, face_normals, rasterize, shade_intensity
+from retarget_cli.io.rig import load_rig
+from retarget_cli.methods.render import Camera, MeshRenderer, face_normals, rasterize, shade_intensity
 
 
 def bumpy_sphere(n_vertices: int):
@@ -132,8 +133,7 @@ def ict_rows(args) -> None:
     from pathlib import Path
 
     from retarget_cli.io.obj import write_obj
-    from retarget_cli.preview import write_render
-    from retarget_cli.rig import BlendshapeRig
+    from retarget_cli.see.preview import write_render
 
     sample = Path(__file__).resolve().parents[1] / "sample_data" / "ict"
     with tempfile.TemporaryDirectory() as tmp:
@@ -148,7 +148,7 @@ def ict_rows(args) -> None:
         else:
             print("ICT rows skipped: no --ict-dir and no sample_data/ict/ict-facekit-rig.tar.xz")
             return
-        rig = BlendshapeRig.load(rig_yaml)
+        rig = load_rig(rig_yaml)
         rng = np.random.default_rng(0)
         T = args.ict_frames
         Wt = rng.uniform(0, 1, (T, rig.n_sliders)) * (rng.uniform(size=(T, rig.n_sliders)) < 0.15)
@@ -168,9 +168,9 @@ def ict_rows(args) -> None:
             write_render(seq, tmp / "out.mp4", size=size, camera=cam)
         # preview: the same frames as a run folder (landmarks, weights over the rig's sliders as keys, frames/)
         from retarget_cli.io.landmarks import Landmarks, save_landmarks
-        from retarget_cli.io.runfiles import RunFiles
         from retarget_cli.io.stagefiles import save_weights
-        from retarget_cli.preview import write_preview
+        from retarget_cli.run.runfiles import RunFiles
+        from retarget_cli.see.preview import write_preview
 
         run = tmp / "run"
         run.mkdir()
@@ -185,7 +185,7 @@ def ict_rows(args) -> None:
         with Timer() as t_preview:
             write_preview(files, tmp / "preview.mp4", height=args.size, camera=cam)
         if args.keep_preview:
-            from retarget_cli.preview import RunData, preview_frames
+            from retarget_cli.see.preview import RunData, preview_frames
 
             img = next(preview_frames(RunData(files), range(T - 1, T), height=args.size, camera=cam))
             cv2.imwrite(str(args.keep_preview), img)

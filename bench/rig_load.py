@@ -39,8 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from retarget_cli.io.obj import _parse_lines, read_obj, write_obj
-from retarget_cli.io.stagefiles import read_rig
-from retarget_cli.rig import BlendshapeRig
+from retarget_cli.io.rig import load_rig, read_rig
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "ict"
 RING = 8
@@ -110,14 +109,14 @@ def main() -> None:
 
         # ------------------------------------------------------------ rig load
         t = {}
-        t["cold (no cache)"] = best(lambda: BlendshapeRig.load(rig_yaml), R)
+        t["cold (no cache)"] = best(lambda: load_rig(rig_yaml), R)
         caches = iter(range(R))
-        t["cold + cache write"] = best(lambda: BlendshapeRig.load(rig_yaml, cache_dir=tmp / f"c{next(caches)}"), R)
-        t["cached"] = best(lambda: BlendshapeRig.load(rig_yaml, cache_dir=tmp / "c0"), R)
+        t["cold + cache write"] = best(lambda: load_rig(rig_yaml, cache_dir=tmp / f"c{next(caches)}"), R)
+        t["cached"] = best(lambda: load_rig(rig_yaml, cache_dir=tmp / "c0"), R)
         t["sha256 of the files"] = best(
             lambda: [hashlib.file_digest(open(f, "rb"), "sha256").hexdigest() for f in [rig_yaml, *files]], R)
-        cmd = [sys.executable, "-c", "import sys; from retarget_cli.rig import BlendshapeRig; "
-               "BlendshapeRig.load(sys.argv[1], cache_dir=sys.argv[2])", str(rig_yaml), str(tmp / "c0")]
+        cmd = [sys.executable, "-c", "import sys; from retarget_cli.methods.rig import BlendshapeRig; "
+               "load_rig(sys.argv[1], cache_dir=sys.argv[2])", str(rig_yaml), str(tmp / "c0")]
         t["cached, whole process"] = best(lambda: subprocess.run(cmd, check=True), R)
         peers = {
             "line reader (before)": lambda: [_parse_lines(f, f.read_bytes()) for f in files],
@@ -126,7 +125,7 @@ def main() -> None:
         }
         for name, fn in peers.items():
             t[name] = best(fn, 1 if "trimesh" in name or "loadtxt" in name else min(R, 2))
-        cold, hit = BlendshapeRig.load(rig_yaml), BlendshapeRig.load(rig_yaml, cache_dir=tmp / "c0")
+        cold, hit = load_rig(rig_yaml), load_rig(rig_yaml, cache_dir=tmp / "c0")
         dense = [r.D.toarray() if r.sparse else r.D for r in (cold, hit)]
         same = dense[0].tobytes() == dense[1].tobytes() and cold.f0.tobytes() == hit.f0.tobytes()
         print(f"ICT rig: {len(files)} OBJs, {cold.n_vertices} vertices, {cold.n_sliders} shapes, {mb:.1f} MB; "

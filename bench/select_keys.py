@@ -19,9 +19,9 @@ import time
 
 import numpy as np
 
-from retarget_cli import synth
-from retarget_cli.decompose import reconstruction_error
-from retarget_cli.select import evaluation_curve, greedy
+from retarget_cli.methods.decomposition import reconstruction_error
+from retarget_cli.methods.selection import evaluation_curve, greedy
+from retarget_cli.synth import take as synth
 
 
 def take(n_frames: int, noise: float, seed: int = 0) -> np.ndarray:

@@ -48,13 +48,13 @@ from pathlib import Path
 
 import numpy as np
 
-from retarget_cli.apply import blend_keys, blend_regions
-from retarget_cli.decompose import mean_acceleration
 from retarget_cli.io.landmarks import Landmarks, load_landmarks, save_landmarks
 from retarget_cli.io.stagefiles import load_weights
+from retarget_cli.methods.blending import blend_keys, blend_regions
+from retarget_cli.methods.decomposition import mean_acceleration
+from retarget_cli.methods.tracking.head import estimate_head
 from retarget_cli.stages import REGION_PRESETS_68, run_decompose, run_select, run_track
-from retarget_cli.stages.filtering import FILTER_DEFAULTS, apply_filter
-from retarget_cli.track.head import estimate_head
+from retarget_cli.stages._landmark_filter import FILTER_DEFAULTS, apply_filter
 
 REPO = Path(__file__).resolve().parents[1]
 #: Perturbations of the stressed take (as bench/track.py).
@@ -116,7 +116,7 @@ def synthetic_take(d: Path, frames: int, seed: int, perturb: dict, tracker: str 
     can change (white measurement noise) apart from what the tracker loses.
     """
     from retarget_cli.io.atomic import load_npz
-    from retarget_cli.synth import EXPRESSIONS, target_region_masks, target_rig, write_take
+    from retarget_cli.synth.take import EXPRESSIONS, target_region_masks, target_rig, write_take
 
     write_take(d, n_frames=frames, seed=seed, **perturb)
     truth_points = load_landmarks(d / "truth_landmarks.npz").points.astype(np.float64)

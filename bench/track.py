@@ -41,10 +41,10 @@ from retarget_cli.errors import ConfigError
 from retarget_cli.io.atomic import load_npz
 from retarget_cli.io.obj import read_obj
 from retarget_cli.io.video import VideoReader
-from retarget_cli.pipeline import run_pipeline, stage_params
-from retarget_cli.synth import write_take
+from retarget_cli.run.pipeline import run_pipeline, stage_params
+from retarget_cli.synth.take import write_take
 
-#: Perturbations of the stressed take (keyword options of retarget_cli.synth.write_take).
+#: Perturbations of the stressed take (keyword options of retarget_cli.synth.take.write_take).
 STRESS = dict(noise=5.0, blur=1.0, jpeg=40, light=2.5, speed=2.5)
 #: The default take with a painted dot (radius 1.6 px) on every landmark, for the markers tracker.
 DOTS = dict(dots=1.6)
@@ -57,7 +57,7 @@ def _annotated(truth, n):
 
 
 def methods():
-    from retarget_cli.track.lk import track_lk
+    from retarget_cli.methods.tracking.lk import track_lk
 
     out = {
         "lk (1 annotated frame)": lambda fr, tr: track_lk(fr, _annotated(tr, 1)),
@@ -65,7 +65,7 @@ def methods():
         "lk downscale 0.5": lambda fr, tr: track_lk(fr, _annotated(tr, 1), downscale=0.5, window=11),
     }
     try:  # the optional extra 'detect'
-        from retarget_cli.track.detect import Detector, track_detect
+        from retarget_cli.methods.tracking.detect import Detector, track_detect
 
         det = Detector()
         out["detect (no annotation; fused with flow: the default)"] = lambda fr, tr: track_detect(fr, detector=det)
@@ -73,7 +73,7 @@ def methods():
     except ConfigError as exc:
         print(f"detect row skipped: {exc}", flush=True)
     try:
-        from retarget_cli.track.eigenpoints import track_eigenpoints
+        from retarget_cli.methods.tracking.eigenpoints import track_eigenpoints
     except ImportError:
         return out
     out["eigenpoints (5 annotated frames)"] = lambda fr, tr: track_eigenpoints(fr, _annotated(tr, 5))
@@ -86,8 +86,8 @@ def _facemark(fr, tr):
 
     Training is inside the timed call, as eigenpoints' is; its share is logged.
     """
-    from retarget_cli.io.facemark import load_facemark, save_lbf_model
-    from retarget_cli.track.facemark import track_facemark, train_lbf
+    from retarget_cli.io.facemark_model import load_facemark, save_lbf_model
+    from retarget_cli.methods.tracking.facemark import track_facemark, train_lbf
 
     frames = list(fr)
     ann = _annotated(tr, 5)
@@ -104,8 +104,8 @@ def _facemark(fr, tr):
 
 
 def marker_methods():
-    from retarget_cli.track.lk import track_lk
-    from retarget_cli.track.markers import track_markers
+    from retarget_cli.methods.tracking.lk import track_lk
+    from retarget_cli.methods.tracking.markers import track_markers
 
     return {"markers (1 annotated frame)": lambda fr, tr: track_markers(fr, _annotated(tr, 1)),
             "lk (1 annotated frame)": lambda fr, tr: track_lk(fr, _annotated(tr, 1))}
@@ -116,7 +116,7 @@ EYES = ((36, 39, (37, 38), (41, 40)), (42, 45, (43, 44), (47, 46)))
 
 
 def _eye_opening(points, eye) -> np.ndarray:
-    """Lid gap over eye width of one eye (see retarget_cli.track.detect.eye_opening), (T, 68, 2) -> (T,)."""
+    """Lid gap over eye width of one eye (see retarget_cli.methods.tracking.detect.eye_opening), (T, 68, 2) -> (T,)."""
     a, b, up, lo = eye
     gap = sum(np.linalg.norm(points[:, u] - points[:, v], axis=1) for u, v in zip(up, lo)) / 2
     return gap / np.linalg.norm(points[:, a] - points[:, b], axis=1)
@@ -196,7 +196,7 @@ def warm_up() -> float:
 
     A once-per-process cost, so it is kept out of the frames/s and printed apart.
     """
-    from retarget_cli.track.lk import track_lk
+    from retarget_cli.methods.tracking.lk import track_lk
 
     rng = np.random.default_rng(0)
     frames = [rng.integers(0, 255, (64, 64), dtype=np.uint8)] * 3
@@ -238,7 +238,7 @@ def main() -> None:
         # HOG does not find the rendered face in these wide frames: start from the true frame-0 annotation
         default = {}
         try:
-            from retarget_cli.track.detect import Detector, track_detect
+            from retarget_cli.methods.tracking.detect import Detector, track_detect
 
             det = Detector()
             default["detect (frame 0 annotated; fused with flow: the default)"] = \

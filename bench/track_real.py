@@ -69,7 +69,7 @@ def run_method(method: str, video: Path, pts: Path, work: Path):
     from retarget_cli.io.annotations import read_pts
     from retarget_cli.io.landmarks import load_landmarks
     from retarget_cli.stages import run_track
-    from retarget_cli.stages.detect import run_annotate
+    from retarget_cli.stages.annotate import run_annotate
 
     out = work / f"{video.stem}-{method}.npz"
     kw = dict(video=str(video), output=str(out))
@@ -141,7 +141,7 @@ def blink_picture(clip, video, tracks, ref_pts, ref_eye, out_dir: Path):
     import cv2
 
     from retarget_cli.io.overlay import draw_overlay
-    from retarget_cli.track.head import estimate_head
+    from retarget_cli.methods.tracking.head import estimate_head
 
     f = int(np.nanargmin(ref_eye))
     cap = cv2.VideoCapture(str(video))
@@ -186,7 +186,7 @@ def _skip_reason(videos: Path) -> str | None:
     if not videos.is_dir():
         return f"{videos} not found (the shared real clips)"
     try:
-        from retarget_cli.track.detect import Detector
+        from retarget_cli.methods.tracking.detect import Detector
 
         Detector()
     except Exception as exc:  # noqa: BLE001 - the extra is missing

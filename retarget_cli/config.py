@@ -9,7 +9,6 @@ names the key, the value and the allowed range.
 
 from __future__ import annotations
 
-import difflib
 import math
 import os
 from collections.abc import Callable
@@ -17,7 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError
+from ._validate import NAME_RE, closest
+from .errors import ConfigError, ParameterError
 
 REQUIRED = object()
 
@@ -40,7 +40,7 @@ class Param:
     choices, min, max : optional
         Allowed values / range, inclusive unless *min_open* / *max_open*. *choices* may be a function returning
         them, read at each check (a registry such as
-        :data:`retarget_cli.track.TRACKERS` that may grow after import).
+        :data:`retarget_cli.methods.tracking.TRACKERS` that may grow after import).
     link : str, optional
         ``"stage.param"`` whose output feeds this input by default in
         ``retarget run``.
@@ -177,8 +177,6 @@ def _name_error(where: str, name) -> ConfigError:
 
 def check_region_name(name, where: str) -> str:
     """A region name used in output paths: ``[A-Za-z0-9_.-]+`` without ``..``."""
-    from .io.atomic import NAME_RE
-
     if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
         raise _name_error(where, name)
     return name
@@ -310,12 +308,6 @@ def yaml_problem(exc) -> str:
     return " ".join(str(getattr(exc, "problem", None) or exc).split()) + where
 
 
-def closest(name: str, candidates) -> str | None:
-    """The candidate most similar to *name*, or None when nothing is close."""
-    hits = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.5)
-    return hits[0] if hits else None
-
-
 def unknown_key_error(where: str, key: str, valid) -> ConfigError:
     hint = closest(key, valid)
     if hint:
@@ -443,7 +435,7 @@ def load_config(path: str | os.PathLike, stages: dict, overrides=()) -> Config:
     path : path-like
         YAML file.
     stages : dict
-        Stage name to its list of :class:`Param` (from :mod:`retarget_cli.pipeline`).
+        Stage name to its list of :class:`Param` (from :mod:`retarget_cli.run.pipeline`).
     overrides : iterable of str
         ``stage.key=value`` strings that take precedence over the file.
 
@@ -504,7 +496,6 @@ def validate_params(params):
     import functools
     import inspect
 
-    from .errors import ParameterError
 
     def declared() -> dict:
         return {p.name: p for p in (params() if callable(params) else params) if p.kind == "setting"}

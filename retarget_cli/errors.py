@@ -1,6 +1,6 @@
 """Every error class of ``retarget``, each knowing its exit status.
 
-Library code raises these; the CLI (:class:`retarget_cli.cli.RetargetGroup`)
+Library code raises these; the CLI (:class:`retarget_cli.cli.commands.RetargetGroup`)
 turns a :class:`RetargetError` into one line on stderr and exits with its
 :attr:`~RetargetError.exit_status`. Any other exception is a bug: the CLI says
 so in one line (``internal error ...``) and ``-vv`` shows its traceback.

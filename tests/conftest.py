@@ -2,7 +2,7 @@ import shutil
 
 import pytest
 
-from retarget_cli.synth import write_take
+from retarget_cli.synth.take import write_take
 
 
 @pytest.fixture(scope="session")

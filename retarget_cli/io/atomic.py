@@ -34,6 +34,7 @@ from typing import IO
 
 import numpy as np
 
+from .._validate import check_name
 from ..errors import InputError, ParameterError
 
 log = logging.getLogger(__name__)
@@ -277,18 +278,6 @@ def check_not_input(output: str | os.PathLike, inputs) -> None:
 
 
 # --------------------------------------------------------------------------- the write guard
-
-
-#: Region and key names used in paths: letters, digits, ``_``, ``.``, ``-`` (no ``..``).
-NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
-
-
-def check_name(name, where: str) -> str:
-    """*name* if it is safe as one path component (``[A-Za-z0-9_.-]+``, no ``..``), else an InputError."""
-    if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
-        raise InputError(f"{where}: {name!r} is not a valid name; expected letters, digits, '_', '.' and '-' "
-                         "(no '..', no '/')")
-    return name
 
 
 def _resolve(path) -> Path:

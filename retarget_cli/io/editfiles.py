@@ -12,9 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..config import closest, unknown_key_error
+from .._validate import closest
+from ..config import load_yaml, unknown_key_error
 from ..errors import ConfigError, InputError
+from ..methods.editing import DEFAULT_ALPHA, DEFAULT_MU, AttenuateEdit, Pin, PinEdit
+from ..methods.rig import parse_axes
 from .atomic import load_npz, savez, write_text
+from .stagefiles import read_vertex_mask
+from .text import read_text
 
 # --------------------------------------------------------------------------- animations
 
@@ -47,7 +52,6 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
             raise InputError(f"{path}: 'curves' must be (T, {len(names)}) for {len(names)} names, got {W.shape}")
         frames = np.asarray(data.get("frames", np.arange(len(W))), dtype=np.int64)
     elif path.suffix.lower() == ".csv":
-        from .stagefiles import read_text
 
         lines = [ln for ln in read_text(path, "animation CSV").splitlines() if ln.strip()]
         if not lines:
@@ -131,8 +135,6 @@ def _vec3(value, where):
 
 
 def _axes(value, where):
-    from ..rig import parse_axes
-
     try:
         parse_axes(value)
     except ValueError:
@@ -163,9 +165,6 @@ def _frame(value, where, frames):
 
 
 def _load_edits_yaml(path: Path):
-    from ..config import load_yaml
-    from .stagefiles import read_text
-
     data = load_yaml(read_text(path, "edits"), str(path))
     _keys(data, ("rig", "edits"), str(path))
     if "rig" in data and not isinstance(data["rig"], str):
@@ -214,8 +213,7 @@ def _edit_common(body: dict, where: str, frames: list) -> dict:
 
 
 def _pin(c, cw: str, n_vertices: int, frames: list):
-    """One ``constraints[j]`` entry of a pin edit as a :class:`~retarget_cli.edit.Pin`."""
-    from ..edit import Pin
+    """One ``constraints[j]`` entry of a pin edit as a :class:`~retarget_cli.methods.editing.Pin`."""
 
     _keys(c, CONSTRAINT_KEYS, cw)
     if "vertex" not in c:
@@ -250,8 +248,7 @@ def _w0(w0, where: str, expressions) -> dict | None:
 
 
 def _pin_edit(body: dict, common: dict, n_vertices: int, frames: list, expressions):
-    """A ``pin:`` edit's settings as a :class:`~retarget_cli.edit.PinEdit`."""
-    from ..edit import DEFAULT_ALPHA, DEFAULT_MU, PinEdit
+    """A ``pin:`` edit's settings as a :class:`~retarget_cli.methods.editing.PinEdit`."""
 
     where = common["where"]
     cons = body.get("constraints")
@@ -268,7 +265,6 @@ def _pin_edit(body: dict, common: dict, n_vertices: int, frames: list, expressio
 
 def _select_group(g, gw: str, path: Path, n_vertices: int) -> tuple[list, str]:
     """One ``select[j]`` entry of an attenuate edit: ``(vertex ids, axes)``; a string names a vertex-mask file."""
-    from .stagefiles import read_vertex_mask
 
     _keys(g, SELECT_KEYS, gw)
     verts = g.get("vertices")
@@ -284,8 +280,7 @@ def _select_group(g, gw: str, path: Path, n_vertices: int) -> tuple[list, str]:
 
 
 def _attenuate_edit(body: dict, common: dict, path: Path, n_vertices: int, frames: list):
-    """An ``attenuate:`` edit's settings as an :class:`~retarget_cli.edit.AttenuateEdit`."""
-    from ..edit import AttenuateEdit
+    """An ``attenuate:`` edit's settings as an :class:`~retarget_cli.methods.editing.AttenuateEdit`."""
 
     where = common["where"]
     sel = body.get("select")
@@ -314,7 +309,7 @@ def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=
 
     Returns
     -------
-    list of :class:`~retarget_cli.edit.PinEdit` and :class:`~retarget_cli.edit.AttenuateEdit`
+    list of :class:`~retarget_cli.methods.editing.PinEdit` and :class:`~retarget_cli.methods.editing.AttenuateEdit`
 
     Raises
     ------

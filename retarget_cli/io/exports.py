@@ -26,6 +26,16 @@ import numpy as np
 
 from ..errors import InputError
 from .atomic import write_text
+from .editfiles import write_animation
+from .exr import write_vat
+from .gltf import write_glb
+from .landmarks import load_landmarks
+from .livelink import head_rotation_from_similarity, livelink_csv
+from .obj import read_obj, write_obj
+from .objsurface import obj_surface
+from .rig.inverse import parse_correctives
+from .stagefiles import weights_csv
+from .usd import require_pxr, write_usd_points, write_usd_skel
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +142,6 @@ class ObjExport(Exporter):
         self.written: list[Path] = []
 
     def add(self, start, frames):
-        from .obj import write_obj
-
         for i, p in enumerate(frames):
             path = self.ctx.out / f"frame_{start + i:05d}.obj"
             write_obj(path, self.ctx.template, p)
@@ -148,8 +156,6 @@ class CsvExport(Exporter):
     files = ("weights.csv",)
 
     def finish(self):
-        from .stagefiles import weights_csv
-
         path = self.ctx.out / self.files[0]
         write_text(path, weights_csv(self.ctx.regions, self.ctx.fps))
         return [path]
@@ -169,8 +175,6 @@ class ExrExport(Exporter):
         self.values[start:start + len(frames)] = frames - (self.ctx.base if self.offsets else 0.0)
 
     def finish(self):
-        from .exr import write_vat
-
         exr, sidecar = (self.ctx.out / f for f in self.files)
         write_vat(exr, self.values, fps=self.ctx.fps, mode=self.ctx.settings.get("vat", "offsets"), sidecar=sidecar)
         return [exr, sidecar]
@@ -181,9 +185,6 @@ class GlbExport(Exporter):
     files = ("animation.glb",)
 
     def finish(self):
-        from .gltf import write_glb
-        from .objsurface import obj_surface
-
         c = self.ctx
         mt, names, mw = c.morph_targets()
         path = c.out / self.files[0]
@@ -198,8 +199,6 @@ class CurvesExport(Exporter):
     needs_rig = True
 
     def finish(self):
-        from .editfiles import write_animation
-
         c = self.ctx
         frames = np.arange(c.n_frames)
         csv, npz = (c.out / f for f in self.files)
@@ -225,8 +224,6 @@ class UsdExport(Exporter):
 
     @classmethod
     def check(cls):
-        from .usd import require_pxr
-
         require_pxr()
 
     def finish(self):
@@ -266,8 +263,6 @@ def head_rotation(landmarks, T: int):
     Roll comes from the tracked 2D head motion; yaw and pitch are 0 (the 2D
     track has no estimate of them).
     """
-    from .landmarks import load_landmarks
-    from .livelink import head_rotation_from_similarity
 
     if landmarks is None:
         return None
@@ -288,7 +283,6 @@ def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks
     landmarks : path-like, optional
         ``landmarks.npz``: HeadRoll from its head motion; without it the head columns are 0.
     """
-    from .livelink import livelink_csv
 
     rot = head_rotation(landmarks, len(curves))
     if rot is None:
@@ -312,8 +306,6 @@ def rig_shapes(rig, curves: np.ndarray) -> tuple[np.ndarray, list[str], np.ndarr
     names : list of str, length M
     weights : ndarray, shape (T, M)
     """
-    from .obj import read_obj
-    from .rigfiles import parse_correctives
 
     D = rig.D.toarray() if rig.sparse else np.asarray(rig.D)
     shapes = [D.T.reshape(rig.n_sliders, -1, 3)]
@@ -349,8 +341,6 @@ def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: fl
     head : ndarray, shape (T, 3, 4), optional
         Head motion, the time-sampled transform of ``/Character``.
     """
-    from .objsurface import obj_surface
-    from .usd import write_usd_points, write_usd_skel
 
     surf = obj_surface(template)
     uv = (surf.uv, surf.vt) if surf.has_uv else None

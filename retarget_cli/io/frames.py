@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, TruncatedInputError  # noqa: F401  (TruncatedInputError re-exported)
-from .video import VIDEO_SUFFIXES, VideoReader, to_gray
+from ..methods.tracking.base import to_gray
+from .video import VIDEO_SUFFIXES, VideoReader
 
 log = logging.getLogger(__name__)
 

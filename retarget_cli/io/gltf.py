@@ -34,6 +34,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ShapeError
 from .atomic import write_bytes
+from .objsurface import vertex_normals
 
 _FLOAT, _UINT = 5126, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
@@ -167,7 +168,6 @@ def _check_glb_inputs(base: np.ndarray, D: np.ndarray, W: np.ndarray, target_nam
 
 def _surface_normals(surface, base: np.ndarray, src: np.ndarray, vn, N: int) -> np.ndarray:
     """Unit normals (V, 3) of the split vertices: the OBJ's ``vn`` where given, else computed from the faces."""
-    from .objsurface import vertex_normals
 
     if vn is not None:
         nrm = surface.normals[np.maximum(vn, 0)]

@@ -2,7 +2,7 @@
 
 See the README's "File formats" section. A file holding only ``points`` is
 accepted too (landmarks from another tracker); the head motion and the
-stabilized landmarks are then computed with :func:`retarget_cli.track.head.estimate_head`,
+stabilized landmarks are then computed with :func:`retarget_cli.methods.tracking.head.estimate_head`,
 the same routine ``track`` uses.
 """
 
@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputError, ParameterError
-from ..track.head import estimate_head
+from ..methods.tracking.head import estimate_head
 from .atomic import load_npz, savez
 
 #: A landmark whose confidence is at or below this is lost in that frame.

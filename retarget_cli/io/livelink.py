@@ -25,6 +25,7 @@ import re
 
 import numpy as np
 
+from .._validate import closest
 from ..errors import InputError, ParameterError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,6 @@ def check_names_mapping(names, sliders, where: str) -> dict[str, list[str]]:
         Naming *where* and the entry: not a mapping, an ARKit name that is not
         one of the 52 columns, or a slider the rig does not have.
     """
-    from ..config import closest
 
     if names is None:
         return {}

@@ -26,6 +26,10 @@ from .atomic import atomic_open
 COORD_FORMAT = "%.6f"
 
 
+#: An OBJ of a frame sequence (``apply`` and ``edit`` write ``frame_%05d.obj``, by frame number).
+FRAME_RE = re.compile(r"frame_(\d+)\.obj$")
+
+
 @dataclass
 class ObjMesh:
     """An OBJ file as vertex positions plus everything else, byte for byte.

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..methods.tracking.base import to_gray
 from .atomic import check_write
 
 log = logging.getLogger(__name__)
@@ -29,13 +30,6 @@ class _Failed:
 
     def __init__(self, exc: BaseException):
         self.exc = exc
-
-
-def to_gray(frame: np.ndarray) -> np.ndarray:
-    """A BGR frame (H, W, 3) as grayscale (H, W); a 2-D frame is returned as it is."""
-    import cv2
-
-    return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
 
 
 def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator[np.ndarray]:

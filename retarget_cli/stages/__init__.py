@@ -4,7 +4,7 @@ the outputs atomically. The CLI commands and ``retarget run`` both call these.
 One module per stage; each runner returns the list of files it wrote.
 """
 
-from ..regions import REGION_PRESETS_68, region_points, region_specs  # noqa: F401
+from ..methods.regions import REGION_PRESETS_68, region_points, region_specs  # noqa: F401
 from .apply import run_apply  # noqa: F401
 from .auto_pose import run_auto_pose  # noqa: F401
 from .decompose import run_decompose  # noqa: F401

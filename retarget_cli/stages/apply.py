@@ -6,7 +6,7 @@ Two ways to drive it, chosen by ``targets.yaml``:
   ``Σ_k w_k B_k`` over its target key shapes, regions blended by their masks;
 - **a rig** (``targets.yaml`` names ``rig:`` and ``sliders:``, as ``auto-pose``
   writes it): every frame's rig sliders follow from the weights and the key
-  frames' sliders (:func:`retarget_cli.rigpose.rig_curves`), are written as
+  frames' sliders (:func:`retarget_cli.methods.rigpose.rig_curves`), are written as
   curves (``curves.csv``, ``curves.npz``), and the meshes are the rig posed at
   them, so correctives aside every shell the rig moves (teeth, tongue, eyes)
   moves.
@@ -22,7 +22,22 @@ import numpy as np
 from ..config import Param, check_vector3, validate_params
 from ..errors import InputError, ParameterError
 from ..io.atomic import TrackedOutputs, check_not_input
-from ..io.exports import EXPORTS, ExportContext, format_choices, formats_help
+from ..io.editfiles import read_animation
+from ..io.exports import EXPORTS, ExportContext, format_choices, formats_help, rig_shapes
+from ..io.landmarks import load_landmarks
+from ..io.obj import check_same_topology, read_obj
+from ..io.rig import load_rig
+from ..io.stagefiles import load_weights, read_targets, read_vertex_mask
+from ..methods.blending import (
+    apply_transforms,
+    blend_keys,
+    blend_regions,
+    head_motion_transforms,
+    morph_targets,
+    morph_weights,
+    region_weights,
+)
+from ..methods.rigpose import rig_curves
 from ._common import Stage, _no_progress, _require
 
 log = logging.getLogger(__name__)
@@ -70,9 +85,7 @@ def _check_formats(formats) -> list[str]:
 
 
 def _head_transforms(landmarks, T: int, neutral: np.ndarray, scale, pivot) -> np.ndarray:
-    """(T, 3, 4) head-motion transforms from ``landmarks.npz`` (see :func:`~retarget_cli.apply.head_motion_transforms`)."""
-    from ..apply import head_motion_transforms
-    from ..io.landmarks import load_landmarks
+    """(T, 3, 4) head-motion transforms from ``landmarks.npz`` (see :func:`~retarget_cli.methods.blending.head_motion_transforms`)."""
 
     if landmarks is None:
         raise InputError("head_motion 2d needs the landmarks file (--landmarks, or a 'track' section)")
@@ -99,9 +112,6 @@ def _head_transforms(landmarks, T: int, neutral: np.ndarray, scale, pivot) -> np
 
 def _key_driver(regions, tg, targets, weights):
     """Key-shape driving: (positions(slice), template, base, glb targets, glb names, glb weights)."""
-    from ..apply import blend_keys, blend_regions, morph_targets, morph_weights, region_weights
-    from ..io.obj import check_same_topology, read_obj
-    from ..io.stagefiles import read_vertex_mask
 
     per_region, meshes = [], []
     for name, (W, frames, _) in sorted(regions.items()):
@@ -153,7 +163,6 @@ def rig_key_sliders(regions, tg, targets, rig):
     -------
     list of ndarray, each shape (K_r, n), in sorted region order
     """
-    from ..io.editfiles import read_animation
 
     names, S, frames, _ = read_animation(tg.sliders)
     unknown = [n for n in names if n not in rig.index]
@@ -180,10 +189,8 @@ def rig_key_sliders(regions, tg, targets, rig):
 
 def _rig_driver(regions, tg, targets, cache_dir):
     """Rig driving: curves from the weights, meshes from the rig at the curves."""
-    from ..rig import BlendshapeRig
-    from ..rigpose import rig_curves
 
-    rig = BlendshapeRig.load(tg.rig, cache_dir=cache_dir)
+    rig = load_rig(tg.rig, cache_dir=cache_dir)
     S = rig_key_sliders(regions, tg, targets, rig)
     curves = rig_curves([W for _, (W, _, _) in sorted(regions.items())], S, rig.lower, rig.upper)
 
@@ -191,8 +198,6 @@ def _rig_driver(regions, tg, targets, cache_dir):
         return rig.evaluate(curves[sl])
 
     def glb():
-        from ..io.exports import rig_shapes
-
         return rig_shapes(rig, curves)
 
     return positions, rig.template, rig.neutral, glb, (rig, curves)
@@ -216,7 +221,6 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         output), else the key shapes; ``keys`` blends the key OBJs with the
         region masks even when a rig is named.
     """
-    from ..io.stagefiles import load_weights, read_targets
 
     weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
     formats = _check_formats(formats)
@@ -278,7 +282,6 @@ def _check_drive(regions, tg, targets, weights, formats, drive) -> bool:
 
 def _stream(exporters, ctx, progress, chunk: int = 64) -> None:
     """The frames, chunk by chunk with head motion applied, to every exporter that streams."""
-    from ..apply import apply_transforms
 
     streams = [e for e in exporters if e.streams]
     if not streams:
@@ -299,12 +302,10 @@ __all__ = ["DRIVES", "rig_key_sliders", "run_apply"]
 
 
 def _targets_files(kw) -> list[Path]:
-    from ..io.stagefiles import read_targets
-
     return read_targets(kw["targets"]).files()
 
 
-#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+#: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
 STAGE = Stage(
     "apply",
     "Drive the target key shapes with the weights; write an OBJ sequence and other exports.",

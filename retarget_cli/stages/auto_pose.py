@@ -5,8 +5,8 @@ directory ``REGION/key_%05d.obj`` (the rig posed at each key's sliders),
 ``sliders.csv`` (one row per key frame, the animation CSV that ``edit`` reads),
 ``masks/REGION.txt`` (region masks derived from the rig) and ``targets.yaml``,
 which names the rig and the sliders so that ``apply`` writes the rig's slider
-curves. The math is in :mod:`retarget_cli.rigpose` (delta fit, default) and
-:func:`retarget_cli.edit.auto_pose` (absolute fit).
+curves. The math is in :mod:`retarget_cli.methods.rigpose` (delta fit, default) and
+:func:`retarget_cli.methods.editing.auto_pose` (absolute fit).
 """
 
 from __future__ import annotations
@@ -21,7 +21,23 @@ import numpy as np
 from ..config import Param, check_indices, check_masks, check_strings, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, tracked_outputs, write_text
-from ..io.vertexmap import read_vertex_map
+from ..io.editfiles import write_animation
+from ..io.landmarks import load_landmarks
+from ..io.obj import write_obj
+from ..io.rig import load_rig, read_rig
+from ..io.rig.vertexmap import read_vertex_map
+from ..io.stagefiles import read_keys, write_targets
+from ..methods.editing import auto_pose
+from ..methods.rigpose import (
+    DEFAULT_RIDGE,
+    DEFAULT_SPARSITY,
+    delta_pose,
+    infer_exclusive,
+    project,
+    rig_landmarks,
+    rig_region_masks,
+    slider_owners,
+)
 from ._common import Stage, _require
 from .pose import _pose_files
 
@@ -109,11 +125,11 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
                   rigid_points=None, alpha=0.001, mu=0.0001, base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys*; write key OBJs, ``sliders.csv``, masks and ``targets.yaml``.
 
-    ``fit="delta"`` (default): :func:`retarget_cli.rigpose.delta_pose`, the
+    ``fit="delta"`` (default): :func:`retarget_cli.methods.rigpose.delta_pose`, the
     key frame's landmark displacement from *neutral_frame* (Lewis et al.
     2005 §3) reproduced per region by the sliders the region owns; the
     neutral frame poses every slider at 0. ``fit="absolute"``: the landmark
-    positions themselves (:func:`retarget_cli.edit.auto_pose`, eq. 3 of
+    positions themselves (:func:`retarget_cli.methods.editing.auto_pose`, eq. 3 of
     Lewis & Anjyo 2010 with every landmark as a pin), which turns the
     difference between the actor's and the character's faces into expression.
 
@@ -121,9 +137,9 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     ----------
     masks : dict, optional
         Region name to a vertex-mask file (relative to *base_dir*), overriding
-        the masks derived from the rig (:func:`retarget_cli.rigpose.rig_region_masks`).
+        the masks derived from the rig (:func:`retarget_cli.methods.rigpose.rig_region_masks`).
     sparsity, ridge : float, optional
-        λ and μ of :func:`retarget_cli.rigpose.fit_sliders` (None: defaults).
+        λ and μ of :func:`retarget_cli.methods.rigpose.fit_sliders` (None: defaults).
     exclude : sequence of str
         Slider-name patterns kept at 0.
     skip_points : sequence of int, optional
@@ -131,7 +147,6 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     rigid_points : sequence of int, optional
         Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
     """
-    from ..rig import BlendshapeRig
 
     if fit not in FITS:
         raise InputError(f"fit: expected one of {', '.join(FITS)}, got {fit!r}")
@@ -144,7 +159,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     # Everything that is cheap to check, before the rig's OBJs are read.
     spec, kf, lm, frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame,
                                                      skip_points, rigid_points, masks, base_dir)
-    r = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
+    r = load_rig(rig_path, cache_dir=cache_dir)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
     fixed = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
@@ -164,8 +179,6 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_fra
                   base_dir):
     """Checks that need no OBJ: outputs that are not inputs, key and neutral frames inside the take, landmark
     ids, masks. Returns the rig spec, the keys, the landmarks, the sorted key frames and the mask files."""
-    from ..io.landmarks import load_landmarks
-    from ..io.stagefiles import read_keys, read_rig
 
     spec = read_rig(rig_path)
     kf, lm = read_keys(keys), load_landmarks(landmarks)
@@ -209,12 +222,10 @@ def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
 
 
 def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, rigid, sparsity, ridge):
-    """The delta fit (:func:`retarget_cli.rigpose.delta_pose`): poses by frame, slider owners, sliders by region."""
-    from ..rigpose import DEFAULT_RIDGE, DEFAULT_SPARSITY, delta_pose
+    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`): poses by frame, slider owners, sliders by region."""
 
     exclusive = spec.exclusive
     if exclusive is None:
-        from ..rigpose import infer_exclusive, project, rig_landmarks
 
         _, DL = rig_landmarks(r, vx)
         exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
@@ -231,9 +242,7 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, 
 
 
 def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
-    """The absolute fit (:func:`retarget_cli.edit.auto_pose`, Lewis & Anjyo eq. 3) of every key frame."""
-    from ..edit import auto_pose
-    from ..rigpose import project, rig_landmarks, slider_owners
+    """The absolute fit (:func:`retarget_cli.methods.editing.auto_pose`, Lewis & Anjyo eq. 3) of every key frame."""
 
     poses = {}
     upper_saved = r.upper.copy()
@@ -255,10 +264,6 @@ def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
 
 def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit, neutral_frame):
     """Key OBJs, region masks, ``sliders.csv`` and ``targets.yaml``; a failure part-way removes what it wrote."""
-    from ..io.editfiles import write_animation
-    from ..io.obj import write_obj
-    from ..io.stagefiles import write_targets
-    from ..rigpose import rig_region_masks
 
     names = list(kf.regions)
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
@@ -297,7 +302,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
 __all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "run_auto_pose"]
 
 
-#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+#: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
 STAGE = Stage(
     "auto_pose",
     "Pose a rig at each key frame from its landmarks (the rig as the artist): key OBJs, their sliders, "

@@ -8,10 +8,21 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Param, validate_params
-from ..decompose import FORMULATIONS, SOLVERS
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_text
-from ..io.landmarks import LOST_CONFIDENCE
+from ..io.landmarks import LOST_CONFIDENCE, load_landmarks, peek_frames
+from ..io.stagefiles import read_keys, save_weights, weights_csv
+from ..methods.decomposition import (
+    FORMULATIONS,
+    SOLVERS,
+    cardinality,
+    decompose,
+    interpolate_lost,
+    jitter,
+    mean_acceleration,
+    prefetch_kernel,
+    row_residuals,
+)
 from ._common import Stage, _require
 
 log = logging.getLogger(__name__)
@@ -65,9 +76,6 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulati
     neutral key's column holds ``1 − Σ`` of the others, so ``apply`` needs no
     change (Lewis et al. 2005, §3).
     """
-    from ..decompose import prefetch_kernel
-    from ..io.landmarks import load_landmarks, peek_frames
-    from ..io.stagefiles import read_keys, save_weights, weights_csv
 
     landmarks, keys = _require(landmarks, "landmarks file"), _require(keys, "keys file")
     check_not_input(output, [landmarks, keys])
@@ -108,7 +116,6 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     -------
     (W, key frames, residuals), {"cardinality", "lost"}, diagnostics : tuple
     """
-    from ..decompose import cardinality, decompose, interpolate_lost, jitter, mean_acceleration, row_residuals
 
     T = lm.n_frames
     bad = [f for f in reg["frames"] if f >= T]
@@ -182,7 +189,7 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     return (W, frames, res), {"cardinality": card, "lost": lost}, diagnostics
 
 
-#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+#: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
 STAGE = Stage(
     "decompose",
     "Non-negative weights over the key shapes for every frame (eq. 4).",

@@ -7,10 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .._validate import closest
 from ..config import Param, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, sha256_file, tracked_outputs
-from ..io.runfiles import FRAME_RE
+from ..io.editfiles import edits_rig, read_animation, read_edits, write_animation
+from ..io.obj import FRAME_RE, count_vertices, write_obj
+from ..io.rig import load_rig, read_rig
+from ..methods.editing import apply_edits
 from ._common import _no_progress, _require
 
 log = logging.getLogger(__name__)
@@ -28,7 +32,6 @@ PARAMS = [
 
 def _write_frames(out: Path, rig, W, frames, progress=_no_progress) -> list[Path]:
     """Write ``frame_%05d.obj`` (named by frame number) for each pose; remove stale frames of earlier runs."""
-    from ..io.obj import write_obj
 
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
@@ -51,14 +54,8 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
     the posed OBJ sequence (``frame_%05d.obj``, by frame number). The
     animation and the edits are checked (against ``rig.yaml`` and the
     neutral's vertex count) before the rig's OBJs are read; *cache_dir* keeps
-    the parsed rig (:meth:`~retarget_cli.rig.BlendshapeRig.load`).
+    the parsed rig (:meth:`~retarget_cli.methods.rig.BlendshapeRig.load`).
     """
-    from ..config import closest
-    from ..edit import apply_edits
-    from ..io.editfiles import edits_rig, read_animation, read_edits, write_animation
-    from ..io.obj import count_vertices
-    from ..io.stagefiles import read_rig
-    from ..rig import BlendshapeRig
 
     animation, edits = _require(animation, "animation"), _require(edits, "edits file")
     rig = rig or edits_rig(edits)
@@ -83,7 +80,7 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
     _require(spec.neutral, "neutral OBJ of the rig")
     todo = read_edits(edits, n_vertices=count_vertices(spec.neutral), frames=frames,
                       expressions=[str(e) for e in spec.library])
-    r = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
+    r = load_rig(rig_path, cache_dir=cache_dir)
     order = names + [n for n in r.names if n not in names]
     W = np.zeros((len(W_in), r.n_sliders))
     W[:, [r.index[n] for n in names]] = W_in

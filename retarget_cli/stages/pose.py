@@ -10,7 +10,10 @@ import numpy as np
 
 from ..config import Param, check_masks, validate_params
 from ..errors import InputError
-from ..io.atomic import check_not_input, tracked_outputs
+from ..io.atomic import check_not_input, load_npz, tracked_outputs
+from ..io.obj import count_vertices, write_obj
+from ..io.rig import load_rig, read_rig
+from ..io.stagefiles import read_keys, read_vertex_mask, write_targets
 from ._common import Stage, _require
 
 log = logging.getLogger(__name__)
@@ -34,15 +37,11 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=N
     *masks* maps region names to vertex-mask files (relative to *base_dir*),
     copied into ``targets.yaml`` so ``apply`` can blend the regions.
     Every argument is checked before the rig's OBJs are read; *cache_dir*
-    keeps the parsed rig (:meth:`~retarget_cli.rig.BlendshapeRig.load`).
+    keeps the parsed rig (:meth:`~retarget_cli.methods.rig.BlendshapeRig.load`).
 
     This is the automatic "artist" for takes whose slider values are known
     (synthetic takes, or a performance recorded on a rig).
     """
-    from ..io.atomic import load_npz
-    from ..io.obj import write_obj
-    from ..io.stagefiles import read_keys, read_rig
-    from ..rig import BlendshapeRig
 
     keys, rig_path, poses = _require(keys, "keys file"), _require(rig, "rig file"), _require(poses, "poses file")
     kf, spec = read_keys(keys), read_rig(rig_path)
@@ -69,13 +68,11 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=N
     for o in [*planned, out / "targets.yaml"]:
         check_not_input(o, inputs)
     if mask_files:
-        from ..io.obj import count_vertices
-        from ..io.stagefiles import read_vertex_mask
 
         n_vertices = count_vertices(_require(spec.neutral, "neutral OBJ of the rig"))
         for mask in mask_files.values():
             read_vertex_mask(mask, n_vertices)
-    rig = BlendshapeRig.load(rig_path, cache_dir=cache_dir)
+    rig = load_rig(rig_path, cache_dir=cache_dir)
     cols = [rig.index[n] for n in names]
     regions = {}
     with tracked_outputs(out, "pose-keys", planned=[*planned, out / "targets.yaml"]) as written:
@@ -107,7 +104,6 @@ def _check_masks(kf, keys, masks, base_dir) -> dict:
 
 def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path, command) -> Path:
     """Add the region masks to *regions* and write ``out/targets.yaml`` (neutral = the rig's)."""
-    from ..io.stagefiles import read_rig, write_targets
 
     for name, mask in _check_masks(kf, keys, masks, base_dir).items():
         regions[name]["vertices"] = os.path.relpath(mask.resolve(), out.resolve())
@@ -117,15 +113,13 @@ def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path,
 
 
 def _pose_files(kw) -> list[Path]:
-    from ..io.stagefiles import read_rig
-
     masks = [Path(kw["base_dir"]) / m for m in (kw.get("masks") or {}).values()]
     spec = read_rig(kw["rig"])
     extra = [spec.landmarks] if isinstance(spec.landmarks, Path) else []
     return spec.files() + extra + masks
 
 
-#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+#: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
 STAGE = Stage(
     "pose",
     "Pose a rig at each key frame's known slider values (automatic target key shapes).",

@@ -9,8 +9,12 @@ import numpy as np
 
 from ..config import Param, check_regions, validate_params
 from ..errors import InputError
-from ..io.atomic import check_not_input, write_text
-from ..regions import region_specs
+from ..io.atomic import check_not_input, write_json, write_text
+from ..io.landmarks import load_landmarks
+from ..io.select_plots import curve_csv, write_contact_sheet, write_curve_plot
+from ..io.stagefiles import write_keys, write_targets
+from ..methods.regions import region_specs
+from ..methods.selection import curve_winner, evaluation_curve, key_error, select_keys
 from ._common import Stage, _no_progress, _require
 
 log = logging.getLogger(__name__)
@@ -58,9 +62,6 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     with *plot*, the curves as a picture (Fig. 6 of Chuang & Bregler 2002).
     With *contact_sheet*, the key frames cropped from *video* with their landmarks.
     """
-    from ..io.landmarks import load_landmarks
-    from ..io.stagefiles import write_keys, write_targets
-    from ..select import evaluation_curve, key_error, select_keys
 
     landmarks = _require(landmarks, "landmarks file")
     outs = [o for o in (output, template, evaluate, plot, contact_sheet) if o]
@@ -115,7 +116,6 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     if evaluate:
         written += _write_evaluation(evaluate, plot, curves, chosen_k, result, method)
     if contact_sheet:
-        from ..select_report import write_contact_sheet
 
         video = _require(video, "video file")
         write_contact_sheet(contact_sheet, video, lm.points,
@@ -146,9 +146,6 @@ def _usable_frames(X, name, landmarks, include) -> np.ndarray:
 
 def _write_evaluation(evaluate, plot, curves, chosen_k, result, method) -> list[Path]:
     """The evaluation curve (CSV), its summary (JSON beside it) and, with *plot*, its picture."""
-    from ..io.atomic import write_json
-    from ..select import curve_winner
-    from ..select_report import curve_csv, write_curve_plot
 
     write_text(evaluate, curve_csv(curves))
     summary = {"method": method, "regions": {}}
@@ -168,7 +165,7 @@ def _write_evaluation(evaluate, plot, curves, chosen_k, result, method) -> list[
     return written
 
 
-#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+#: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
 STAGE = Stage(
     "select",
     "Choose key frames per region (Chuang & Bregler §4.2) and evaluate the methods by E (eq. 5).",

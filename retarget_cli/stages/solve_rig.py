@@ -6,8 +6,23 @@ import logging
 from pathlib import Path
 
 from ..config import ConfigError, Param, validate_params
-from ..inverse_rig import DEFAULT_ALPHA, DEFAULT_MAX_ITER, DEFAULT_SOLVER, DEFAULT_TOL, SOLVERS
 from ..io.atomic import check_not_input
+from ..io.rig.inverse import (
+    check_quadratic_rig,
+    read_meshes,
+    read_quadratic_rig,
+    save_inverse_weights,
+    write_metrics_csv,
+)
+from ..methods.inverse_rig import (
+    CARDINALITY_THRESHOLD,
+    DEFAULT_ALPHA,
+    DEFAULT_MAX_ITER,
+    DEFAULT_SOLVER,
+    DEFAULT_TOL,
+    SOLVERS,
+    solve,
+)
 from ._common import _no_progress
 
 log = logging.getLogger(__name__)
@@ -45,7 +60,7 @@ def run_solve_rig(*, rig, meshes, output, solver=DEFAULT_SOLVER, alpha=DEFAULT_A
 
     The output paths, ``rig.yaml``, the rig's vertex counts and the meshes
     to fit are checked before the rig's OBJs are parsed; *cache_dir* keeps
-    the parsed rig (:func:`~retarget_cli.io.rigfiles.read_quadratic_rig`).
+    the parsed rig (:func:`~retarget_cli.io.rig.inverse.read_quadratic_rig`).
 
     Returns
     -------
@@ -53,14 +68,6 @@ def run_solve_rig(*, rig, meshes, output, solver=DEFAULT_SOLVER, alpha=DEFAULT_A
     summary : dict
         Means over frames of rmse, cardinality, objective, iterations and seconds, plus sizes.
     """
-    from ..inverse_rig import CARDINALITY_THRESHOLD, solve
-    from ..io.rigfiles import (
-        check_quadratic_rig,
-        read_meshes,
-        read_quadratic_rig,
-        save_inverse_weights,
-        write_metrics_csv,
-    )
 
     rig_files, n_vertices = check_quadratic_rig(rig)
     inputs = [*rig_files, meshes]

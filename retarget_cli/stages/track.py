@@ -9,11 +9,23 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Param, check_indices, check_size, check_strings, validate_params
-from ..errors import InputError, ParameterError
-from ..io.atomic import check_not_input, digest_files, sha256_file
-from ..track import method_choices, method_help, tracker_params
+from ..errors import FaceLostError, InputError, ParameterError, TruncatedInputError
+from ..io.annotations import read_annotations, read_csv_landmarks
+from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file
+from ..io.facemark_model import load_facemark, save_lbf_model
+from ..io.frames import FrameSource, is_sequence, sequence_files
+from ..io.landmarks import Landmarks, save_landmarks
+from ..io.overlay import write_overlay
+from ..methods.tracking import TRACKERS, method_choices, method_help, tracker_params
+from ..methods.tracking.base import check_inside
+from ..methods.tracking.detect import Detector, detector_installed
+from ..methods.tracking.facemark import train_lbf
+from ..methods.tracking.head import apply_similarity, estimate_head, invert_similarity
+from ..methods.tracking.head import smooth_head as _smooth
+from ..methods.tracking.head import smooth_head as smooth_head_fn
 from ._common import Stage, _no_progress, _require
-from .filtering import FILTER_DEFAULTS, FILTER_PARAMS
+from ._landmark_filter import FILTER_DEFAULTS, FILTER_PARAMS, apply_filter
+from .annotate import detect_frame, init_pts_path, is_auto, write_pts_once
 
 log = logging.getLogger(__name__)
 
@@ -133,18 +145,11 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     (plus ``frames``, the source frame numbers) and, if asked, an *overlay*
     video. *model* is the Facemark model file of method ``facemark`` (see
     :func:`run_train_tracker`). The ``filter`` and ``filter_*`` arguments are the landmark filter settings
-    (``filter``, ``filter_*``; :mod:`retarget_cli.stages.filtering`): the
+    (``filter``, ``filter_*``; :mod:`retarget_cli.stages._landmark_filter`): the
     points are filtered before the head motion is estimated, and the tracker's
     own points are kept as ``points_raw``. Annotated frames keep their given
     points and anchor the filter.
     """
-    from ..io.annotations import read_annotations
-    from ..io.frames import FrameSource
-    from ..io.landmarks import Landmarks, save_landmarks
-    from ..track.head import apply_similarity, estimate_head, invert_similarity
-    from ..track.head import smooth_head as smooth_head_fn
-    from .detect import is_auto, write_pts_once
-    from .filtering import apply_filter
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
     settings = {p.name: p.default for p in tracker_params(q.name for q in PARAMS)} | settings
@@ -211,13 +216,11 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
 
 
 def _tracker(method: str):
-    """The method (``auto`` resolved) and its :class:`~retarget_cli.track.base.TrackerSpec`."""
-    from ..track import TRACKERS, method_choices
+    """The method (``auto`` resolved) and its :class:`~retarget_cli.methods.tracking.base.TrackerSpec`."""
 
     if method not in method_choices():
         raise ParameterError(f"method: expected {', '.join(map(repr, method_choices()))}, got {method!r}")
     if method == "auto":
-        from ..track.detect import detector_installed
 
         method = "detect" if detector_installed() else "lk"
         log.info("method auto: tracking with %s%s", method,
@@ -230,14 +233,12 @@ def _prepare(spec, method, *, need_auto, ann, src, model, init) -> dict:
     objects = {}
     n_ann = len(next(iter(ann.values()))) if ann else None
     if need_auto or "detector" in spec.needs:
-        from ..track.detect import Detector
 
         objects["detector"] = Detector()  # fails here, before any decoding, when the extra is not installed
         if n_ann is not None and "detector" in spec.needs and n_ann != Detector.n_points:
             raise InputError(f"{src[next(iter(ann))]}: method {method} places {Detector.n_points} points but the "
                              f"annotation has {n_ann}")
     if "model" in spec.needs:
-        from ..io.facemark import load_facemark
 
         if not model:
             raise InputError(f"method {method} needs a model file (--model, or track.model); "
@@ -261,7 +262,6 @@ def _warn_unused(spec, method, settings: dict, model) -> None:
 
 def _check_track_outputs(source, given, output, overlay, start, need_auto):
     """Refuse outputs that are inputs; the path of the automatic annotation (or None)."""
-    from .detect import init_pts_path
 
     check_not_input(output, source.files() + given)
     if overlay:
@@ -274,7 +274,6 @@ def _check_track_outputs(source, given, output, overlay, start, need_auto):
 
 def _auto_annotate(it, source, start, detector, init_out, ann, src):
     """Annotate the first frame with the detector (for a tracker that needs an annotation); returns the frame."""
-    from .detect import detect_frame, write_pts_once
 
     frame = next(it)  # an undecodable video raises TruncatedInputError (an InputError) here
     ann[start] = detect_frame(frame, detector=detector, where=f"{source.path}: frame {start}")
@@ -286,7 +285,6 @@ def _auto_annotate(it, source, start, detector, init_out, ann, src):
 
 def _annotation_index(ann, src, size, start, end, step) -> dict:
     """Annotated frames as ``{row of the tracked sequence: (L, 2)}``, each checked against the frame size."""
-    from ..track.base import check_inside
 
     index = {}
     for f, P in ann.items():
@@ -305,7 +303,6 @@ def _annotation_index(ann, src, size, start, end, step) -> dict:
 
 def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress, keep_partial, where):
     """Run the tracker over the decoded frames; a truncated video or a lost face per *keep_partial*."""
-    from ..errors import FaceLostError, TruncatedInputError
 
     stopped = []
 
@@ -345,9 +342,6 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
 
 def _write_track_overlay(overlay, video, points, conf, head, source, *, start, end, step, fps, progress):
     """The overlay video: the frames decoded again with the landmarks and the head frame drawn."""
-    from ..errors import TruncatedInputError
-    from ..io.frames import FrameSource
-    from ..io.overlay import write_overlay
 
     with FrameSource(video, start=start, end=end, step=step, fps=fps) as again, \
             progress(len(points), "overlay") as bar:
@@ -370,11 +364,6 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
     an OpenCV ``FacemarkLBF`` model (``cv::FileStorage`` YAML, gzip-compressed
     when *output* ends in ``.gz``) for ``track --method facemark --model``.
     """
-    from ..io.annotations import read_annotations
-    from ..io.facemark import save_lbf_model
-    from ..io.frames import FrameSource, TruncatedInputError
-    from ..track.facemark import train_lbf
-    from ..track.lk import check_inside
 
     files = [_require(a, "annotation file") for a in (annotations or [])]
     if not files:
@@ -425,7 +414,6 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
 
 def _read_point_source(src: Path):
     """Points by frame from a folder of ``.pts`` files or a ``frame,point,x,y`` CSV, and the source's digest."""
-    from ..io.annotations import read_annotations, read_csv_landmarks
 
     if src.is_dir():
         files = sorted(src.glob("*.pts"))
@@ -439,7 +427,6 @@ def _read_point_source(src: Path):
 
 def _read_npz_source(src: Path, fps, frame_size):
     """Points by frame, confidences (or None), fps and frame size (given ones first) and digest of an NPZ."""
-    from ..io.atomic import load_npz
 
     data = load_npz(src)
     if "points" not in data:
@@ -474,19 +461,15 @@ def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, 
     *source* is a ``frame,point,x,y`` CSV, an NPZ holding ``points`` (T, L, 2)
     (``confidence``, ``fps``, ``frame_size``, ``frames`` optional), or a
     folder of ``.pts`` files named with their frame number. Head motion and
-    stabilization are computed with :func:`~retarget_cli.track.head.estimate_head`
+    stabilization are computed with :func:`~retarget_cli.methods.tracking.head.estimate_head`
     (the routine ``track`` uses), optionally smoothed in time. The landmark
     filter settings (``filter``, ``filter_*``) are those of :func:`run_track`,
     but *filter* defaults to ``none`` here (imported points stay as given;
     the source's points are kept as ``points_raw`` when a filter is applied).
     Filtering assumes consecutive frames.
     """
-    from .filtering import apply_filter
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
-    from ..io.landmarks import Landmarks, save_landmarks
-    from ..track.head import apply_similarity, estimate_head, invert_similarity
-    from ..track.head import smooth_head as _smooth
 
     src = _require(source, "landmarks source")
     check_not_input(output, [src])
@@ -529,12 +512,10 @@ def _track_files(kw) -> list[Path]:
 
 
 def _track_expand(name, path) -> list[Path]:
-    from ..io.frames import is_sequence, sequence_files
-
     return sequence_files(path) if name == "video" and is_sequence(path) else [path]
 
 
-#: The pipeline stage (:mod:`retarget_cli.pipeline`).
+#: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
 STAGE = Stage(
     "track",
     "Track landmarks through a video from an annotated first frame.",

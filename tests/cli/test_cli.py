@@ -3,7 +3,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 
 COMMANDS = sorted(main.commands)
 
@@ -55,7 +55,7 @@ def test_usage_errors_exit_2(tmp_path):
 def test_invalid_yaml_is_one_line_naming_file_and_position(tmp_path):
     from click.testing import CliRunner
 
-    from retarget_cli.cli import main
+    from retarget_cli.cli.commands import main
     from retarget_cli.errors import InputError
     from retarget_cli.io.stagefiles import read_targets
 

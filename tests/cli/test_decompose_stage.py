@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.io.atomic import load_npz, savez
 from retarget_cli.io.landmarks import load_landmarks
 from retarget_cli.io.stagefiles import load_weights, write_keys
-from retarget_cli.synth import SOURCE_REGIONS
+from retarget_cli.synth.take import SOURCE_REGIONS
 
 MOUTH = list(range(48, 68))
 

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.config import load_config
 from retarget_cli.io.annotations import read_pts
 from retarget_cli.io.landmarks import load_landmarks
-from retarget_cli.pipeline import STAGES, _inputs, resolve, run_pipeline, stage_params
+from retarget_cli.run.pipeline import STAGES, _inputs, resolve, run_pipeline, stage_params
 
 HAS_DLIB = importlib.util.find_spec("dlib") is not None and importlib.util.find_spec("face_recognition_models") \
     is not None
@@ -52,7 +52,7 @@ def black_video(tmp_path):
 
 @needs_dlib
 def test_detector_on_frame_0_agrees_with_the_committed_annotation(real_clip):
-    from retarget_cli.track.detect import Detector, detect_landmarks
+    from retarget_cli.methods.tracking.detect import Detector, detect_landmarks
 
     cap = cv2.VideoCapture(str(real_clip / "d3.avi"))
     ok, frame = cap.read()
@@ -69,7 +69,7 @@ def test_detector_on_frame_0_agrees_with_the_committed_annotation(real_clip):
 
 @needs_dlib
 def test_track_detect_closes_the_eyes_on_the_blink(real_clip, tmp_path):
-    from retarget_cli.track.detect import eye_opening
+    from retarget_cli.methods.tracking.detect import eye_opening
 
     out, ov = tmp_path / "lm.npz", tmp_path / "overlay.mp4"
     r = run("track", real_clip / "d3.avi", "--method", "detect", "-o", out, "--overlay", ov)

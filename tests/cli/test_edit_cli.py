@@ -8,13 +8,13 @@ import pytest
 from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.io.editfiles import read_animation
 from retarget_cli.io.landmarks import Landmarks, save_landmarks
 from retarget_cli.io.obj import format_obj, read_obj
+from retarget_cli.io.rig import load_rig
 from retarget_cli.io.stagefiles import read_targets, write_keys
-from retarget_cli.rig import BlendshapeRig
-from retarget_cli.synth import expression_curves, landmark_rig
+from retarget_cli.synth.take import expression_curves, landmark_rig
 
 SAMPLE = Path(__file__).resolve().parents[2] / "sample_data"
 
@@ -32,7 +32,7 @@ def sample(tmp_path):
 
 
 def test_edit_pins_a_vertex_and_writes_weights_and_objs(sample):
-    rig = BlendshapeRig.load(sample / "rig.yaml")
+    rig = load_rig(sample / "rig.yaml")
     names, W, frames, _ = read_animation(sample / "truth.npz")
     v = int(np.argmax(np.linalg.norm(rig.evaluate(W[30:51]).std(0), axis=1)))  # moves most in frames 30-50
     u = int(np.argmax(rig.evaluate(W[60:81])[:, :, 1].std(0)))  # moves most in y in frames 60-80
@@ -111,7 +111,7 @@ def test_auto_pose_recovers_the_sliders_of_synthetic_keys(tmp_path):
         lines.append(f"  {name}: shapes/{name}.obj")
     (tmp_path / "rig.yaml").write_text("\n".join(lines) + "\n")
     (tmp_path / "map.txt").write_text("".join(f"{v}\n" for v in L["landmark_vertices"]))
-    rig = BlendshapeRig.load(tmp_path / "rig.yaml")
+    rig = load_rig(tmp_path / "rig.yaml")
     T = 60
     curves = expression_curves(T, seed=4)
     R = Rotation.from_euler("xyz", [180 - 5, 8, 3], degrees=True).as_matrix()

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.io.annotations import write_csv_landmarks, write_pts
 from retarget_cli.io.atomic import load_npz
 

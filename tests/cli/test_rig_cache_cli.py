@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
-from retarget_cli.io import rigcache
+from retarget_cli.cli.commands import main
 from retarget_cli.io.atomic import savez
+from retarget_cli.io.rig import cache as rigcache
 from retarget_cli.io.stagefiles import write_keys
 
 

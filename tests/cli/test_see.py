@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 
 cv2 = pytest.importorskip("cv2")
 
@@ -93,8 +93,8 @@ def test_preview_of_a_run_directory_without_video(ran_take, tmp_path):
 
 
 def test_preview_source_panel_shows_the_video_with_landmarks(ran_take):
-    from retarget_cli.io.runfiles import locate_run
-    from retarget_cli.preview import RunData, confidence_color, preview_frames
+    from retarget_cli.run.runfiles import locate_run
+    from retarget_cli.see.preview import RunData, confidence_color, preview_frames
 
     data = RunData(locate_run(ran_take / "config.yaml"))
     img = next(preview_frames(data, range(3, 4), height=192))  # the take is 192x192: no scaling
@@ -296,7 +296,7 @@ def test_report_and_preview_need_a_run(tmp_path):
 
 
 def test_jitter_and_worst_frames():
-    from retarget_cli.report import jitter_per_frame, worst_frames
+    from retarget_cli.see.report import jitter_per_frame, worst_frames
 
     W = np.zeros((10, 2))
     W[5, 0] = 1.0
@@ -308,7 +308,7 @@ def test_jitter_and_worst_frames():
 
 
 def test_curve_csv_layouts(tmp_path):
-    from retarget_cli.report import read_curve
+    from retarget_cli.see.report import read_curve
 
     p = tmp_path / "c.csv"
     p.write_text("k,pca-extremes,greedy\n2,10,8\n3,6,4\n")

@@ -5,7 +5,7 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import _parse_regions, main
+from retarget_cli.cli.commands import _parse_regions, main
 
 
 def test_region_specs_parse_presets_ranges_and_per_region_k():

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.errors import InputError, RetargetError
 from retarget_cli.io.atomic import load_npz
 from retarget_cli.io.obj import format_obj, read_obj
-from retarget_cli.io.rigfiles import read_meshes, read_quadratic_rig
-from retarget_cli.io.stagefiles import read_rig
+from retarget_cli.io.rig import read_rig
+from retarget_cli.io.rig.inverse import read_meshes, read_quadratic_rig
 
 SHAPES = ["smile", "jaw_open", "blink", "pucker"]
 CORRECTIVES = [("smile", "jaw_open"), ("jaw_open", "pucker")]

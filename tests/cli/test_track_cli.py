@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.io.annotations import read_pts, write_csv_landmarks, write_pts
 from retarget_cli.io.atomic import load_npz, savez
 from retarget_cli.io.landmarks import load_landmarks
@@ -195,7 +195,7 @@ def test_run_config_with_image_sequence_and_annotations(small_take, truth, tmp_p
 
 
 def test_track_markers_cli(tmp_path):
-    from retarget_cli.synth import write_take
+    from retarget_cli.synth.take import write_take
 
     d = tmp_path / "dots"
     write_take(d, n_frames=30, size=(192, 192), seed=4, dots=1.6)

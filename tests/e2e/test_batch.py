@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
-from retarget_cli.synth import write_take
+from retarget_cli.cli.commands import main
+from retarget_cli.synth.take import write_take
 
 pytest.importorskip("distributed", reason="needs the extra batch (dask[distributed])")
 
@@ -76,7 +76,7 @@ def takes(small_take_template, tmp_path_factory):
 @pytest.fixture(scope="module")
 def cluster():
     """A 2-worker LocalCluster reached through --scheduler (the existing-cluster path)."""
-    from retarget_cli.stages.batch import local_cluster, quiet_dask
+    from retarget_cli.batch.engine import local_cluster, quiet_dask
 
     quiet_dask()
     with local_cluster(2) as c, c.get_client() as client:

@@ -12,8 +12,8 @@ from usd_readback import usd_blendshape_frames
 from retarget_cli.io.editfiles import read_animation, write_animation
 from retarget_cli.io.landmarks import Landmarks, save_landmarks
 from retarget_cli.io.livelink import COLUMNS, parse_timecode
+from retarget_cli.io.rig import load_rig
 from retarget_cli.io.stagefiles import save_weights, write_targets
-from retarget_cli.rig import BlendshapeRig
 from retarget_cli.stages import run_apply
 
 T, FPS = 60, 25.0
@@ -23,7 +23,7 @@ T, FPS = 60, 25.0
 def ict_exports(ict_rig_dir, tmp_path_factory):
     d = tmp_path_factory.mktemp("ict_exports")
     rng = np.random.default_rng(7)
-    rig = BlendshapeRig.load(ict_rig_dir / "rig.yaml", cache_dir=d / "cache")
+    rig = load_rig(ict_rig_dir / "rig.yaml", cache_dir=d / "cache")
     K = 5
     frames = np.arange(K) * 10
     S = rng.uniform(0, 1, size=(K, rig.n_sliders)) * (rng.uniform(size=(K, rig.n_sliders)) < 0.3)

@@ -11,11 +11,11 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.io.editfiles import read_animation
 from retarget_cli.io.obj import read_obj
+from retarget_cli.io.rig import load_rig
 from retarget_cli.io.stagefiles import read_targets, read_vertex_mask
-from retarget_cli.rig import BlendshapeRig
 
 
 def material_vertices(obj_path, materials) -> np.ndarray:
@@ -36,7 +36,7 @@ def invoke(*args):
 
 @pytest.fixture(scope="module")
 def ict(ict_rig_dir):
-    return BlendshapeRig.load(ict_rig_dir / "rig.yaml")
+    return load_rig(ict_rig_dir / "rig.yaml")
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,8 @@ def tiny_run(tmp_path_factory):
     """A 24-frame 96x96 synthetic take with every output of `retarget run` in out/ (made once)."""
     from click.testing import CliRunner
 
-    from retarget_cli.cli import main
-    from retarget_cli.synth import write_take
+    from retarget_cli.cli.commands import main
+    from retarget_cli.synth.take import write_take
 
     d = tmp_path_factory.mktemp("tiny") / "take"
     write_take(d, n_frames=24, size=(96, 96), seed=0)

@@ -18,7 +18,7 @@ import yaml
 from click.testing import CliRunner
 from conftest import snapshot
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 
 
 @dataclass
@@ -326,7 +326,7 @@ CASES = {f.__name__[2:]: f for f in list(globals().values()) if callable(f) and 
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_bad_input_is_one_line_and_touches_nothing(name, take, monkeypatch):
     if name == "unexpected_exception":
-        import retarget_cli.select as sel
+        import retarget_cli.stages.select as sel
 
         monkeypatch.setattr(sel, "select_keys", lambda *a, **k: 1 / 0)
     case = CASES[name](take)
@@ -347,7 +347,7 @@ def test_bad_input_is_one_line_and_touches_nothing(name, take, monkeypatch):
 
 
 def test_traceback_only_with_vv(take, monkeypatch):
-    import retarget_cli.select as sel
+    import retarget_cli.stages.select as sel
 
     monkeypatch.setattr(sel, "select_keys", lambda *a, **k: 1 / 0)
     args = ["select", str(take / "out/landmarks.npz"), "-o", str(take / "out/k.json")]

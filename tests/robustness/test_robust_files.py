@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 
 
 def _cli(*args):
@@ -69,9 +69,9 @@ def _pose_args(take, keys, out):
 
 
 def test_pose_keys_failing_midway_leaves_no_orphan_key_objs(take, monkeypatch):
-    import retarget_cli.io.obj as obj
+    import retarget_cli.stages.pose as pose
 
-    real, calls = obj.write_obj, []
+    real, calls = pose.write_obj, []
 
     def fail_on_the_fifth(*a, **k):
         calls.append(1)
@@ -79,7 +79,7 @@ def test_pose_keys_failing_midway_leaves_no_orphan_key_objs(take, monkeypatch):
             raise OSError(28, "No space left on device", str(a[0]))
         return real(*a, **k)
 
-    monkeypatch.setattr(obj, "write_obj", fail_on_the_fifth)
+    monkeypatch.setattr(pose, "write_obj", fail_on_the_fifth)
     out = take / "out" / "t2"
     res = _cli(*_pose_args(take, take / "out/keys.json", out))
     assert res.exit_code == 1 and "No space left" in res.stderr

@@ -89,7 +89,7 @@ _keys = st.sampled_from(["output_dir", "seed", "track", "select", "decompose", "
     st.binary(max_size=200)))
 def test_config_reader(data):
     from retarget_cli.config import load_config
-    from retarget_cli.pipeline import stage_params
+    from retarget_cli.run.pipeline import stage_params
 
     _survives(lambda p: load_config(p, stage_params()), "config.yaml", data)
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from retarget_cli.apply import (
+from retarget_cli.methods.blending import (
     apply_transforms,
     blend_regions,
     falloff_mask,
@@ -9,7 +9,7 @@ from retarget_cli.apply import (
     mesh_edges,
     region_weights,
 )
-from retarget_cli.track.head import apply_similarity, fit_similarity
+from retarget_cli.methods.tracking.head import apply_similarity, fit_similarity
 
 
 def grid(nx=30, ny=20, step=0.1):
@@ -133,7 +133,7 @@ def test_head_motion_recovers_a_known_similarity(reference):
 
 
 def test_morph_targets_reproduce_the_region_blend():
-    from retarget_cli.apply import blend_keys, morph_targets, morph_weights
+    from retarget_cli.methods.blending import blend_keys, morph_targets, morph_weights
 
     rng = np.random.default_rng(2)
     V, F = grid(8, 6)

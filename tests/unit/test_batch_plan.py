@@ -1,10 +1,10 @@
-"""Shot-list parsing and validation (retarget_cli.batch): no Dask, nothing runs."""
+"""Shot-list parsing and validation (retarget_cli.batch.plan): no Dask, nothing runs."""
 
 import shlex
 
 import pytest
 
-from retarget_cli.batch import format_table, load_plan
+from retarget_cli.batch.plan import format_table, load_plan
 from retarget_cli.errors import ConfigError, InputError
 
 
@@ -76,7 +76,7 @@ def test_table_has_a_row_per_shot_with_its_error():
 def test_missing_dask_is_a_one_line_error_naming_the_extra(monkeypatch):
     import sys
 
-    from retarget_cli.stages import batch as engine
+    from retarget_cli.batch import engine
 
     monkeypatch.setitem(sys.modules, "distributed", None)
     with pytest.raises(ConfigError, match=r"extra batch .*retarget\[batch\]"):

@@ -2,7 +2,7 @@ import pytest
 
 from retarget_cli.config import load_config
 from retarget_cli.errors import ConfigError
-from retarget_cli.pipeline import STAGES, resolve, stage_params
+from retarget_cli.run.pipeline import STAGES, resolve, stage_params
 
 
 def write(tmp_path, text):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from retarget_cli import config
-from retarget_cli.docs_config import COMMAND, declared_stages, render_config_reference
+from retarget_cli.cli.docs_config import COMMAND, declared_stages, render_config_reference
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "config.md"
 
@@ -42,7 +42,7 @@ def test_reference_shows_defaults_ranges_and_links():
 def test_a_changed_declaration_changes_the_reference(monkeypatch):
     import dataclasses
 
-    from retarget_cli import docs_config
+    from retarget_cli.cli import docs_config
 
     stages = docs_config.declared_stages()
     help_text, params = stages["select"]

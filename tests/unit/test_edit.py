@@ -6,7 +6,8 @@ import pytest
 from scipy.optimize import lsq_linear
 from scipy.spatial.transform import Rotation
 
-from retarget_cli.edit import (
+from retarget_cli.errors import ShapeError
+from retarget_cli.methods.editing import (
     AttenuateEdit,
     DirectManipulation,
     Pin,
@@ -19,9 +20,8 @@ from retarget_cli.edit import (
     ease_profile,
     fit_orthographic,
 )
-from retarget_cli.errors import ShapeError
-from retarget_cli.rig import BlendshapeRig
-from retarget_cli.synth import expression_curves, landmark_rig, overlapping_rig
+from retarget_cli.methods.rig import BlendshapeRig
+from retarget_cli.synth.take import expression_curves, landmark_rig, overlapping_rig
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.apply import blend_keys, blend_regions, region_weights
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.io.exr import read_vat
 from retarget_cli.io.landmarks import Landmarks, save_landmarks
 from retarget_cli.io.obj import format_obj, read_obj
 from retarget_cli.io.stagefiles import save_weights, write_targets
+from retarget_cli.methods.blending import blend_keys, blend_regions, region_weights
 from retarget_cli.stages import run_apply
 
 T, FPS = 9, 24.0
@@ -227,7 +227,7 @@ def test_cli_apply_formats_and_errors(scene):
 def test_config_checks_formats_before_anything_runs(tmp_path):
     from retarget_cli.config import load_config
     from retarget_cli.errors import ConfigError
-    from retarget_cli.pipeline import stage_params
+    from retarget_cli.run.pipeline import stage_params
 
     cfg = tmp_path / "c.yaml"
     cfg.write_text("apply: {weights: w.npz, targets: t.yaml, formats: [obj, glb]}\n")

@@ -5,10 +5,10 @@ import pytest
 
 from retarget_cli.errors import InputError, ShapeError
 from retarget_cli.io.atomic import load_npz
-from retarget_cli.io.facemark import lbf_model_text, load_facemark, save_lbf_model
+from retarget_cli.io.facemark_model import lbf_model_text, load_facemark, save_lbf_model
 from retarget_cli.io.video import VideoReader
-from retarget_cli.track.facemark import face_box, track_facemark, train_lbf
-from retarget_cli.track.lk import FaceLostError
+from retarget_cli.methods.tracking.facemark import face_box, track_facemark, train_lbf
+from retarget_cli.methods.tracking.lk import FaceLostError
 
 #: Small cascade so the suite stays quick (the defaults are larger; see the README for their accuracy).
 FAST = dict(stages=3, trees=2, depth=3, copies=4, candidates=50)

@@ -1,9 +1,9 @@
-"""Landmark filters (retarget_cli.track.filter): RTS smoother and One-Euro filter."""
+"""Landmark filters (retarget_cli.methods.tracking.filter): RTS smoother and One-Euro filter."""
 
 import numpy as np
 import pytest
 
-from retarget_cli.track.filter import filter_points, motion_model, one_euro, rts_smooth
+from retarget_cli.methods.tracking.filter import filter_points, motion_model, one_euro, rts_smooth
 
 
 def _dense_map(y, c, model, q, r, prior_var):

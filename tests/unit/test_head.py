@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from retarget_cli.track.head import apply_similarity, estimate_head, fit_similarity, invert_similarity
+from retarget_cli.methods.tracking.head import apply_similarity, estimate_head, fit_similarity, invert_similarity
 
 
 def similarity(s, theta, tx, ty):

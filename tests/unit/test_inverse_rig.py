@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from retarget_cli.errors import InputError, ShapeError
-from retarget_cli.inverse_rig import (
+from retarget_cli.methods.inverse_rig import (
     SOLVERS,
     QuadraticRig,
     mm_coefficients,

@@ -7,7 +7,7 @@ import pytest
 from retarget_cli import stages
 from retarget_cli.config import REQUIRED
 from retarget_cli.errors import ParameterError
-from retarget_cli.stages.detect import run_annotate
+from retarget_cli.stages.annotate import run_annotate
 
 RUNNERS = [stages.run_track, stages.run_train_tracker, stages.run_import, run_annotate, stages.run_select,
            stages.run_decompose, stages.run_pose, stages.run_auto_pose, stages.run_apply, stages.run_edit,

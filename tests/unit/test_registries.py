@@ -9,9 +9,9 @@ from retarget_cli.io.exports import EXPORTS, Exporter, format_choices
 from retarget_cli.io.landmarks import load_landmarks
 from retarget_cli.io.obj import format_obj, read_obj
 from retarget_cli.io.stagefiles import save_weights, write_targets
-from retarget_cli.pipeline import STAGES
+from retarget_cli.methods.tracking import TRACKERS, TrackerSpec, method_choices, method_help
+from retarget_cli.run.pipeline import STAGES
 from retarget_cli.stages import run_apply, run_track
-from retarget_cli.track import TRACKERS, TrackerSpec, method_choices, method_help
 
 
 def _still(frames, annotations, *, progress, downscale, still_confidence):

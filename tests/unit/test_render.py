@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from retarget_cli.errors import ShapeError
-from retarget_cli.render import Camera, Light, MeshRenderer, View, rasterize, triangulate, vertex_normals
+from retarget_cli.methods.render import Camera, Light, MeshRenderer, View, rasterize, triangulate, vertex_normals
 
 
 def test_known_triangle_covers_exactly_the_pixel_centres_inside():
@@ -201,7 +201,7 @@ def test_drawing_last_frames_visible_triangles_first_changes_no_pixel(camera):
         got, want = ours.render(v), fresh.render(v)
         assert got.tobytes() == want.tobytes()
         if first is not None:
-            from retarget_cli.render import _hidden, _scan, _setup
+            from retarget_cli.methods.render import _hidden, _scan, _setup
 
             _, xy, depth = ours.view.project(v)
             c = _setup(xy, depth, ours.tris, 96, 80)

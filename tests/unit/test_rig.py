@@ -7,9 +7,9 @@ import pytest
 
 from retarget_cli.errors import InputError, RetargetError, ShapeError
 from retarget_cli.io.obj import format_obj, read_obj
-from retarget_cli.io.stagefiles import read_rig
-from retarget_cli.rig import BlendshapeRig, parse_axes
-from retarget_cli.synth import overlapping_rig
+from retarget_cli.io.rig import load_rig, read_rig
+from retarget_cli.methods.rig import BlendshapeRig, parse_axes
+from retarget_cli.synth.take import overlapping_rig
 
 SAMPLE = Path(__file__).resolve().parents[2] / "sample_data"
 
@@ -35,7 +35,7 @@ def test_sample_rig_yaml_still_reads_with_defaults():
 
 
 def test_sample_rig_evaluates_as_neutral_plus_deltas():
-    rig = BlendshapeRig.load(SAMPLE / "rig.yaml")
+    rig = load_rig(SAMPLE / "rig.yaml")
     neutral = read_obj(SAMPLE / "target" / "neutral.obj").vertices
     shapes = [read_obj(p).vertices for p in read_rig(SAMPLE / "rig.yaml").shapes.values()]
     w = np.linspace(0.1, 0.8, rig.n_sliders)
@@ -63,8 +63,8 @@ def test_delta_and_absolute_shape_files_give_the_same_rig(tmp_path):
     r = overlapping_rig(n_shapes=4, grid=(8, 6), seed=2)
     (tmp_path / "a").mkdir()
     (tmp_path / "d").mkdir()
-    a = BlendshapeRig.load(write_rig(tmp_path / "a", r))
-    d = BlendshapeRig.load(write_rig(tmp_path / "d", r, shapes_are="delta"))
+    a = load_rig(write_rig(tmp_path / "a", r))
+    d = load_rig(write_rig(tmp_path / "d", r, shapes_are="delta"))
     w = np.array([0.2, 0.5, 0.0, 1.0])
     np.testing.assert_allclose(a.evaluate(w), d.evaluate(w), atol=2e-6)  # OBJ coordinates carry 6 decimals
 
@@ -73,7 +73,7 @@ def test_ranges_library_and_correctives(tmp_path):
     r = overlapping_rig(n_shapes=3, grid=(5, 5))
     extra = ("range: 1.5\nranges: {s01: [-0.5, 1]}\nlibrary:\n  ah: {s00: 0.8}\n  oo: {s01: 0.5, s02: 0.25}\n"
              "correctives:\n  - {shapes: [s00, s01], obj: c.obj}\n")
-    rig = BlendshapeRig.load(write_rig(tmp_path, r, extra=extra))
+    rig = load_rig(write_rig(tmp_path, r, extra=extra))
     np.testing.assert_array_equal(rig.lower, [0, -0.5, 0])
     np.testing.assert_array_equal(rig.upper, [1.5, 1, 1.5])
     assert rig.correctives == [{"shapes": ["s00", "s01"], "obj": "c.obj"}]  # kept raw for the inverse rig
@@ -105,10 +105,10 @@ def test_shapes_that_do_not_share_topology_are_rejected(tmp_path):
     other = np.array(r["faces"])[:, [0, 2, 1, 3]]
     (tmp_path / "shapes" / "s01.obj").write_bytes(format_obj(r["vertices"] + r["deltas"][1], other))
     with pytest.raises(InputError, match=r"s01.obj: face lines differ from .*neutral.obj"):
-        BlendshapeRig.load(path)
+        load_rig(path)
     (tmp_path / "shapes" / "s01.obj").write_bytes(format_obj(r["vertices"][:-1], r["faces"][:1]))
     with pytest.raises(InputError, match=r"rig.yaml: shapes.s01 \(s01.obj\): 15 vertices, the neutral neutral.obj has 16"):
-        BlendshapeRig.load(path)
+        load_rig(path)
 
 
 def test_vertex_ids_outside_the_mesh_are_rejected():

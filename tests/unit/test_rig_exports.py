@@ -9,13 +9,13 @@ import pytest
 from click.testing import CliRunner
 from usd_readback import usd_blendshape_frames
 
-from retarget_cli.cli import main
+from retarget_cli.cli.commands import main
 from retarget_cli.errors import InputError
 from retarget_cli.io.editfiles import read_animation, write_animation
 from retarget_cli.io.landmarks import Landmarks, save_landmarks
 from retarget_cli.io.livelink import ARKIT_SHAPES, COLUMNS, canonical_name, parse_timecode, timecode
-from retarget_cli.io.stagefiles import read_rig, save_weights, write_targets
-from retarget_cli.rig import BlendshapeRig
+from retarget_cli.io.rig import load_rig, read_rig
+from retarget_cli.io.stagefiles import save_weights, write_targets
 from retarget_cli.stages import run_apply
 
 T, FPS = 12, 30.0
@@ -69,7 +69,7 @@ def rig_scene(tmp_path):
     import yaml
 
     (r / "rig.yaml").write_text(yaml.safe_dump({"neutral": "neutral.obj", "shapes": shapes}, sort_keys=False))
-    rig = BlendshapeRig.load(r / "rig.yaml")
+    rig = load_rig(r / "rig.yaml")
     K = 4
     frames = np.array([0, 3, 6, 9])
     S = rng.uniform(0, 1, size=(K, len(SLIDERS)))

@@ -7,9 +7,9 @@ import pytest
 
 from retarget_cli.errors import InputError
 from retarget_cli.io import obj as objmod
-from retarget_cli.io import rigcache
-from retarget_cli.io.vertexmap import read_vertex_map
-from retarget_cli.rig import BlendshapeRig
+from retarget_cli.io.rig import cache as rigcache
+from retarget_cli.io.rig import load_rig
+from retarget_cli.io.rig.vertexmap import read_vertex_map
 
 
 def _same_rig(a, b):
@@ -34,8 +34,8 @@ def _cache_files(d):
 def test_cache_hit_is_bit_identical_to_a_cold_load(small_take, tmp_path, monkeypatch):
     rig_yaml = small_take / "rig.yaml"
     cache = tmp_path / "cache"
-    cold = BlendshapeRig.load(rig_yaml)
-    first = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    cold = load_rig(rig_yaml)
+    first = load_rig(rig_yaml, cache_dir=cache)
     files = _cache_files(cache)
     assert len(files) == 1 and files[0].startswith("rig-") and files[0].endswith(".npz")
 
@@ -43,7 +43,7 @@ def test_cache_hit_is_bit_identical_to_a_cold_load(small_take, tmp_path, monkeyp
         raise AssertionError(f"read_obj({path}) called on a cache hit")
 
     monkeypatch.setattr(rigcache, "read_obj", no_parse)
-    hit = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    hit = load_rig(rig_yaml, cache_dir=cache)
     for r in (first, hit):
         _same_rig(cold, r)
     out_cold, out_hit = tmp_path / "cold.obj", tmp_path / "hit.obj"
@@ -58,26 +58,26 @@ def test_cache_hit_is_bit_identical_to_a_cold_load(small_take, tmp_path, monkeyp
 def test_changing_one_shape_invalidates_the_cache(small_take, tmp_path):
     rig_yaml = small_take / "rig.yaml"
     cache = tmp_path / "cache"
-    before = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    before = load_rig(rig_yaml, cache_dir=cache)
     shape = small_take / "target" / "shapes" / "smile.obj"
     text = shape.read_bytes()
     first_v = text.index(b"\nv ") + 1
     end = text.index(b"\n", first_v)
     shape.write_bytes(text[:first_v] + b"v 9 9 9" + text[end:])
-    after = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    after = load_rig(rig_yaml, cache_dir=cache)
     assert len(_cache_files(cache)) == 2
     i = after.index["smile"]
     assert not np.array_equal(before.D[:, i] if not before.sparse else before.D[:, [i]].toarray(),
                               after.D[:, i] if not after.sparse else after.D[:, [i]].toarray())
-    _same_rig(after, BlendshapeRig.load(rig_yaml))
+    _same_rig(after, load_rig(rig_yaml))
 
 
 def test_changing_rig_yaml_invalidates_the_cache(small_take, tmp_path):
     rig_yaml = small_take / "rig.yaml"
     cache = tmp_path / "cache"
-    BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    load_rig(rig_yaml, cache_dir=cache)
     rig_yaml.write_text(rig_yaml.read_text().replace("- 1\n", "- 2\n", 1))
-    r = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    r = load_rig(rig_yaml, cache_dir=cache)
     assert len(_cache_files(cache)) == 2 and np.all(r.upper == 2)
 
 
@@ -85,7 +85,7 @@ def test_changing_rig_yaml_invalidates_the_cache(small_take, tmp_path):
 def test_a_corrupt_cache_is_rebuilt_with_a_warning(small_take, tmp_path, caplog, damage):
     rig_yaml = small_take / "rig.yaml"
     cache = tmp_path / "cache"
-    cold = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    cold = load_rig(rig_yaml, cache_dir=cache)
     (file,) = cache.iterdir()
     data = file.read_bytes()
     if damage == "truncate":
@@ -96,12 +96,12 @@ def test_a_corrupt_cache_is_rebuilt_with_a_warning(small_take, tmp_path, caplog,
         arrays = dict(np.load(file))
         arrays["key"] = np.array("0" * 64)
         rigcache.savez(file, arrays, compress=False)
-    with caplog.at_level(logging.WARNING, logger="retarget_cli.io.rigcache"):
-        again = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    with caplog.at_level(logging.WARNING, logger="retarget_cli.io.rig.cache"):
+        again = load_rig(rig_yaml, cache_dir=cache)
     assert any("unusable" in r.getMessage() for r in caplog.records)
     _same_rig(cold, again)
     assert file.read_bytes() == data  # rebuilt
-    _same_rig(cold, BlendshapeRig.load(rig_yaml, cache_dir=cache))
+    _same_rig(cold, load_rig(rig_yaml, cache_dir=cache))
 
 
 def test_vertex_count_error_names_the_shape_entry_before_any_parse(small_take, monkeypatch):
@@ -117,7 +117,7 @@ def test_vertex_count_error_names_the_shape_entry_before_any_parse(small_take, m
 
     monkeypatch.setattr(rigcache, "read_obj", no_parse)
     with pytest.raises(InputError) as exc:
-        BlendshapeRig.load(rig_yaml)
+        load_rig(rig_yaml)
     msg = str(exc.value)
     assert "shapes.jaw_open (jaw_open.obj)" in msg and f"{n - 1} vertices" in msg
     assert f"the neutral neutral.obj has {n}" in msg and msg.startswith(str(rig_yaml))
@@ -130,7 +130,7 @@ def test_rig_yaml_landmarks_are_checked_against_the_neutral(small_take, monkeypa
     monkeypatch.setattr(rigcache, "read_obj", lambda p: pytest.fail("parsed before the landmark check"))
     with pytest.raises(InputError, match=rf"landmarks\[2\] = {n + 5} is not a vertex of the neutral neutral.obj "
                                          rf"\({n} vertices"):
-        BlendshapeRig.load(rig_yaml)
+        load_rig(rig_yaml)
 
 
 def test_rig_yaml_landmark_map_file_is_read_and_in_the_key(small_take, tmp_path):
@@ -138,10 +138,10 @@ def test_rig_yaml_landmark_map_file_is_read_and_in_the_key(small_take, tmp_path)
     (small_take / "map.txt").write_text("0\n5\n7\n")
     rig_yaml.write_text(rig_yaml.read_text() + "landmarks: map.txt\n")
     cache = tmp_path / "cache"
-    r = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    r = load_rig(rig_yaml, cache_dir=cache)
     np.testing.assert_array_equal(r.landmarks[1], [0, 5, 7])
     (small_take / "map.txt").write_text("0\n5\n8\n")
-    r = BlendshapeRig.load(rig_yaml, cache_dir=cache)
+    r = load_rig(rig_yaml, cache_dir=cache)
     np.testing.assert_array_equal(r.landmarks[1], [0, 5, 8])
     assert len(_cache_files(cache)) == 2
 
@@ -179,10 +179,10 @@ def test_vertex_map_reads_both_forms(tmp_path):
 
 def test_ict_rig_cached_load_matches_cold(ict_rig_dir, tmp_path):
     rig_yaml = ict_rig_dir / "rig.yaml"
-    cold = BlendshapeRig.load(rig_yaml, cache_dir=tmp_path / "cache")
+    cold = load_rig(rig_yaml, cache_dir=tmp_path / "cache")
     assert cold.n_vertices == 26719 and cold.n_sliders == 57 and cold.landmarks[1].shape == (68,)
     assert cold.landmarks[0].tolist() == list(range(68))
-    hit = BlendshapeRig.load(rig_yaml, cache_dir=tmp_path / "cache")
+    hit = load_rig(rig_yaml, cache_dir=tmp_path / "cache")
     _same_rig(cold, hit)
     ref = objmod._parse_lines(rig_yaml.parent / "jawOpen.obj", (rig_yaml.parent / "jawOpen.obj").read_bytes())
     i = hit.index["jawOpen"]
@@ -196,8 +196,8 @@ def test_ict_rig_cached_load_matches_cold(ict_rig_dir, tmp_path):
 
 def test_solve_rig_reader_uses_the_cache_with_correctives(tmp_path, monkeypatch):
     from retarget_cli.io.obj import format_obj
-    from retarget_cli.io.rigfiles import read_quadratic_rig
-    from retarget_cli.synth import overlapping_rig
+    from retarget_cli.io.rig.inverse import read_quadratic_rig
+    from retarget_cli.synth.take import overlapping_rig
 
     r = overlapping_rig(n_shapes=3, grid=(5, 5))
     d = tmp_path / "rig"

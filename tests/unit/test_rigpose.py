@@ -4,10 +4,17 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from retarget_cli.edit import auto_pose
-from retarget_cli.rig import BlendshapeRig
-from retarget_cli.rigpose import delta_pose, fit_sliders, infer_exclusive, rig_curves, rig_region_masks, slider_owners
-from retarget_cli.synth import expression_curves, landmark_rig
+from retarget_cli.methods.editing import auto_pose
+from retarget_cli.methods.rig import BlendshapeRig
+from retarget_cli.methods.rigpose import (
+    delta_pose,
+    fit_sliders,
+    infer_exclusive,
+    rig_curves,
+    rig_region_masks,
+    slider_owners,
+)
+from retarget_cli.synth.take import expression_curves, landmark_rig
 
 
 def _rigs(seed=1, identity=0.08):
@@ -98,7 +105,7 @@ def test_rig_curves_are_the_weighted_key_sliders_and_reproduce_the_key_blend():
 def test_slider_owners_and_masks_from_the_rig():
     L, character, _ = _rigs()
     v = L["landmark_vertices"]
-    from retarget_cli.rigpose import project, rig_landmarks
+    from retarget_cli.methods.rigpose import project, rig_landmarks
 
     _, DL = rig_landmarks(character, v)
     B = project(DL, np.eye(3))

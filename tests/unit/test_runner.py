@@ -5,7 +5,7 @@ import json
 import pytest
 
 from retarget_cli.config import load_config
-from retarget_cli.pipeline import ORDER, STAGES, manifest_path, run_pipeline, stage_params
+from retarget_cli.run.pipeline import ORDER, STAGES, manifest_path, run_pipeline, stage_params
 
 
 def run(take, **kw):
@@ -92,7 +92,7 @@ def test_force_and_ranges(small_take):
 
 def test_code_change_invalidates_manifests(small_take, monkeypatch):
     run(small_take)
-    from retarget_cli import manifest
+    from retarget_cli.run import manifest
 
     monkeypatch.setattr(manifest, "code_fingerprint", lambda: "something-else")
     _, status = run(small_take)

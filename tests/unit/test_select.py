@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from retarget_cli.select import pca_extremes, select_keys
+from retarget_cli.methods.selection import pca_extremes, select_keys
 
 
 def take_from_poses(n_frames=200, seed=0):

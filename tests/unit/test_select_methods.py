@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from retarget_cli.decompose import reconstruction_error
-from retarget_cli.select import (
+from retarget_cli.methods.decomposition import reconstruction_error
+from retarget_cli.methods.selection import (
     METHODS,
     _centre,
     _check,

@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 import yaml
 
-from retarget_cli import synth
 from retarget_cli.io.annotations import read_pts
 from retarget_cli.io.atomic import load_npz
 from retarget_cli.io.landmarks import load_landmarks
 from retarget_cli.io.obj import check_same_topology, read_obj
-from retarget_cli.synth import (
+from retarget_cli.methods.tracking.head import RIGID_68, estimate_head
+from retarget_cli.synth import take as synth
+from retarget_cli.synth.take import (
     EXPRESSIONS,
     expression_curves,
     head_motion,
@@ -25,7 +26,6 @@ from retarget_cli.synth import (
     target_rig,
     write_take,
 )
-from retarget_cli.track.head import RIGID_68, estimate_head
 
 E = {name: i for i, name in enumerate(EXPRESSIONS)}
 
@@ -350,7 +350,7 @@ def test_write_take_is_byte_identical_for_the_same_seed(takes):
 
 
 def test_region_masks_partition_the_moving_vertices():
-    from retarget_cli.synth import REGION_EXPRESSIONS, target_region_masks
+    from retarget_cli.synth.take import REGION_EXPRESSIONS, target_region_masks
 
     rig = target_rig()
     masks = target_region_masks(rig)

@@ -4,12 +4,12 @@ import inspect
 
 import numpy as np
 
-from retarget_cli.decompose import decompose
-from retarget_cli.regions import REGION_PRESETS_68
-from retarget_cli.select import select_keys
+from retarget_cli.methods.decomposition import decompose
+from retarget_cli.methods.regions import REGION_PRESETS_68
+from retarget_cli.methods.selection import select_keys
 from retarget_cli.stages import run_decompose
-from retarget_cli.stages.filtering import FILTER_DEFAULTS, apply_filter
-from retarget_cli.synth import (
+from retarget_cli.stages._landmark_filter import FILTER_DEFAULTS, apply_filter
+from retarget_cli.synth.take import (
     EXPRESSIONS,
     apply_similarity,
     expression_curves,
@@ -47,7 +47,7 @@ def _amplitude(x, truth, t0=200):
 
 
 def test_three_frame_blink_keeps_90_percent_through_filter_and_temporal_solver():
-    from retarget_cli.track.head import estimate_head
+    from retarget_cli.methods.tracking.head import estimate_head
 
     curves, head, pts = _take()
     conf = np.ones(pts.shape[:2])
@@ -91,7 +91,7 @@ def _one_point_blink(seed):
 
 
 def test_an_event_of_one_point_is_released_by_the_per_point_test():
-    from retarget_cli.decompose import temporal_events
+    from retarget_cli.methods.decomposition import temporal_events
 
     peaks = {}
     for pf in (np.inf, 5.0):  # inf: the region-wide test alone

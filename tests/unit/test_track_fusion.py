@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from retarget_cli.track.detect import FlowFusion, FusionSettings, eye_opening
+from retarget_cli.methods.tracking.detect import FlowFusion, FusionSettings, eye_opening
 
 SAMPLE = Path(__file__).resolve().parents[2] / "sample_data"
 HAS_DLIB = importlib.util.find_spec("dlib") is not None and importlib.util.find_spec("face_recognition_models") \
@@ -95,7 +95,7 @@ def test_default_tracker_follows_a_synthetic_blink_that_lk_misses(tmp_path):
     what it detects (test_fusion_keeps_the_detectors_blink).
     """
     from retarget_cli.io.landmarks import load_landmarks
-    from retarget_cli.pipeline import stage_params
+    from retarget_cli.run.pipeline import stage_params
     from retarget_cli.stages import run_track
 
     assert {p.name: p.default for p in stage_params()["track"]}["method"] == "auto"
@@ -128,7 +128,7 @@ def test_fusion_keeps_the_detectors_blink():
     least 95 % of the raw detector's (both measured like the default-tracker test above).
     """
     from retarget_cli.io.frames import FrameSource
-    from retarget_cli.track.detect import Detector, track_detect
+    from retarget_cli.methods.tracking.detect import Detector, track_detect
 
     with FrameSource(str(SAMPLE / "face.mp4"), start=40, end=100, gray=True) as src:
         frames = list(src)
@@ -150,7 +150,7 @@ def test_track_cli_no_fuse_keeps_the_raw_detections(tmp_path):
     """`retarget track --no-fuse --filter none` gives the detector's own points; the default fuses them."""
     from click.testing import CliRunner
 
-    from retarget_cli.cli import main
+    from retarget_cli.cli.commands import main
     from retarget_cli.io.landmarks import load_landmarks
 
     runs = {}

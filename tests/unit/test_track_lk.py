@@ -4,9 +4,15 @@ import pytest
 from retarget_cli.errors import ShapeError
 from retarget_cli.io.atomic import load_npz
 from retarget_cli.io.video import VideoReader
-from retarget_cli.track.head import RIGID_68
-from retarget_cli.track.lk import FaceLostError, _match_lighting, _outer_lip_offsets, normalize_annotations, track_lk
-from retarget_cli.track.prior import ShapePrior
+from retarget_cli.methods.tracking.head import RIGID_68
+from retarget_cli.methods.tracking.lk import (
+    FaceLostError,
+    _match_lighting,
+    _outer_lip_offsets,
+    normalize_annotations,
+    track_lk,
+)
+from retarget_cli.methods.tracking.prior import ShapePrior
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +65,7 @@ def test_lk_follows_a_sudden_jump_beyond_the_prediction(clip, caplog):
     shift = np.array([30.0, -20.0])
     M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
     moved = [cv2.warpAffine(f, M, (f.shape[1], f.shape[0]), borderMode=cv2.BORDER_REPLICATE) for f in frames[10:20]]
-    with caplog.at_level(logging.DEBUG, logger="retarget_cli.track.lk"):
+    with caplog.at_level(logging.DEBUG, logger="retarget_cli.methods.tracking.lk"):
         pts, conf = track_lk(frames[:10] + moved, truth[0])
     expect = np.concatenate([truth[:10], truth[10:20] + shift])
     err = np.linalg.norm(pts - expect, axis=2)
@@ -112,7 +118,7 @@ def _rot_scale(h):
 
 
 def test_head_motion_recovered_from_tracked_clip(clip, small_take_template):
-    from retarget_cli.track.head import estimate_head
+    from retarget_cli.methods.tracking.head import estimate_head
 
     frames, truth = clip
     true_head = load_npz(small_take_template / "truth_landmarks.npz")["head"].astype(np.float64)
@@ -125,7 +131,7 @@ def test_head_motion_recovered_from_tracked_clip(clip, small_take_template):
 
 
 def test_smooth_head_reduces_jitter_and_keeps_identity(small_take_template):
-    from retarget_cli.track.head import smooth_head
+    from retarget_cli.methods.tracking.head import smooth_head
 
     true_head = load_npz(small_take_template / "truth_landmarks.npz")["head"].astype(np.float64)
     rng = np.random.default_rng(0)
@@ -142,7 +148,7 @@ def test_smooth_head_reduces_jitter_and_keeps_identity(small_take_template):
 
 
 def test_eigenpoints_error_bound_from_five_annotations(clip):
-    from retarget_cli.track.eigenpoints import track_eigenpoints
+    from retarget_cli.methods.tracking.eigenpoints import track_eigenpoints
 
     frames, truth = clip
     ann = {f: truth[f] for f in (0, 12, 24, 36, 48)}
@@ -155,7 +161,7 @@ def test_eigenpoints_error_bound_from_five_annotations(clip):
     # iterating the pre-warp matters: from a start misaligned by 4 px the iterations converge
     import cv2
 
-    from retarget_cli.track.eigenpoints import EigenPoints, _affine
+    from retarget_cli.methods.tracking.eigenpoints import EigenPoints, _affine
 
     grays = [cv2.cvtColor(frames[f], cv2.COLOR_BGR2GRAY) for f in ann]
     model = EigenPoints(grays, np.stack(list(ann.values())))
@@ -169,8 +175,8 @@ def test_eigenpoints_error_bound_from_five_annotations(clip):
 
 
 def test_markers_track_painted_dots(tmp_path_factory):
-    from retarget_cli.synth import write_take
-    from retarget_cli.track.markers import detect_dots, track_markers
+    from retarget_cli.methods.tracking.markers import detect_dots, track_markers
+    from retarget_cli.synth.take import write_take
 
     d = tmp_path_factory.mktemp("dots")
     write_take(d, n_frames=40, size=(192, 192), seed=2, dots=1.4)
@@ -198,7 +204,7 @@ def test_markers_track_painted_dots(tmp_path_factory):
 @pytest.fixture(scope="module")
 def takes_150(tmp_path_factory):
     """150-frame 192x192 takes (seed 2): the default one and the stressed one of bench/track.py."""
-    from retarget_cli.synth import write_take
+    from retarget_cli.synth.take import write_take
 
     out = {}
     stress = dict(noise=5.0, blur=1.0, jpeg=40, light=2.5, speed=2.5)  # bench/track.py STRESS
@@ -242,7 +248,7 @@ def test_lk_stressed_clip_error_bound(takes_150):
 def test_regularization_fills_in_along_edges_only():
     # A point on a horizontal edge (information in y only) displaced in x and y:
     # y stays as measured, x follows its neighbours (which did not move).
-    from retarget_cli.track.lk import _Reference, _regularize
+    from retarget_cli.methods.tracking.lk import _Reference, _regularize
 
     img = np.zeros((64, 64), np.uint8)
     img[32:, :] = 200  # horizontal edge at y = 31.5
@@ -296,7 +302,7 @@ def test_match_lighting_recovers_gain_and_ramp():
 
 
 def test_outer_lip_offsets_keep_windows_on_their_own_lip():
-    from retarget_cli.synth import place_neutral, source_neutral
+    from retarget_cli.synth.take import place_neutral, source_neutral
 
     P = source_neutral()
     small = P @ place_neutral((192, 192))[:, :2].T  # thin lips: 10 px apart at the centre

@@ -6,7 +6,7 @@ import pytest
 
 from retarget_cli.io.atomic import load_npz
 from retarget_cli.io.video import VideoReader
-from retarget_cli.track.lk import _ANCHOR_LEVELS, _Box, _Reference, flow_forward_backward, track_lk
+from retarget_cli.methods.tracking.lk import _ANCHOR_LEVELS, _Box, _Reference, flow_forward_backward, track_lk
 
 TOP, LEFT, SIZE = 40, 300, (640, 480)
 

@@ -1,10 +1,10 @@
-"""retarget_cli.truth: a run's meshes and landmarks against a synthetic take's ground truth."""
+"""retarget_cli.see.truth: a run's meshes and landmarks against a synthetic take's ground truth."""
 
 import numpy as np
 import pytest
 
 from retarget_cli.errors import InputError, ShapeError
-from retarget_cli.truth import load_truth_animation, mesh_against_truth, points_against_truth
+from retarget_cli.see.truth import load_truth_animation, mesh_against_truth, points_against_truth
 
 
 def test_mesh_error_and_jitter_ratio_on_known_animations():
@@ -55,8 +55,8 @@ def test_load_truth_needs_the_target_array(tmp_path):
 
 def test_report_passes_over_a_truth_npz_beside_the_video_that_is_not_a_synthetic_truth(tmp_path, caplog):
     from retarget_cli.io.atomic import savez
-    from retarget_cli.io.runfiles import RunFiles
-    from retarget_cli.report import find_truth
+    from retarget_cli.run.runfiles import RunFiles
+    from retarget_cli.see.report import find_truth
 
     run = RunFiles(root=tmp_path / "out", video=tmp_path / "face.mp4")
     assert find_truth(run) == (None, None)                      # nothing beside the video

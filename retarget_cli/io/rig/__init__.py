@@ -1,0 +1,15 @@
+"""Reading a character rig: one home for everything a rig is made of.
+
+- :mod:`.spec`: ``rig.yaml`` (:func:`read_rig`, :class:`Rig`);
+- :mod:`.load`: the rig's meshes as a :class:`~retarget_cli.methods.rig.BlendshapeRig` (:func:`load_rig`);
+- :mod:`.cache`: parsed meshes kept between runs, keyed by the files' sha256;
+- :mod:`.vertexmap`: landmark-to-vertex maps;
+- :mod:`.inverse`: the quadratic correctives of an inverse-rig (``solve-rig``).
+
+A new rig file format is a module here that returns the same :class:`~retarget_cli.methods.rig.BlendshapeRig`.
+"""
+
+from .load import load_rig
+from .spec import RIG_KEYS, Rig, read_rig
+
+__all__ = ["RIG_KEYS", "Rig", "load_rig", "read_rig"]

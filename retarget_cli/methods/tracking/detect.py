@@ -1,0 +1,543 @@
+"""Per-frame pretrained landmark detection: dlib's HOG face detector and 68-point shape predictor.
+
+The 68 Multi-PIE landmarks are placed on every frame by dlib's ensemble of
+regression trees (Kazemi & Sullivan 2014) shipped in ``face_recognition_models``
+as ``shape_predictor_68_face_landmarks.dat``. Unlike the flow trackers, nothing
+anchors a frame to an annotated one, so eyelids close and lips open as the
+predictor sees them.
+
+The face box of each frame comes from the previous frame's landmarks: the
+HOG detector (Dalal & Triggs 2005, as in ``dlib.get_frontal_face_detector``)
+runs only on the first frame and when the landmarks look lost; its box is
+remembered relative to the eye corners and nose (an offset and a size in
+units of the eye-corner span, turned with the eye line), so the box handed
+to the predictor keeps the framing it was trained with.
+
+Coordinates: dlib's part ``(x, y)`` is the integer index of a pixel, whose
+centre is ``(x, y)`` in the 0-based pixel-centre convention of
+``landmarks.npz``, so they are used as they are (``.pts`` files add 1).
+
+dlib is imported lazily: without the optional extra ``detect`` the first
+call raises a one-line :class:`~retarget_cli.errors.ConfigError` saying which
+extra to install.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import ConfigError, ShapeError
+from .facemark import _from_scaled, _scaled, _to_scaled
+from .lk import FaceLostError, _Box
+
+log = logging.getLogger(__name__)
+
+#: What to install for this module.
+INSTALL_HINT = "pip install 'retarget[detect]' (the optional extra 'detect': dlib-bin and face_recognition_models)"
+
+#: Points whose centre and eye-corner span place the face box (eye corners and nose).
+BOX_POINTS = (27, 28, 29, 30, 31, 33, 35, 36, 39, 42, 45)
+
+#: Detector box relative to :data:`BOX_POINTS` when no detection calibrated it (an annotated first
+#: frame): offset of the box centre in eye-corner spans (x along the eye line, y down) and side.
+#: Mean over every 20th frame of the three shared clips (d3, d9, d12), rounded.
+DEFAULT_BOX = (0.0, 0.2, 2.35)
+
+
+def detector_installed() -> bool:
+    """Whether the optional extra ``detect`` (dlib and its model package) can be imported."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in ("dlib", "face_recognition_models"))
+
+
+class Detector:
+    """dlib's frontal face detector and 68-point shape predictor, loaded from installed packages.
+
+    Parameters
+    ----------
+    upsample : int
+        Times the frame is upsampled before face detection when no face is found at its size
+        (HOG finds faces of about 80 pixels and up).
+
+    Raises
+    ------
+    ConfigError
+        If dlib or the model package is not installed (names the extra to install).
+    """
+
+    n_points = 68
+
+    def __init__(self, upsample: int = 1):
+        try:
+            import dlib
+            import face_recognition_models
+        except ImportError as exc:
+            raise ConfigError(f"the landmark detector needs {exc.name or 'dlib'}: {INSTALL_HINT}") from None
+        self._dlib = dlib
+        self.upsample = int(upsample)
+        self.faces = dlib.get_frontal_face_detector()
+        self.predictor = dlib.shape_predictor(face_recognition_models.pose_predictor_model_location())
+
+    def detect(self, gray) -> np.ndarray:
+        """Face boxes ``(K, 4)`` as ``[left, top, width, height]`` in pixels, strongest first."""
+        gray = np.ascontiguousarray(gray)
+        for up in range(self.upsample + 1):
+            rects, scores, _ = self.faces.run(gray, up, 0.0)
+            if len(rects):
+                order = np.argsort(-np.asarray(scores), kind="stable")
+                return np.array([[rects[i].left(), rects[i].top(), rects[i].width(), rects[i].height()]
+                                 for i in order], np.float64)
+        return np.zeros((0, 4))
+
+    def landmarks(self, gray, box) -> np.ndarray:
+        """The 68 landmarks ``(68, 2)`` (0-based pixel centres) of the face in *box* ``[left, top, w, h]``."""
+        x, y, w, h = (int(round(v)) for v in box)
+        rect = self._dlib.rectangle(x, y, x + max(w, 1) - 1, y + max(h, 1) - 1)
+        shape = self.predictor(np.ascontiguousarray(gray), rect)
+        return np.array([[p.x, p.y] for p in shape.parts()], np.float64)
+
+
+def _gray(frame) -> np.ndarray:
+    import cv2
+
+    frame = np.asarray(frame)
+    if frame.ndim == 3:
+        frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    if frame.dtype != np.uint8:
+        raise ShapeError(f"frames: expected uint8 images, got {frame.dtype}")
+    return frame
+
+
+def choose_face(boxes, previous=None) -> int | None:
+    """Index of the face to follow among *boxes* ``(K, 4)``: the largest, or the one nearest *previous*.
+
+    Nearest means the smallest centre distance to the *previous* box ``[left, top, w, h]``;
+    None when *boxes* is empty.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    if not len(boxes):
+        return None
+    if previous is None:
+        return int(np.argmax(boxes[:, 2] * boxes[:, 3]))
+    p = np.asarray(previous, np.float64)
+    d = np.linalg.norm(boxes[:, :2] + boxes[:, 2:] / 2 - (p[:2] + p[2:] / 2), axis=1)
+    return int(np.argmin(d))
+
+
+def _frame_of(P) -> tuple[np.ndarray, float, np.ndarray]:
+    """Centre, eye-corner span and rotation (2, 2) (eye line to x) of the landmarks *P* (68, 2)."""
+    c = P[list(BOX_POINTS)].mean(0)
+    d = (P[42] + P[45]) / 2 - (P[36] + P[39]) / 2
+    s = float(np.hypot(*d))
+    if s < 1e-6:
+        return c, 1e-6, np.eye(2)
+    u = d / s
+    return c, s, np.array([[u[0], -u[1]], [u[1], u[0]]])
+
+
+def calibrate_box(points, box) -> tuple[float, float, float]:
+    """The detector *box* ``[left, top, w, h]`` relative to the landmarks *points* (68, 2).
+
+    Returns
+    -------
+    (ox, oy, side) : offset of the box centre along and across the eye line and the box side,
+        in eye-corner spans (see :func:`box_from_points`).
+    """
+    c, s, R = _frame_of(np.asarray(points, np.float64))
+    box = np.asarray(box, np.float64)
+    o = R.T @ (box[:2] + box[2:] / 2 - c) / s
+    return float(o[0]), float(o[1]), float(box[2:].mean() / s)
+
+
+def box_from_points(points, calibration=DEFAULT_BOX) -> np.ndarray:
+    """Square face box ``[left, top, w, h]`` for the landmarks *points* (68, 2), framed like a detection.
+
+    The inverse of :func:`calibrate_box`: centre ``c + s R (ox, oy)`` and side
+    ``side * s``, with ``c`` the mean of :data:`BOX_POINTS`, ``s`` the
+    eye-corner span and ``R`` the rotation of the eye line.
+    """
+    ox, oy, side = calibration
+    c, s, R = _frame_of(np.asarray(points, np.float64))
+    centre = c + s * (R @ np.array([ox, oy]))
+    w = side * s
+    return np.array([centre[0] - w / 2, centre[1] - w / 2, w, w])
+
+
+def detect_landmarks(gray, *, detector: Detector, previous=None):
+    """Find a face on one frame and place its 68 landmarks.
+
+    Parameters
+    ----------
+    gray : ndarray (H, W) or (H, W, 3), uint8
+    detector : Detector
+    previous : ndarray (4,), optional
+        Box ``[left, top, w, h]`` to stay near among several faces (default: the largest face).
+
+    Returns
+    -------
+    points : ndarray (68, 2) or None
+        None when no face is found.
+    box : ndarray (4,) or None
+        The detected face box.
+    """
+    g = _gray(gray)
+    boxes = detector.detect(g)
+    i = choose_face(boxes, previous)
+    if i is None:
+        return None, None
+    return detector.landmarks(g, boxes[i]), boxes[i]
+
+
+@dataclass(frozen=True)
+class FusionSettings:
+    """Noise model of :class:`FlowFusion`, lengths in eye-corner spans ``s`` of the face.
+
+    Attributes
+    ----------
+    sigma_detection : float
+        Standard deviation of a detected point at confidence 1; a point of confidence ``c`` has
+        variance ``(sigma_detection s)**2 / c``.
+    sigma_motion : float
+        Standard deviation per frame of the motion that optical flow does not explain.
+    flow_gain : float
+        The flow's forward-backward error ``e`` (pixels) adds ``(flow_gain e)**2`` to the motion variance.
+    gate : float
+        Innovation gate in standard deviations: a detection farther than this from the flow's
+        prediction is a change of shape the flow missed (a blink, a lip closure), and the
+        prediction's variance is raised to the innovation's so the detection is followed.
+    lid_lip_motion : float
+        *sigma_motion* of the eye and inner-lip points (:data:`LID_LIP_POINTS`), which lean on
+        the detections: flow there follows the skin under a closing lid, not its edge.
+    """
+
+    sigma_detection: float = 0.012
+    sigma_motion: float = 0.01
+    flow_gain: float = 1.0
+    gate: float = 3.0
+    lid_lip_motion: float = 0.1
+
+
+#: The eyes' and inner lips' points (0-based Multi-PIE ids 36-47, 60-67): lids close over the eye and
+#: lips over the mouth, where optical flow follows the skin's texture rather than the edge, so these
+#: points lean on the detections (blinks keep the detector's amplitude; the corners move with the lids
+#: so the measured openings stay consistent). Chosen on the shared clips: see bench/track_real.py.
+LID_LIP_POINTS = tuple(range(36, 48)) + tuple(range(60, 68))
+
+
+#: Variance standing for "no information" (finite so that gains stay defined).
+_NO_INFORMATION = 1e12
+
+
+class FlowFusion:
+    """Per-point Kalman filter and Rauch-Tung-Striebel smoother joining detections and optical flow.
+
+    Each landmark ``x_t`` (2,) follows the frame-to-frame motion that pyramidal
+    Lucas-Kanade flow measures between consecutive frames, ``u_t``, plus white
+    noise: ``x_t = x_{t-1} + u_t + w_t``, ``w_t ~ N(0, q_t I)``; the detector
+    measures it, ``D_t = x_t + v_t``, ``v_t ~ N(0, r_t I)``. Per frame
+    (:meth:`step`), the forward pass predicts ``x^-_t = x_{t-1} + u_t``,
+    ``P^-_t = P_{t-1} + q_t``, and updates with the gain
+    ``K = P^-_t / (P^-_t + r_t)``: ``x_t = x^-_t + K (D_t - x^-_t)``,
+    ``P_t = (1 - K) P^-_t``. :meth:`smooth` runs the Rauch-Tung-Striebel
+    backward pass of this model (transition identity):
+    ``x^s_t = x_t + G_t (x^s_{t+1} - x^-_{t+1})``, ``G_t = P_t / P^-_{t+1}``.
+
+    The detector's per-frame jitter is averaged away along the flow, the
+    flow's drift is pulled back to the detections, and where a detection
+    leaves the prediction by more than ``gate`` standard deviations (the flow
+    lost an eyelid or a lip) the prediction's variance is raised to the
+    innovation's, so the gain is close to 1 and the smoother does not blur
+    across the event: eyelids close and lips part as the detector sees them.
+    A point whose flow fails (forward-backward error infinite) moves with the
+    median flow of the others and takes the detection as it is.
+
+    Parameters
+    ----------
+    settings : FusionSettings, optional
+    window, levels : int
+        Lucas-Kanade window side and pyramid levels.
+    """
+
+    def __init__(self, settings: FusionSettings | None = None, *, window: int = 21, levels: int = 3):
+        import cv2
+
+        self.settings = settings or FusionSettings()
+        self.window, self.levels = int(window), int(levels)
+        self._lk = dict(winSize=(self.window, self.window), maxLevel=self.levels,
+                        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+        self._g = None
+        self._x = None
+        self._P = None
+        self._xf, self._Pf, self._xp, self._Pp = [], [], [], []
+
+    def _flow(self, g) -> tuple[np.ndarray, np.ndarray]:
+        """Flow of the current estimate from the previous frame to *g*.
+
+        Returns the displacement (L, 2) and the motion variance ``q`` (L,). Both frames are cropped
+        to the points' box (:class:`~retarget_cli.methods.tracking.lk._Box`), so the cost does not grow with
+        the video's resolution.
+        """
+
+        x = self._x
+        box = _Box(x, (g.shape[1], g.shape[0]), self.window, self.levels)
+        moved, fb = box.flow(box.crop(self._g), box.crop(g), x.astype(np.float32).reshape(-1, 1, 2), self._lk)
+        ok = np.isfinite(fb)
+        u = moved.reshape(-1, 2).astype(np.float64) - x
+        if not ok.any():
+            return np.zeros_like(x), np.full(len(x), _NO_INFORMATION)
+        u[~ok] = np.median(u[ok], axis=0)
+        _, span, _ = _frame_of(x)
+        sigma = np.full(len(x), self.settings.sigma_motion)
+        if len(x) == 68:
+            sigma[list(LID_LIP_POINTS)] = self.settings.lid_lip_motion
+        q = (sigma * span) ** 2 + (self.settings.flow_gain * np.where(ok, fb, 0.0)) ** 2
+        return u, np.where(ok, q, _NO_INFORMATION)
+
+    def step(self, g, detection, confidence, *, exact: bool = False, reset: bool = False) -> np.ndarray:
+        """Filter one frame.
+
+        Parameters
+        ----------
+        g : ndarray (H, W), uint8
+            The frame the detection was made on.
+        detection : ndarray (L, 2) or None
+            Detected points; None when the frame has no face (the flow's prediction is kept).
+        confidence : ndarray (L,) or None
+            Per-point confidence in (0, 1] of *detection*.
+        exact : bool
+            The detection is an annotation: taken as it is.
+        reset : bool
+            The face was found afresh: forget the track (no flow from the previous frame).
+
+        Returns
+        -------
+        ndarray (L, 2)
+            The forward (causal) estimate of this frame.
+        """
+        st = self.settings
+        if self._x is None or reset:
+            if detection is None:
+                raise ShapeError("fusion: the first frame of a track needs a detection")
+            xp = np.asarray(detection, np.float64).copy()
+            Pp = np.full(len(xp), _NO_INFORMATION)
+        else:
+            u, q = self._flow(g)
+            xp, Pp = self._x + u, np.minimum(self._P + q, _NO_INFORMATION)
+        if detection is None:
+            x, P = xp, Pp
+        else:
+            D = np.asarray(detection, np.float64)
+            _, span, _ = _frame_of(D)
+            c = np.clip(np.asarray(confidence, np.float64), 1e-3, 1.0)
+            r = np.full(len(D), 1e-12) if exact else (st.sigma_detection * span) ** 2 / c
+            v = D - xp
+            m = 0.5 * (v * v).sum(axis=1)  # per-axis squared innovation
+            jump = m > st.gate ** 2 * (Pp + r)
+            Pp = np.where(jump, np.maximum(Pp, m), Pp)
+            K = Pp / (Pp + r)
+            x, P = xp + K[:, None] * v, (1.0 - K) * Pp
+        self._g, self._x, self._P = g, x, P
+        self._xf.append(x)
+        self._Pf.append(P)
+        self._xp.append(xp)
+        self._Pp.append(Pp)
+        return x
+
+    def smooth(self) -> np.ndarray:
+        """Rauch-Tung-Striebel estimates of every frame so far, shape (T, L, 2)."""
+        xf, Pf = np.stack(self._xf), np.stack(self._Pf)
+        xp, Pp = np.stack(self._xp), np.stack(self._Pp)
+        xs = xf.copy()
+        for t in range(len(xf) - 2, -1, -1):
+            G = Pf[t] / Pp[t + 1]
+            xs[t] = xf[t] + G[:, None] * (xs[t + 1] - xp[t + 1])
+        return xs
+
+
+def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: Detector | None = None,
+                 downscale: float = 1.0, tau: float = 0.05, max_jump: float = 0.5, max_disagreement: float = 0.08,
+                 lost_frames: int = 25, fuse: bool = True, fusion: FusionSettings | None = None, progress=None):
+    """Landmarks on every frame by the pretrained detector, the face box following the previous frame.
+
+    Per frame: the predictor fits the box of the previous frame's landmarks
+    (:func:`box_from_points`, calibrated on the last detection), then fits
+    again in the box of that fit; the second fit is kept. The confidence of
+    point ``i`` is ``exp(-d_i / (tau * s))`` with ``d_i`` the distance between
+    the two fits and ``s`` the eye-corner span. The landmarks look lost when
+    the median disagreement exceeds *max_disagreement* of ``s``, or the box
+    moved by more than *max_jump* of its side or changed its size by more
+    than that fraction; the face detector then runs on the whole frame (the
+    face nearest the previous box), as on the first frame. A frame with no
+    face keeps the previous landmarks (moved by the flow when *fuse*) with
+    confidence 0. Annotated frames return their annotation with confidence 1
+    and re-place the box. The confidences are the detector's, with or without
+    fusion.
+
+    Parameters
+    ----------
+    frames : iterable of ndarray (H, W) or (H, W, 3), uint8
+    annotations : dict of int to ndarray (68, 2), optional
+        Annotated frames by index in *frames* (0-based pixel centres).
+    detector : Detector, optional
+        Default: a new :class:`Detector`.
+    downscale : float
+        Detect and fit on frames scaled by this factor (0 < downscale <= 1); coordinates stay at full resolution.
+    tau, max_jump, max_disagreement : float
+    lost_frames : int
+        Raise :class:`~retarget_cli.methods.tracking.lk.FaceLostError` after this many frames in a row without a face.
+    fuse : bool
+        Join the detections with optical flow (:class:`FlowFusion`: a Kalman filter along the
+        flow and a Rauch-Tung-Striebel smoother over the take). False: the detections as they are,
+        each frame on its own.
+    fusion : FusionSettings, optional
+        Noise model of the fusion.
+    progress : callable, optional
+        Called with the frame index after each frame.
+
+    Returns
+    -------
+    points : ndarray (T, 68, 2), float64
+    confidence : ndarray (T, 68), float64
+        In [0, 1]; 0 where no face was found.
+
+    Raises
+    ------
+    FaceLostError
+        No face on the first frame (``frame`` 0, nothing tracked) or for *lost_frames* frames in a row.
+    """
+    ann = _checked_annotations(annotations, downscale)
+    det = detector or Detector()
+    k = float(downscale)
+    fuser = FlowFusion(fusion) if fuse else None
+    track = _DetectTrack(det, ann, k, fuser, tau=tau, max_jump=max_jump, max_disagreement=max_disagreement,
+                         lost_frames=lost_frames)
+    for t, frame in enumerate(frames):
+        track.frame(t, _scaled(_gray(frame), k))
+        if progress is not None:
+            progress(t)
+    if not track.pts:
+        raise ShapeError("frames: the sequence is empty")
+    out = np.stack(track.pts)
+    if fuser is not None:
+        out = _from_scaled(fuser.smooth(), k)
+    for t in ann:  # annotated frames exactly as given
+        if t < len(out):
+            out[t] = ann[t]
+    return out, np.clip(np.stack(track.conf), 0, 1)
+
+
+def _checked_annotations(annotations, downscale: float) -> dict[int, np.ndarray]:
+    """*downscale* checked and the annotations of :func:`track_detect` as float arrays (68, 2) by frame."""
+    if not 0 < downscale <= 1:
+        raise ShapeError(f"downscale: expected a value in (0, 1], got {downscale}")
+    ann = {int(t): np.asarray(P, np.float64) for t, P in (annotations or {}).items()}
+    for t, P in ann.items():
+        if P.shape != (68, 2):
+            raise ShapeError(f"annotations: frame {t} has shape {P.shape}; the detector places (68, 2) points")
+    return ann
+
+
+class _DetectTrack:
+    """State of :func:`track_detect` between frames (face box, frames without a face) and its per-frame step.
+
+    Landmarks are at the detection scale *k* inside and at full resolution in
+    :attr:`pts`; :attr:`conf` holds the confidences. Parameters as in
+    :func:`track_detect`.
+    """
+
+    def __init__(self, det, ann, k, fuser, *, tau, max_jump, max_disagreement, lost_frames):
+        self.det, self.ann, self.k, self.fuser = det, ann, k, fuser
+        self.tau, self.max_jump, self.max_disagreement, self.lost_frames = tau, max_jump, max_disagreement, lost_frames
+        self.calib, self.P_prev, self.box_prev, self.missing = DEFAULT_BOX, None, None, 0
+        self.pts: list[np.ndarray] = []
+        self.conf: list[np.ndarray] = []
+
+    def frame(self, t: int, g) -> None:
+        """Landmarks of frame *t* (grayscale at the detection scale) appended to :attr:`pts` and :attr:`conf`."""
+        P, c, fresh = None, None, False
+        if t in self.ann:
+            P, c, fresh = _to_scaled(self.ann[t], self.k), np.ones(68), True
+        elif self.P_prev is not None and self.missing == 0:
+            P, c = self._follow(t, g)
+        if P is None:
+            P, c = self._detect(g)
+            fresh = True
+        if P is None:
+            self._no_face(t, g)
+            return
+        self.missing = 0
+        self.P_prev, self.box_prev = P, box_from_points(P, self.calib)
+        if self.fuser is not None:
+            P = self.fuser.step(g, P, c, exact=t in self.ann, reset=fresh and t not in self.ann)
+        self.pts.append(_from_scaled(P, self.k))
+        self.conf.append(c)
+
+    def _follow(self, t: int, g):
+        """Fit twice from the previous frame's box: (points, confidence), or (None, None) when they look lost."""
+        det, calib = self.det, self.calib
+        box = box_from_points(self.P_prev, calib)
+        first = det.landmarks(g, box)
+        box1 = box_from_points(first, calib)
+        second = det.landmarks(g, box1)
+        _, s, _ = _frame_of(second)
+        d = np.linalg.norm(second - first, axis=1)
+        jump = np.linalg.norm((box1[:2] + box1[2:] / 2) - (box[:2] + box[2:] / 2)) / box[2]
+        grow = abs(np.log(box1[2] / box[2]))
+        if np.median(d) <= self.max_disagreement * s and jump <= self.max_jump and grow <= np.log1p(self.max_jump):
+            return second, np.exp(-d / (self.tau * s))
+        log.debug("frame %d: landmarks look lost (disagreement %.3f, jump %.2f); detecting the face",
+                  t, np.median(d) / s, jump)
+        return None, None
+
+    def _detect(self, g):
+        """The face detector on the whole frame (and the box recalibrated): (points, confidence), or (None, None)."""
+        det = self.det
+        found, fbox = detect_landmarks(g, detector=det, previous=self.box_prev)
+        if found is None:
+            return None, None
+        self.calib = calibrate_box(found, fbox)
+        again = det.landmarks(g, box_from_points(found, self.calib))
+        _, s, _ = _frame_of(again)
+        return found, np.exp(-np.linalg.norm(again - found, axis=1) / (self.tau * s))
+
+    def _no_face(self, t: int, g) -> None:
+        """Frame *t* has no face: keep the previous landmarks with confidence 0, or raise :class:`FaceLostError`."""
+        if t == 0:
+            raise FaceLostError("frame 0: no face found by the detector (annotate this frame by hand with --init, "
+                                "or start at another frame)", 0, np.zeros((0, 68, 2)),
+                                np.zeros((0, 68)))
+        self.missing += 1
+        if self.missing >= self.lost_frames:
+            f0 = t - self.missing + 1
+            raise FaceLostError(f"the face was lost from frame {f0}: no face found for {self.missing} frames "
+                                f"in a row", f0, np.stack(self.pts[:f0]), np.stack(self.conf[:f0]))
+        fuser = self.fuser
+        self.pts.append(self.pts[-1] if fuser is None else _from_scaled(fuser.step(g, None, None, exact=False), self.k))
+        self.conf.append(np.zeros(68))
+
+
+def eye_opening(points) -> np.ndarray:
+    """Mean lid gap over eye width of both eyes, per frame: points (T, 68, 2) -> (T,).
+
+    Left eye: ``(|p37 - p41| + |p38 - p40|) / 2 / |p36 - p39|`` (0-based ids), right eye the same with 42-47.
+    """
+    P = np.asarray(points, np.float64)
+    n = np.linalg.norm
+
+    def one(a, b, c, d, e, f):
+        return (n(P[..., b, :] - P[..., f, :], axis=-1) + n(P[..., c, :] - P[..., e, :], axis=-1)) / 2 / \
+            n(P[..., a, :] - P[..., d, :], axis=-1)
+
+    return (one(36, 37, 38, 39, 40, 41) + one(42, 43, 44, 45, 46, 47)) / 2
+
+
+def mouth_opening(points) -> np.ndarray:
+    """Inner-lip gap over inner mouth width, per frame: ``|p62 - p66| / |p60 - p64|`` (0-based ids); (T, 68, 2) -> (T,)."""
+    P = np.asarray(points, np.float64)
+    return np.linalg.norm(P[..., 62, :] - P[..., 66, :], axis=-1) / np.linalg.norm(P[..., 60, :] - P[..., 64, :],
+                                                                                      axis=-1)

@@ -1,0 +1,302 @@
+"""The pipeline's stages in order, and the up-to-date-aware runner behind ``retarget run``.
+
+Each stage is declared beside its runner (``STAGE`` in
+:mod:`retarget_cli.stages`): its inputs, outputs and settings
+(:class:`~retarget_cli.config.Param`). After a stage succeeds, its manifest
+(:mod:`retarget_cli.run.manifest`) records what it ran with; a later run skips the
+stage while all of it still matches, as make and DVC do.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+
+from .. import stages
+from ..config import (
+    REQUIRED,
+    Config,
+    Param,
+)
+from ..errors import ConfigError, InputError, RetargetError
+from ..io.atomic import guard_writes, remove_stale_parts
+from ..stages._common import Stage
+from .manifest import manifest_matches, write_manifest
+
+log = logging.getLogger(__name__)
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+#: The pipeline's stages in order; each is declared beside its runner in retarget_cli/stages/.
+STAGES: dict[str, Stage] = {
+    s.STAGE.name: s.STAGE
+    for s in (stages.track, stages.select, stages.decompose, stages.pose, stages.auto_pose, stages.apply)
+}
+
+ORDER = list(STAGES)
+
+
+
+
+#: Declared options of ``run``.
+RUN_PARAMS = [
+    Param("config", "input", str, help="The run's YAML config."),
+    Param("force", "setting", bool, False, "Rerun every selected stage even if it is up to date."),
+    Param("start", "setting", str, None, "First stage to consider.", nullable=True),
+    Param("stop", "setting", str, None, "Last stage to consider.", nullable=True),
+    Param("overrides", "setting", list, None,
+          "Override a config value (YAML syntax), e.g. --set select.k=8 or --set output_dir=/scratch/take01. "
+          "Repeatable.", nullable=True),
+    Param("no_cache", "setting", bool, False,
+          "Read rigs' OBJs every time instead of keeping them parsed in <output_dir>/.retarget/cache."),
+]
+
+
+def stage_params() -> dict[str, list[Param]]:
+    """Stage name to its parameter list (for :func:`retarget_cli.config.load_config`)."""
+    return {name: s.params for name, s in STAGES.items()}
+
+
+def _rel(path: Path, base: Path) -> str:
+    return os.path.relpath(path, base)
+
+
+def resolve(cfg: Config, name: str) -> dict:
+    """Keyword arguments for a stage's runner: paths made absolute, defaults and links filled.
+
+    Raises
+    ------
+    ConfigError
+        If a required key is missing and no earlier stage provides it.
+    """
+    stage = STAGES[name]
+    given = cfg.sections.get(name, {})
+    kw = {}
+    for p in stage.params:
+        v = given.get(p.name, p.default)
+        if p.kind == "input":
+            if p.name in given and v is not None:
+                kw[p.name] = v if v in p.words else cfg.base_dir / v
+                continue
+            linked = False
+            for link in (p.link or "").split("|") if p.link else ():
+                src, _, sub = link.partition("/")
+                lstage, lparam = src.split(".")
+                if lstage in cfg.sections:
+                    base = resolve(cfg, lstage)[lparam]
+                    kw[p.name] = base / sub if sub else base
+                    linked = True
+                    break
+            if linked:
+                continue
+            if v is REQUIRED:
+                sections = " or ".join(f"'{link.split('.')[0]}'" for link in p.link.split("|")) if p.link else ""
+                hint = f" (or add a {sections} section)" if p.link else ""
+                raise ConfigError(f"{cfg.path}: {name}.{p.name} is required{hint}")
+            kw[p.name] = None
+        elif p.kind == "output":
+            kw[p.name] = None if v is None else cfg.output_dir / v
+        else:
+            kw[p.name] = None if v is REQUIRED else v
+    if stage.uses_seed:
+        kw["seed"] = cfg.seed
+    if stage.uses_base_dir:
+        kw["base_dir"] = cfg.base_dir
+    return kw
+
+
+
+
+
+
+def _inputs(stage: Stage, kw: dict) -> list[Path]:
+    files = [f for p in stage.params if p.kind == "input" and kw[p.name] is not None and kw[p.name] not in p.words
+             for f in stage.expand_input(p.name, Path(kw[p.name]))]
+    for f in files:
+        if not f.exists():
+            raise InputError(f"{f}: input of stage '{stage.name}' not found")
+    return files + [Path(f) for f in stage.extra_inputs(kw)]
+
+
+def manifest_path(cfg: Config, name: str) -> Path:
+    """Stage *name*'s manifest: ``<output_dir>/.retarget/<name>.json``."""
+    return cfg.output_dir / ".retarget" / f"{name}.json"
+
+
+def _settings(stage: Stage, kw: dict, cfg: Config) -> dict:
+    out = {}
+    for k, v in kw.items():
+        out[k] = _rel(v, cfg.base_dir) if isinstance(v, Path) else v
+    return out
+
+
+
+
+
+
+def check_up_to_date(cfg: Config, name: str, kw: dict) -> tuple[bool, str]:
+    """Whether stage *name*'s manifest still matches; returns (ok, reason)."""
+    stage = STAGES[name]
+    return manifest_matches(manifest_path(cfg, name), settings=_settings(stage, kw, cfg),
+                            inputs=lambda: _inputs(stage, kw), base=cfg.base_dir)
+
+
+def cache_dir(cfg: Config) -> Path:
+    """Where a run keeps parsed rigs (:mod:`retarget_cli.io.rig.cache`): ``<output_dir>/.retarget/cache``."""
+    return cfg.output_dir / ".retarget" / "cache"
+
+
+def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = True) -> list[Path]:
+    """Run one stage and write its manifest after its outputs.
+
+    The manifest also records the stage's wall-clock run time (``seconds``,
+    for reports; not part of the up-to-date check). Stages that load a rig
+    get :func:`cache_dir` unless *cache* is False (the cache is not a setting
+    and not an output).
+    """
+    stage = STAGES[name]
+    inputs = _inputs(stage, kw)
+    call = dict(kw)
+    if stage.uses_progress and progress is not None:
+        call["progress"] = progress
+    if stage.uses_cache:
+        call["cache_dir"] = cache_dir(cfg) if cache else None
+    t0 = time.perf_counter()
+    outputs = stage.runner(**call)
+    seconds = round(time.perf_counter() - t0, 3)
+    write_manifest(manifest_path(cfg, name), name, settings=_settings(stage, kw, cfg), inputs=inputs,
+                   outputs=outputs, base=cfg.base_dir, seconds=seconds)
+    return outputs
+
+
+def select_stages(cfg: Config, start: str | None = None, stop: str | None = None) -> list[str]:
+    """Stages present in *cfg*, in pipeline order, restricted to ``start..stop``."""
+    names = [n for n in ORDER if n in cfg.sections]
+    if not names:
+        raise ConfigError(f"{cfg.path}: no stage sections; expected some of {', '.join(ORDER)}")
+    for label, s in (("--from", start), ("--until", stop)):
+        if s is not None and s not in names:
+            raise ConfigError(f"{label} {s}: not a stage of {cfg.path} (stages: {', '.join(names)})")
+    i = names.index(start) if start else 0
+    j = names.index(stop) + 1 if stop else len(names)
+    if i >= j:
+        raise ConfigError(f"--from {start} comes after --until {stop}")
+    return names[i:j]
+
+
+def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, progress=None,
+                 cache: bool = True) -> list[tuple]:
+    """Run the config's stages in order, skipping those that are up to date.
+
+    Every stage's arguments are resolved (and so checked) before any runs.
+    *cache* False: stages that load a rig parse its OBJs instead of using
+    :func:`cache_dir`.
+
+    Returns
+    -------
+    list of (stage, status, outputs)
+        *status* is ``"ran"`` or ``"skipped"``; *outputs* are the stage's
+        declared output paths (files or directories).
+    """
+    names = select_stages(cfg, start, stop)
+    resolved = {n: resolve(cfg, n) for n in names}
+    everything = dict(resolved)
+    for n in ORDER:
+        if n in cfg.sections and n not in everything:
+            try:
+                everything[n] = resolve(cfg, n)
+            except ConfigError:
+                pass
+    inputs = check_outputs(cfg, everything)
+    report = []
+    with guard_writes(roots=[cfg.output_dir], inputs=inputs, label=f"output_dir of {cfg.path}"):
+        remove_stale_parts(cfg.output_dir)
+        for n in names:
+            kw = resolved[n]
+            ok, why = (False, "--force") if force else check_up_to_date(cfg, n, kw)
+            declared = [kw[p.name] for p in STAGES[n].params if p.kind == "output" and kw[p.name] is not None]
+            if ok:
+                log.info("%s: up to date, skipped", n)
+                report.append((n, "skipped", declared))
+                continue
+            log.info("%s: running (%s)", n, why)
+            run_stage(cfg, n, kw, progress, cache=cache)
+            report.append((n, "ran", declared))
+    return report
+
+
+def _inside(path: Path, folders) -> bool:
+    return any(path == f or path.is_relative_to(f) for f in folders)
+
+
+def run_inputs(cfg: Config, resolved: dict) -> list[Path]:
+    """Every file the user gives the run (all stages'), resolved: no stage may write or delete one.
+
+    Inputs a stage takes from an earlier stage's output are not among them;
+    files a stage's input references (a rig's OBJs, a targets.yaml's keys)
+    are, unless they lie inside a declared output (key OBJs a run posed).
+    """
+    outs = [Path(kw[p.name]).resolve() for n, kw in resolved.items() for p in STAGES[n].params
+            if p.kind == "output" and kw.get(p.name) is not None]
+    files = [cfg.path.resolve()]
+    for n, kw in resolved.items():
+        stage, given = STAGES[n], cfg.sections.get(n, {})
+        for p in stage.params:
+            v = kw.get(p.name)
+            if p.kind != "input" or p.name not in given or v is None or v in p.words:
+                continue
+            try:
+                files += [Path(f).resolve() for f in stage.expand_input(p.name, Path(v))]
+            except (RetargetError, OSError, ValueError):
+                files.append(Path(v).resolve())
+        try:
+            extra = [Path(f).resolve() for f in stage.extra_inputs(kw)]
+        except (RetargetError, OSError, ValueError, KeyError, TypeError):
+            extra = []  # the stage reports an unreadable input itself
+        files += [f for f in extra if not _inside(f, outs)]
+    return list(dict.fromkeys(files))
+
+
+def check_outputs(cfg: Config, resolved: dict) -> list[Path]:
+    """Check every declared output before any stage runs: inside ``output_dir``, not an input of the run.
+
+    Returns
+    -------
+    list of Path
+        The run's inputs (:func:`run_inputs`), for the write guard.
+
+    Raises
+    ------
+    ConfigError
+        Naming the config key of the output.
+    """
+    inputs = run_inputs(cfg, resolved)
+    protected = set(inputs)
+    root = cfg.output_dir.resolve()
+    for n, kw in resolved.items():
+        given = cfg.sections.get(n, {})
+        for p in STAGES[n].params:
+            if p.kind != "output" or kw.get(p.name) is None:
+                continue
+            out = Path(kw[p.name]).resolve()
+            value = given.get(p.name, p.default)
+            if not _inside(out, [root]):
+                raise ConfigError(f"{cfg.path}: {n}.{p.name}: {value!r} lies outside output_dir ({root}); "
+                                  "outputs are paths inside output_dir")
+            if out in protected:
+                raise ConfigError(f"{cfg.path}: {n}.{p.name}: {value!r} is an input of this run; "
+                                  "choose another output name")
+    return inputs
