@@ -145,7 +145,7 @@ def weighted_row(T: int, repeat: int, K: int = 22) -> float:
     """In-process weighted NNLS against the scipy loop; returns the worst objective gap."""
     from scipy.optimize import nnls
 
-    from retarget_cli.methods.decomposition import _KERNEL_MIN_WORK_WEIGHTED, nnls_batched
+    from retarget_cli.methods.decomposition.boxqp import _KERNEL_MIN_WORK_WEIGHTED, nnls_batched
     from retarget_cli.methods.selection import select_keys
 
     X = take(T)
@@ -232,7 +232,8 @@ def process_row(T: int, repeat: int, K: int = 22) -> float:
 def main() -> None:
     from scipy.optimize import nnls
 
-    from retarget_cli.methods.decomposition import _KERNEL_MIN_WORK, cardinality, decompose, jitter, nnls_batched
+    from retarget_cli.methods.decomposition import cardinality, decompose, jitter, nnls_batched
+    from retarget_cli.methods.decomposition.boxqp import _KERNEL_MIN_WORK
     from retarget_cli.methods.selection import select_keys
 
     ap = argparse.ArgumentParser(description=__doc__)

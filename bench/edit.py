@@ -23,7 +23,8 @@ import time
 
 import numpy as np
 
-from retarget_cli.methods.editing import DEFAULT_ALPHA, DEFAULT_MU, DirectManipulation, small_blas
+from retarget_cli.methods.blas import small_blas
+from retarget_cli.methods.editing import DEFAULT_ALPHA, DEFAULT_MU, DirectManipulation
 from retarget_cli.methods.rig import BlendshapeRig
 from retarget_cli.synth.take import overlapping_rig
 

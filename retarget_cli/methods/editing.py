@@ -44,7 +44,8 @@ import numpy as np
 
 from .._validate import check_array
 from ..errors import ParameterError, ShapeError
-from .decomposition import box_qp, small_blas
+from .blas import small_blas
+from .decomposition import box_qp
 from .rig import BlendshapeRig, parse_axes
 
 log = logging.getLogger(__name__)

@@ -457,7 +457,7 @@ def test_cardinality_jitter_and_interpolation():
 
 
 def test_stacked_cholesky_solves_match_lapack():
-    from retarget_cli.methods.decomposition import _cholesky_solve_stacked
+    from retarget_cli.methods.decomposition.boxqp import _cholesky_solve_stacked
 
     rng = np.random.default_rng(21)
     m, n = 7, 200
@@ -482,7 +482,7 @@ def test_stacked_cholesky_solves_match_lapack():
 @pytest.mark.parametrize("bounds", [dict(), dict(upper=0.3), dict(sum_to=1.0), dict(upper=0.6, sum_to=1.0)])
 def test_box_qp_fast_paths_agree_with_lapack_path(bounds, compiled, monkeypatch):
     """The compiled kernel, the vectorised Cholesky and the Schur-complement start agree with plain LAPACK solves."""
-    from retarget_cli.methods import decomposition as dec
+    from retarget_cli.methods.decomposition import boxqp as dec
 
     rng = np.random.default_rng(22)
     mean = rng.uniform(50, 250, size=40)
@@ -500,7 +500,7 @@ def test_box_qp_fast_paths_agree_with_lapack_path(bounds, compiled, monkeypatch)
 
 def test_long_weighted_take_same_result_on_one_or_two_threads(monkeypatch):
     """The chunks of a long weighted take are fixed by size: solving them side by side changes nothing."""
-    import retarget_cli.methods.decomposition as dm
+    import retarget_cli.methods.decomposition.boxqp as dm
 
     rng = np.random.default_rng(5)
     K, T = 22, dm._KERNEL_MIN_WORK_WEIGHTED // 22 + 300  # compiled kernel, several chunks
@@ -522,7 +522,7 @@ def test_long_weighted_take_same_result_on_one_or_two_threads(monkeypatch):
 
 
 def test_prefetch_kernel_only_for_solves_that_use_it():
-    import retarget_cli.methods.decomposition as dm
+    import retarget_cli.methods.decomposition.boxqp as dm
 
     assert not dm.prefetch_kernel(dm._KERNEL_MIN_WORK_WEIGHTED - 1, weighted=True)
     assert not dm.prefetch_kernel(dm._KERNEL_MIN_WORK - 1, weighted=False)

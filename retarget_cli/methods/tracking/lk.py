@@ -33,7 +33,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from ...errors import FaceLostError, InputError, ShapeError  # noqa: F401  (FaceLostError re-exported)
-from ..decomposition import small_blas
+from ..blas import small_blas
 from .base import check_inside, flow_forward_backward, normalize_annotations  # noqa: F401  (public here too)
 from .base import to_gray as _gray
 from .head import default_rigid_points, fit_similarity
