@@ -2,7 +2,7 @@
 
 Every stage declares its parameters once (:class:`retarget_cli.config.Param`);
 this module renders them as Markdown, so the reference cannot drift from the
-code. ``tests/unit/test_docs_config.py`` fails when ``docs/config.md`` differs
+code. ``tests/unit/cli/test_docs_config.py`` fails when ``docs/config.md`` differs
 from :func:`render_config_reference`. Regenerate with::
 
     python -m retarget_cli.cli.docs_config > docs/config.md
@@ -25,7 +25,7 @@ _INTRO = f"""\
 # Config reference
 
 <!-- Generated from the Param declarations by `{COMMAND}`; do not edit by hand
-(tests/unit/test_docs_config.py fails when this file is stale). -->
+(tests/unit/cli/test_docs_config.py fails when this file is stale). -->
 
 A config is YAML with one section per stage; a stage runs when its section is
 present (`retarget run CONFIG`). Input paths are relative to the config file,

@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 #: Anjyo (2010) "set the regularization parameter α to a small number such as
 #: 0.1" for interactive drags, where the animator sees and corrects the soft
 #: constraint. In batch edits the pins should be met: on the 24-shape test rig
-#: (tests/unit/test_edit.py) the pinned vertices missed their targets by 13-14 %
+#: (tests/unit/methods/test_editing.py) the pinned vertices missed their targets by 13-14 %
 #: of the drag with 0.1, 1.6-2.5 % with 0.01 and 0.1-0.5 % with 0.001.
 DEFAULT_ALPHA = 0.01
 #: Lewis & Anjyo (2010): "a mild weight decay regularization term μ‖w‖², with μ = 0.001".
@@ -606,7 +606,7 @@ def fit_orthographic(X, Y, weights=None, *, iterations: int = 100, tol: float = 
 
 
 #: Auto-pose's α and μ: every landmark is pinned, so a weaker pull toward ``w0``.
-#: On the synthetic landmark rig (tests/unit/test_edit.py, frame 89 of seed 3)
+#: On the synthetic landmark rig (tests/unit/methods/test_editing.py, frame 89 of seed 3)
 #: α = 0.01, μ = 0.001 left a slider error of 0.022; 0.001 and 0.0001 left 0.0022.
 AUTO_POSE_ALPHA = 0.001
 AUTO_POSE_MU = 0.0001

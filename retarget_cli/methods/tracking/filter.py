@@ -220,7 +220,7 @@ def rts_smooth(points, confidence=None, *, model: str = "ca", process_noise: flo
         \\|x_0 - m_0\\|^2_{P_0^{-1}} + \\sum_t \\frac{c_t}{\\sigma^2} (y_t - H x_t)^2
         + \\sum_t \\frac{1}{s_t} \\|x_{t+1} - F x_t\\|^2_{Q^{-1}}
 
-    (``tests/unit/test_filter.py`` checks the two agree to 1e-8).
+    (``tests/unit/methods/tracking/test_filter.py`` checks the two agree to 1e-8).
 
     Edge preservation (*robust* ``k > 0``): the linear-Gaussian model
     smooths a blink's few frames of fast motion away. After each pass, the

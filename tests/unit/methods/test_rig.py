@@ -11,7 +11,7 @@ from retarget_cli.io.rig import load_rig, read_rig
 from retarget_cli.methods.rig import BlendshapeRig, parse_axes
 from retarget_cli.synth.take import overlapping_rig
 
-SAMPLE = Path(__file__).resolve().parents[2] / "sample_data"
+SAMPLE = Path(__file__).resolve().parents[3] / "sample_data"
 
 
 def write_rig(tmp_path, rig, *, shapes_are="absolute", extra="", faces=None):

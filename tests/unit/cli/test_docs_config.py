@@ -7,7 +7,7 @@ from pathlib import Path
 from retarget_cli import config
 from retarget_cli.cli.docs_config import COMMAND, declared_stages, render_config_reference
 
-DOC = Path(__file__).resolve().parents[2] / "docs" / "config.md"
+DOC = Path(__file__).resolve().parents[3] / "docs" / "config.md"
 
 
 def test_config_reference_is_up_to_date():

@@ -9,7 +9,7 @@ import pytest
 
 from retarget_cli.methods.tracking.detect import FlowFusion, FusionSettings, eye_opening
 
-SAMPLE = Path(__file__).resolve().parents[2] / "sample_data"
+SAMPLE = Path(__file__).resolve().parents[4] / "sample_data"
 HAS_DLIB = importlib.util.find_spec("dlib") is not None and importlib.util.find_spec("face_recognition_models") \
     is not None
 needs_dlib = pytest.mark.skipif(not HAS_DLIB, reason="needs the optional extra 'detect' (dlib-bin, "
