@@ -4,7 +4,7 @@ The ICT FaceKit (sample_data/ict: 57 shapes + neutral, 26,719 vertices,
 2.6 MB per OBJ) is unpacked to a temporary folder with its rig.yaml, then,
 in one run:
 
-1. **Rig load.** ``BlendshapeRig.load`` cold (no cache: every OBJ parsed by
+1. **Rig load.** ``load_rig`` (``retarget_cli.io.rig``) cold (no cache: every OBJ parsed by
    :func:`retarget_cli.io.obj.read_obj`), cold with a cache (parse + write
    ``rig-<key>.npz``) and cached (sha256 of every file + the NPZ), and the
    sha256 of the files alone. Peers over the same 58 files: the line-by-line

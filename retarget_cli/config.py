@@ -116,6 +116,100 @@ class Param:
             raise ConfigError(f"{where}: {value!r} is not {self.describe_range()}{extra}")
 
 
+#: A :class:`Flag` field left to what the :class:`Param` says.
+UNSET = object()
+
+
+@dataclass(frozen=True)
+class Flag:
+    """How one declared :class:`Param` appears on a command line; only what differs from the default is given.
+
+    By default a Param ``name`` is the option ``--name-with-dashes`` (``--name/--no-name`` for a bool) with
+    the Param's type, range or choices, default and help.
+
+    Attributes
+    ----------
+    name : str
+        The Param's name (also the runner's keyword).
+    decls : tuple of str
+        Option strings instead of the default (``("-k",)``, ``("-o", "--output")``).
+    argument : bool
+        A positional argument; *nargs* -1 takes any number, *required* False makes it optional.
+    path : {"file", "folder", "path", "out", "existing"}, optional
+        A path: a file (not a folder), a folder, either, an output that may be a folder, or one that exists.
+    value : str, optional
+        A syntax the command line parses into the value: ``size`` (``WxH``), ``indices`` (``27-31,33``),
+        ``frames`` (``0,120`` or ``0-300:60``), ``region`` (``NAME[=SPEC][:K]``), ``mask`` (``REGION=FILE``), ``xyz`` (``X,Y,Z``), ``text`` (a string the
+        command reads itself);
+        *value_args* are its options as ``(key, value)`` pairs.
+    metavar, multiple, show_default, default, help
+        As click's options; *default* and *help* replace the Param's.
+    """
+
+    name: str
+    decls: tuple = ()
+    argument: bool = False
+    nargs: int = 1
+    required: bool | None = None
+    path: str | None = None
+    value: str | None = None
+    value_args: tuple = ()
+    metavar: str | None = None
+    multiple: bool = False
+    show_default: bool = True
+    default: Any = UNSET
+    help: str | None = None
+
+
+@dataclass(frozen=True)
+class Command:
+    """A ``retarget`` command, declared beside the code it runs; the CLI builds every command from these.
+
+    Attributes
+    ----------
+    name : str
+        The command (``pose-keys``).
+    help : str
+        Its help text (click's docstring conventions: the first sentence is the summary, ``\\b`` keeps a block).
+    params : callable
+        ``params() -> list of Param``: the declarations its flags name (read at each use: a registry such as
+        :data:`~retarget_cli.methods.tracking.TRACKERS` may add settings after import).
+    flags : tuple of (Flag or str)
+        The arguments and options in the order of ``--help``; a str is a Param name with the default Flag.
+    run : callable
+        ``run(values, out) -> result``: *values* maps each flag's name to its parsed value; *out* is the
+        console (``out.echo(line)`` on stdout, ``out.say(line)`` on stderr unless quiet, ``out.progress``
+        the progress-bar factory, ``out.quiet``, ``out.debug``). Raises the tool's errors
+        (:class:`~retarget_cli.errors.UsageError` for an unusable command-line value).
+    show : callable, optional
+        ``show(result, out)``: what the command prints; the default prints each path of *result* on a line.
+    guarded : bool
+        Writes pass the write guard: only inside the folders of the outputs named (Params of kind
+        ``output``), never onto an input.
+    folder_output : bool
+        ``--output`` names a folder the command writes inside (not a file).
+    """
+
+    name: str
+    help: str
+    params: Callable
+    flags: tuple
+    run: Callable
+    show: Callable | None = None
+    guarded: bool = True
+    folder_output: bool = False
+
+    def param(self, name: str) -> Param:
+        """The declared :class:`Param` *name*."""
+        return next(p for p in self.params() if p.name == name)
+
+
+def show_paths(result, out) -> None:
+    """The default :attr:`Command.show`: each written path on its own line."""
+    for path in result:
+        out.echo(str(path))
+
+
 # --------------------------------------------------------------------------- type coercion (Param.check)
 
 
@@ -308,11 +402,13 @@ def yaml_problem(exc) -> str:
     return " ".join(str(getattr(exc, "problem", None) or exc).split()) + where
 
 
-def unknown_key_error(where: str, key: str, valid) -> ConfigError:
+def unknown_key_error(where: str, key: str, valid, error=ConfigError) -> Exception:
+    """An unknown key as one line with the closest valid key (or the list); *error*: the class (an input
+    file's reader passes :class:`~retarget_cli.errors.InputError`)."""
     hint = closest(key, valid)
     if hint:
-        return ConfigError(f"{where}: unknown key {key!r}; did you mean {hint!r}?")
-    return ConfigError(f"{where}: unknown key {key!r}; valid keys: {', '.join(sorted(valid))}")
+        return error(f"{where}: unknown key {key!r}; did you mean {hint!r}?")
+    return error(f"{where}: unknown key {key!r}; valid keys: {', '.join(sorted(valid))}")
 
 
 #: Top-level config keys that are not stage sections.
@@ -527,3 +623,9 @@ def validate_params(params):
         return runner
 
     return decorate
+
+
+def output_flag(default=None, help: str = "Output file.", required: bool = True) -> Flag:
+    """The ``-o/--output`` flag of a command (a file, or a folder for a command with ``folder_output``)."""
+    return Flag("output", decls=("-o", "--output"), path="out", default=default, help=help,
+                required=required, show_default=default is not None)

@@ -24,7 +24,27 @@ class InputError(RetargetError, ValueError):
 
 
 class ConfigError(RetargetError, ValueError):
-    """A configuration file or option is invalid."""
+    """A configuration file or option is invalid: a usage error, exit status 2 as for a bad command-line value."""
+
+    exit_status = 2
+
+
+class UsageError(RetargetError, ValueError):
+    """A command-line value the command cannot use (exit status 2, shown as the CLI shows its own usage errors).
+
+    Attributes
+    ----------
+    param_hint : str or None
+        The option it concerns (``"--region"``); None for a clash between options.
+    bad_value : bool
+        The value of one option is wrong (``Invalid value for '--region': ...``), rather than the usage.
+    """
+
+    exit_status = 2
+
+    def __init__(self, message, param_hint: str | None = None, bad_value: bool = True):
+        super().__init__(message)
+        self.param_hint, self.bad_value = param_hint, bad_value
 
 
 class ParameterError(RetargetError, ValueError):

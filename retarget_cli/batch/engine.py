@@ -25,7 +25,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..config import Param, load_config
-from ..errors import ConfigError, InputError, RetargetError
+from ..errors import InputError, MissingExtraError, RetargetError
 from ..io.atomic import load_npz, write_json, write_text
 from ..io.stagefiles import load_weights
 from ..run.pipeline import ORDER, manifest_path, resolve, run_pipeline, stage_params
@@ -74,7 +74,7 @@ def _distributed():
     try:
         import distributed
     except ImportError:
-        raise ConfigError("retarget batch needs Dask: install the extra batch "
+        raise MissingExtraError("retarget batch needs Dask: install the extra batch "
                           "(pip install 'retarget[batch]', included by make)") from None
     return distributed
 

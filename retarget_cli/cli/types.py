@@ -1,4 +1,4 @@
-"""Click parameter types shared by the commands: an image size and a list of landmark indices."""
+"""Click parameter types for the value syntaxes of the command line: sizes, index lists, frames, regions, masks, vectors."""
 
 from __future__ import annotations
 
@@ -47,3 +47,100 @@ class IndexList(click.ParamType):
         except ValueError:
             self.fail(f"expected indices such as 27-31,36,39, got {value!r}", param, ctx)
         return out
+
+
+class FrameList(click.ParamType):
+    """``0,120,240`` or inclusive ranges ``a-b`` with an optional step ``a-b:s`` to a list of frame numbers."""
+
+    name = "LIST"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, list):
+            return value
+        out = []
+        for tok in str(value).replace(" ", "").split(","):
+            if not tok:
+                continue
+            try:
+                if "-" in tok:
+                    rng, _, st = tok.partition(":")
+                    a, b = (int(v) for v in rng.split("-"))
+                    out += list(range(a, b + 1, int(st) if st else 1))
+                else:
+                    out.append(int(tok))
+            except ValueError:
+                self.fail(f"expected frame numbers such as 0,120 or 0-300:60, got {tok!r}", param, ctx)
+        if not out:
+            self.fail("give at least one frame", param, ctx)
+        return out
+
+
+class RegionSpec(click.ParamType):
+    """``NAME``, ``NAME=all`` or ``NAME=a-b,c,...`` (inclusive ranges), each optionally ``:K``, to (name, spec).
+
+    The spec is None (a preset by name), ``"all"``, a list of landmark ids, or ``{"points": ..., "k": K}``.
+    """
+
+    name = "NAME[=SPEC][:K]"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        spec = str(value)
+        head, colon, kk = spec.rpartition(":") if ":" in spec else (spec, "", "")
+        name, sep, body = head.partition("=")
+        try:
+            if not name or (sep and not body):
+                raise ValueError
+            k = int(kk) if colon else None
+            if k is not None and k < 1:
+                raise ValueError
+            if not sep:
+                pts = None
+            elif body == "all":
+                pts = "all"
+            else:
+                pts = []
+                for part in body.split(","):
+                    lo, _, hi = part.partition("-")
+                    pts += list(range(int(lo), int(hi or lo) + 1))
+        except ValueError:
+            self.fail(f"expected NAME, NAME=all or NAME=a-b,c,... optionally followed by :K, got {spec!r}", param, ctx)
+        return name, (pts if k is None else {"points": pts, "k": k})
+
+
+class MaskSpec(click.ParamType):
+    """``REGION=FILE`` to (region, file)."""
+
+    name = "REGION=FILE"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        region, sep, path = str(value).partition("=")
+        if not sep or not region or not path:
+            self.fail(f"expected REGION=FILE, got {value!r}", param, ctx)
+        return region, path
+
+
+class Vector3(click.ParamType):
+    """``X,Y,Z`` to a list of three floats."""
+
+    name = "X,Y,Z"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, list):
+            return value
+        try:
+            out = [float(v) for v in str(value).split(",")]
+            if len(out) != 3:
+                raise ValueError
+        except ValueError:
+            self.fail(f"expected X,Y,Z, got {value!r}", param, ctx)
+        return out
+
+
+#: The value syntaxes a :class:`~retarget_cli.config.Flag` may name (``Flag.value``); ``text``: a plain string
+#: the command itself reads (a list of exports, a name pattern), whatever the Param's type.
+VALUE_TYPES = {"size": Size, "indices": IndexList, "frames": FrameList, "region": RegionSpec, "mask": MaskSpec,
+               "xyz": Vector3, "text": lambda: click.STRING}

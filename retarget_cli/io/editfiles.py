@@ -14,7 +14,7 @@ import numpy as np
 from .. import __version__
 from .._validate import closest
 from ..config import load_yaml, unknown_key_error
-from ..errors import ConfigError, InputError
+from ..errors import InputError
 from ..methods.editing import DEFAULT_ALPHA, DEFAULT_MU, AttenuateEdit, Pin, PinEdit
 from ..methods.rig import parse_axes
 from .atomic import load_npz, savez, write_text
@@ -117,20 +117,20 @@ SELECT_KEYS = ("vertices", "axes")
 def _int(value, where, minimum=None):
     if isinstance(value, bool) or not isinstance(value, int) or (minimum is not None and value < minimum):
         more = f" >= {minimum}" if minimum is not None else ""
-        raise ConfigError(f"{where}: expected an integer{more}, got {value!r}")
+        raise InputError(f"{where}: expected an integer{more}, got {value!r}")
     return value
 
 
 def _num(value, where, minimum=None):
     if isinstance(value, bool) or not isinstance(value, (int, float)) or (minimum is not None and value < minimum):
         more = f" >= {minimum:g}" if minimum is not None else ""
-        raise ConfigError(f"{where}: expected a number{more}, got {value!r}")
+        raise InputError(f"{where}: expected a number{more}, got {value!r}")
     return float(value)
 
 
 def _vec3(value, where):
     if not isinstance(value, list) or len(value) != 3:
-        raise ConfigError(f"{where}: expected [x, y, z], got {value!r}")
+        raise InputError(f"{where}: expected [x, y, z], got {value!r}")
     return tuple(_num(v, where) for v in value)
 
 
@@ -138,37 +138,37 @@ def _axes(value, where):
     try:
         parse_axes(value)
     except ValueError:
-        raise ConfigError(f"{where}: expected a combination of x, y, z such as 'xy', got {value!r}") from None
+        raise InputError(f"{where}: expected a combination of x, y, z such as 'xy', got {value!r}") from None
     return value
 
 
 def _keys(d, valid, where):
     if not isinstance(d, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {d!r}")
+        raise InputError(f"{where}: expected a mapping, got {d!r}")
     for k in d:
         if k not in valid:
-            raise unknown_key_error(where, str(k), valid)
+            raise unknown_key_error(where, str(k), valid, error=InputError)
 
 
 def _vertex(value, where, n_vertices):
     _int(value, where)
     if not 0 <= value < n_vertices:
-        raise ConfigError(f"{where}: vertex {value} is outside the mesh ({n_vertices} vertices, ids 0-{n_vertices - 1})")
+        raise InputError(f"{where}: vertex {value} is outside the mesh ({n_vertices} vertices, ids 0-{n_vertices - 1})")
     return value
 
 
 def _frame(value, where, frames):
     _int(value, where)
     if value not in frames:
-        raise ConfigError(f"{where}: frame {value} is not in the animation (frames {frames[0]}-{frames[-1]})")
+        raise InputError(f"{where}: frame {value} is not in the animation (frames {frames[0]}-{frames[-1]})")
     return value
 
 
 def _load_edits_yaml(path: Path):
-    data = load_yaml(read_text(path, "edits"), str(path))
+    data = load_yaml(read_text(path, "edits"), str(path), error=InputError)
     _keys(data, ("rig", "edits"), str(path))
     if "rig" in data and not isinstance(data["rig"], str):
-        raise ConfigError(f"{path}: rig: expected the path of a rig.yaml, got {data['rig']!r}")
+        raise InputError(f"{path}: rig: expected the path of a rig.yaml, got {data['rig']!r}")
     return data
 
 
@@ -182,10 +182,10 @@ def edits_rig(path: str | os.PathLike) -> Path | None:
 def _edit_body(item, where: str) -> tuple[str, dict, str]:
     """``(kind, settings, where.kind)`` of one ``edits[i]`` entry (``{pin: {...}}`` or ``{attenuate: {...}}``)."""
     if not isinstance(item, dict) or len(item) != 1:
-        raise ConfigError(f"{where}: expected one of 'pin:' or 'attenuate:' with its settings")
+        raise InputError(f"{where}: expected one of 'pin:' or 'attenuate:' with its settings")
     kind, body = next(iter(item.items()))
     if kind not in EDIT_KINDS:
-        raise unknown_key_error(where, str(kind), EDIT_KINDS)
+        raise unknown_key_error(where, str(kind), EDIT_KINDS, error=InputError)
     where = f"{where}.{kind}"
     _keys(body, PIN_KEYS if kind == "pin" else ATTENUATE_KEYS, where)
     return kind, body, where
@@ -198,15 +198,15 @@ def _edit_common(body: dict, where: str, frames: list) -> dict:
         fr = [fr, fr]
     if not isinstance(fr, list) or len(fr) != 2 or not all(isinstance(f, int) and not isinstance(f, bool)
                                                            for f in fr) or fr[0] > fr[1]:
-        raise ConfigError(f"{where}.frames: expected a frame or [first, last] (inclusive), got {fr!r}")
+        raise InputError(f"{where}.frames: expected a frame or [first, last] (inclusive), got {fr!r}")
     ease_in = _int(body.get("ease_in", 0), f"{where}.ease_in", 0)
     ease_out = _int(body.get("ease_out", 0), f"{where}.ease_out", 0)
     if fr[1] + ease_out < frames[0] or fr[0] - ease_in > frames[-1]:
-        raise ConfigError(f"{where}.frames: {fr} is outside the animation (frames {frames[0]}-{frames[-1]})")
+        raise InputError(f"{where}.frames: {fr} is outside the animation (frames {frames[0]}-{frames[-1]})")
     solve = body.get("solve", "bounded")
     if solve not in ("bounded", "closed-form"):
         hint = closest(str(solve), ("bounded", "closed-form"))
-        raise ConfigError(f"{where}.solve: expected 'bounded' or 'closed-form', got {solve!r}"
+        raise InputError(f"{where}.solve: expected 'bounded' or 'closed-form', got {solve!r}"
                           + (f"; did you mean {hint!r}?" if hint else ""))
     return dict(frames=(fr[0], fr[1]), ease_in=ease_in, ease_out=ease_out, bounded=solve == "bounded",
                 where=where)
@@ -217,9 +217,9 @@ def _pin(c, cw: str, n_vertices: int, frames: list):
 
     _keys(c, CONSTRAINT_KEYS, cw)
     if "vertex" not in c:
-        raise ConfigError(f"{cw}: 'vertex' is required")
+        raise InputError(f"{cw}: 'vertex' is required")
     if "position" in c and any(k in c for k in ("offset", "frame", "to_vertex")):
-        raise ConfigError(f"{cw}: 'position' is absolute; it cannot be combined with offset, frame or to_vertex")
+        raise InputError(f"{cw}: 'position' is absolute; it cannot be combined with offset, frame or to_vertex")
     return Pin(
         vertex=_vertex(c["vertex"], f"{cw}.vertex", n_vertices),
         axes=_axes(c.get("axes", "xyz"), f"{cw}.axes"),
@@ -236,12 +236,12 @@ def _w0(w0, where: str, expressions) -> dict | None:
     if w0 == "current":
         return None
     if not (isinstance(w0, dict) and w0):
-        raise ConfigError(f"{where}.w0: expected 'current' or {{expression: coefficient}}, got {w0!r}")
+        raise InputError(f"{where}.w0: expected 'current' or {{expression: coefficient}}, got {w0!r}")
     for name, coef in w0.items():
         if name not in expressions:
             hint = closest(str(name), expressions)
             known = ", ".join(expressions) or "no expressions"
-            raise ConfigError(f"{where}.w0: unknown expression {name!r}"
+            raise InputError(f"{where}.w0: unknown expression {name!r}"
                               + (f"; did you mean {hint!r}?" if hint else f"; the rig's library has {known}"))
         _num(coef, f"{where}.w0.{name}")
     return {str(k): float(v) for k, v in w0.items()}
@@ -253,13 +253,13 @@ def _pin_edit(body: dict, common: dict, n_vertices: int, frames: list, expressio
     where = common["where"]
     cons = body.get("constraints")
     if not isinstance(cons, list) or not cons:
-        raise ConfigError(f"{where}.constraints: expected a non-empty list of {{vertex: id, position: [x, y, z]}}")
+        raise InputError(f"{where}.constraints: expected a non-empty list of {{vertex: id, position: [x, y, z]}}")
     pins = [_pin(c, f"{where}.constraints[{j}]", n_vertices, frames) for j, c in enumerate(cons)]
     w0 = _w0(body.get("w0", "current"), where, expressions)
     edit = PinEdit(pins=pins, alpha=_num(body.get("alpha", DEFAULT_ALPHA), f"{where}.alpha", 0.0),
                    mu=_num(body.get("mu", DEFAULT_MU), f"{where}.mu", 0.0), w0=w0, **common)
     if edit.alpha + edit.mu <= 0:
-        raise ConfigError(f"{where}: alpha + mu must be > 0")
+        raise InputError(f"{where}: alpha + mu must be > 0")
     return edit
 
 
@@ -272,9 +272,9 @@ def _select_group(g, gw: str, path: Path, n_vertices: int) -> tuple[list, str]:
         mask_file = path.parent / verts
         verts = [int(v) for v in np.flatnonzero(read_vertex_mask(mask_file, n_vertices) > 0)]
         if not verts:
-            raise ConfigError(f"{gw}.vertices: {mask_file} selects no vertex")
+            raise InputError(f"{gw}.vertices: {mask_file} selects no vertex")
     if not isinstance(verts, list) or not verts:
-        raise ConfigError(f"{gw}.vertices: expected a list of vertex ids or a vertex-mask file")
+        raise InputError(f"{gw}.vertices: expected a list of vertex ids or a vertex-mask file")
     verts = [_vertex(v, f"{gw}.vertices", n_vertices) for v in verts]
     return verts, _axes(g.get("axes", "xyz"), f"{gw}.axes")
 
@@ -285,7 +285,7 @@ def _attenuate_edit(body: dict, common: dict, path: Path, n_vertices: int, frame
     where = common["where"]
     sel = body.get("select")
     if not isinstance(sel, list) or not sel:
-        raise ConfigError(f"{where}.select: expected a non-empty list of {{vertices: [ids], axes: xyz}}")
+        raise InputError(f"{where}.select: expected a non-empty list of {{vertices: [ids], axes: xyz}}")
     groups = [_select_group(g, f"{where}.select[{j}]", path, n_vertices) for j, g in enumerate(sel)]
     ref = body.get("reference", "start")
     if ref not in ("start", "neutral"):
@@ -313,7 +313,7 @@ def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=
 
     Raises
     ------
-    ConfigError
+    InputError
         Naming the file, the edit (``edits[2].pin.constraints[0].vertex``) and
         what was expected; unknown keys get the closest valid key.
     """
@@ -322,7 +322,7 @@ def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=
     frames = [int(f) for f in frames]
     items = data.get("edits")
     if not isinstance(items, list) or not items:
-        raise ConfigError(f"{path}: edits: expected a non-empty list of '- pin: {{...}}' or '- attenuate: {{...}}'")
+        raise InputError(f"{path}: edits: expected a non-empty list of '- pin: {{...}}' or '- attenuate: {{...}}'")
     out = []
     for i, item in enumerate(items):
         kind, body, where = _edit_body(item, f"{path}: edits[{i}]")

@@ -15,11 +15,7 @@ import time
 from pathlib import Path
 
 from .. import stages
-from ..config import (
-    REQUIRED,
-    Config,
-    Param,
-)
+from ..config import REQUIRED, Command, Config, Flag, Param, load_config
 from ..errors import ConfigError, InputError, RetargetError
 from ..io.atomic import guard_writes, remove_stale_parts
 from ..stages._common import Stage
@@ -300,3 +296,29 @@ def check_outputs(cfg: Config, resolved: dict) -> list[Path]:
                 raise ConfigError(f"{cfg.path}: {n}.{p.name}: {value!r} is an input of this run; "
                                   "choose another output name")
     return inputs
+
+
+def _cli_run(values, out) -> list:
+    cfg = load_config(values["config"], stage_params(), values["overrides"])
+    for name, status, outs in run_pipeline(cfg, force=values["force"], start=values["start"], stop=values["stop"],
+                                           progress=out.progress, cache=not values["no_cache"]):
+        out.say(f"{name}: {status}")
+        for p in outs:
+            out.echo(f"{name}\t{p}")
+    return []
+
+
+#: ``run`` (the CLI builds it: :mod:`retarget_cli.cli.commands`); each run guards its own output_dir.
+COMMAND = Command(
+    "run",
+    """Run the pipeline described by CONFIG, skipping stages that are up to date.""",
+    lambda: RUN_PARAMS,
+    (Flag("config", argument=True, path="file"),
+     Flag("force", decls=("--force",), show_default=False),
+     Flag("start", decls=("--from",), metavar="STAGE", show_default=False),
+     Flag("stop", decls=("--until",), metavar="STAGE", show_default=False),
+     Flag("overrides", decls=("--set",), multiple=True, metavar="STAGE.KEY=VALUE", show_default=False, default=None),
+     Flag("no_cache", decls=("--no-cache",), show_default=False)),
+    _cli_run,
+    guarded=False,
+)

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config import Param
+from ..config import Flag, Param
 from ..errors import InputError
 
 
@@ -56,3 +56,17 @@ class Stage:
 
     def param(self, name: str) -> Param:
         return next(p for p in self.params if p.name == name)
+
+
+#: ``--no-cache`` of the commands that read a rig.
+NO_CACHE = Param("no_cache", "setting", bool, False,
+                 "Read the rig's OBJs every time instead of keeping them parsed in a .retarget-cache folder in the "
+                 "output's folder.")
+NO_CACHE_FLAG = Flag("no_cache", decls=("--no-cache",), show_default=False)
+
+
+def command_cache_dir(output, no_cache: bool, *, folder: bool = False) -> Path | None:
+    """The rig cache of a single command: ``.retarget-cache`` in the folder the output goes to (None: no cache)."""
+    if no_cache:
+        return None
+    return (Path(output) if folder else Path(output).parent) / ".retarget-cache"

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, validate_params
+from ..config import Command, Flag, Param, output_flag, validate_params
 from ..errors import InputError
 from ..io.annotations import pts_text, write_pts
 from ..io.atomic import check_not_input
@@ -110,3 +110,21 @@ def run_annotate(*, video, frames, output, fps=None) -> list[Path]:
     written = [write_pts_once(t, found[f]) for f, t in zip(frames, targets)]
     log.info("annotated %d frames of %s", len(written), video)
     return written
+
+
+#: ``annotate`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "annotate",
+    """Place the 68 landmarks on chosen frames of VIDEO with the pretrained detector (needs the extra detect).
+
+    Writes OUTPUT/<video stem>_<frame:05d>.pts (iBUG .pts, as `track --init/--annotation` and
+    `train-tracker` read them); check them by eye before training or re-anchoring on them.""",
+    lambda: PARAMS,
+    (Flag("video", argument=True, path="file"),
+     Flag("frames", value="frames", required=True, metavar="LIST", show_default=False,
+          help="Frames to annotate (0-based), e.g. 0,120,240 or 0-300:60 (every 60th from 0 to 300)."),
+     output_flag(None, "Directory for the .pts files."),
+     "fps"),
+    lambda values, out: run_annotate(**values),
+    folder_output=True,
+)

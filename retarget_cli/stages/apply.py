@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_vector3, validate_params
+from ..config import Command, Flag, Param, check_vector3, output_flag, validate_params
 from ..errors import InputError, ParameterError
 from ..io.atomic import TrackedOutputs, check_not_input
 from ..io.editfiles import read_animation
@@ -38,7 +38,7 @@ from ..methods.blending import (
     region_weights,
 )
 from ..methods.rigpose import rig_curves
-from ._common import Stage, _no_progress, _require
+from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _no_progress, _require, command_cache_dir
 
 log = logging.getLogger(__name__)
 
@@ -314,4 +314,41 @@ STAGE = Stage(
     extra_inputs=_targets_files,
     uses_progress=True,
     uses_cache=True,
+)
+
+
+def _cli_apply(values, out):
+    kw = dict(values, formats=[f.strip() for f in values["formats"].split(",") if f.strip()])
+    cache_dir = command_cache_dir(kw["output"], kw.pop("no_cache"), folder=True)
+    return kw["output"], run_apply(**kw, progress=out.progress, cache_dir=cache_dir)
+
+
+def _show_apply(result, out) -> None:
+    output, written = result
+    out.echo(f"{output} ({sum(p.suffix == '.obj' for p in written)} frames)")
+    for p in written:
+        if p.suffix != ".obj":
+            out.echo(str(p))
+
+
+#: ``apply`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "apply",
+    """Drive the character in TARGETS with WEIGHTS; write an OBJ sequence, rig curves and other exports.
+
+    With a TARGETS written by auto-pose (it names the rig), every frame's rig
+    sliders follow from the weights and the meshes are the rig posed at them.
+    """,
+    lambda: [*PARAMS, NO_CACHE],
+    (Flag("weights", argument=True, path="file"), Flag("targets", argument=True, path="file"),
+     output_flag("frames", "Directory for the OBJ sequence and the other exports.", required=False),
+     Flag("formats", decls=("--format",), value="text", default="obj", metavar="LIST",
+          help=f"Comma-separated exports: {formats_help()}."),
+     Flag("landmarks", path="file", show_default=False,
+          help="landmarks.npz whose head motion --head-motion 2d applies."),
+     "head_motion", "scale", Flag("pivot", value="xyz", metavar="X,Y,Z", show_default=False), "vat", "drive",
+     NO_CACHE_FLAG),
+    _cli_apply,
+    _show_apply,
+    folder_output=True,
 )

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_indices, check_masks, check_strings, validate_params
+from ..config import Command, Flag, Param, check_indices, check_masks, check_strings, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, tracked_outputs, write_text
 from ..io.editfiles import write_animation
@@ -38,7 +38,7 @@ from ..methods.rigpose import (
     rig_region_masks,
     slider_owners,
 )
-from ._common import Stage, _require
+from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
 from .pose import _pose_files
 
 log = logging.getLogger(__name__)
@@ -312,4 +312,38 @@ STAGE = Stage(
     extra_inputs=_pose_files,
     uses_base_dir=True,
     uses_cache=True,
+)
+
+
+def _cli_auto_pose(values, out):
+    default_exclude = next(p.default for p in PARAMS if p.name == "exclude")
+    kw = dict(values, masks=dict(values["masks"]), exclude=list(values["exclude"] or default_exclude))
+    cache_dir = command_cache_dir(kw["output"], kw.pop("no_cache"), folder=True)
+    return run_auto_pose(**kw, cache_dir=cache_dir)
+
+
+#: ``auto-pose`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "auto-pose",
+    """Pose RIG at every key frame of KEYS from its LANDMARKS: the rig as the artist.
+
+    The default delta fit reproduces each key frame's landmark displacement
+    from the neutral frame, so the actor's face shape stays out of the
+    sliders; apply then writes the rig's slider curves.
+    """,
+    lambda: [*PARAMS, NO_CACHE],
+    (Flag("keys", argument=True, path="file"), Flag("landmarks", argument=True, path="file"),
+     Flag("rig", argument=True, path="file"),
+     Flag("landmark_vertices", path="file", show_default=False),
+     Flag("masks", decls=("--mask",), value="mask", multiple=True, metavar="REGION=FILE", show_default=False,
+          help="Vertex mask of a region, overriding the mask derived from the rig. Repeatable."),
+     "fit", "neutral_frame", "sparsity", "ridge",
+     Flag("exclude", decls=("--exclude",), value="text", multiple=True, metavar="PATTERN", default=None,
+          show_default=False,
+          help="Slider-name pattern kept at 0 (repeatable; default eyeLook*, *pupil*: gaze and pupils)."),
+     "alpha", "mu",
+     output_flag("targets", "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml.", required=False),
+     NO_CACHE_FLAG),
+    _cli_auto_pose,
+    folder_output=True,
 )

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, validate_params
+from ..config import Command, Flag, Param, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_text
 from ..io.landmarks import LOST_CONFIDENCE, load_landmarks, peek_frames
-from ..io.stagefiles import read_keys, save_weights, weights_csv
+from ..io.stagefiles import load_weights, read_keys, save_weights, weights_csv
 from ..methods.decomposition import (
     FORMULATIONS,
     SOLVERS,
@@ -195,4 +195,42 @@ STAGE = Stage(
     "Non-negative weights over the key shapes for every frame (eq. 4).",
     PARAMS,
     run_decompose,
+)
+
+
+#: ``--summary/--no-summary`` of the command.
+SUMMARY = Param("summary", "setting", bool, True,
+                "Print a per-region table of residual, cardinality, jitter and lost frames after the file names.")
+
+
+def _cli_decompose(values, out):
+    kw = dict(values)
+    summary = kw.pop("summary")
+    return run_decompose(**kw), summary
+
+
+def _show_decompose(result, out) -> None:
+    written, summary = result
+    for p in written:
+        out.echo(str(p))
+    if summary:
+        diag = load_weights(written[0])[1].get("diagnostics", {})
+        out.echo(f"{'region':<16}{'residual px':>12}{'cardinality':>12}{'jitter':>12}{'lost':>6}")
+        for name, d in sorted(diag.items()):
+            out.echo(f"{name:<16}{d['mean_residual_px']:>12.4f}{d['mean_cardinality']:>12.2f}"
+                     f"{d['jitter']:>12.3g}{d['lost_frames']:>6d}")
+
+
+#: ``decompose`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "decompose",
+    """Decompose every frame into key-shape weights (non-negative by default, eq. 4).""",
+    lambda: [*PARAMS, SUMMARY],
+    (Flag("landmarks", argument=True, path="file"), Flag("keys", argument=True, path="file"),
+     output_flag("weights.npz", "Weights file (weights.npz).", required=False),
+     Flag("csv", path="file", show_default=False, help="Also write the weights as CSV."),
+     "solver", "formulation", "alpha", "upper", "neutral_frame", "confidence", "lost_fraction", "smooth_space",
+     "robust", "summary"),
+    _cli_decompose,
+    _show_decompose,
 )

@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 
 from .._validate import closest
-from ..config import Param, validate_params
+from ..config import Command, Flag, Param, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, sha256_file, tracked_outputs
 from ..io.editfiles import edits_rig, read_animation, read_edits, write_animation
 from ..io.obj import FRAME_RE, count_vertices, write_obj
 from ..io.rig import load_rig, read_rig
 from ..methods.editing import apply_edits
-from ._common import _no_progress, _require
+from ._common import NO_CACHE, NO_CACHE_FLAG, _no_progress, _require, command_cache_dir
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
     the posed OBJ sequence (``frame_%05d.obj``, by frame number). The
     animation and the edits are checked (against ``rig.yaml`` and the
     neutral's vertex count) before the rig's OBJs are read; *cache_dir* keeps
-    the parsed rig (:meth:`~retarget_cli.methods.rig.BlendshapeRig.load`).
+    the parsed rig (:func:`~retarget_cli.io.rig.load_rig`).
     """
 
     animation, edits = _require(animation, "animation"), _require(edits, "edits file")
@@ -95,3 +95,25 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
         written += _write_frames(Path(objs), r, W, frames, progress)
     log.info("applied %d edits to %d frames", len(todo), len(W))
     return written
+
+
+def _cli_edit(values, out):
+    kw = dict(values)
+    cache_dir = command_cache_dir(kw["output"], kw.pop("no_cache"))
+    return run_edit(**kw, progress=out.progress, cache_dir=cache_dir)
+
+
+#: ``edit`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "edit",
+    """Apply the pins and attenuations of EDITS to the rig weights in ANIMATION (CSV or NPZ).
+
+    Pins are direct manipulation (Lewis & Anjyo 2010, eq. 3); attenuations are
+    selected motion attenuation (Lewis et al. 2005, eq. 3).
+    """,
+    lambda: [*PARAMS, NO_CACHE],
+    (Flag("animation", argument=True, path="file"), Flag("edits", argument=True, path="file"),
+     output_flag(None, "Edited weights (.csv or .npz, same layout as ANIMATION)."),
+     Flag("rig", path="file"), Flag("objs", path="folder"), NO_CACHE_FLAG),
+    _cli_edit,
+)

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_masks, validate_params
+from ..config import Command, Flag, Param, check_masks, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, load_npz, tracked_outputs
 from ..io.obj import count_vertices, write_obj
 from ..io.rig import load_rig, read_rig
 from ..io.stagefiles import read_keys, read_vertex_mask, write_targets
-from ._common import Stage, _require
+from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=N
     *masks* maps region names to vertex-mask files (relative to *base_dir*),
     copied into ``targets.yaml`` so ``apply`` can blend the regions.
     Every argument is checked before the rig's OBJs are read; *cache_dir*
-    keeps the parsed rig (:meth:`~retarget_cli.methods.rig.BlendshapeRig.load`).
+    keeps the parsed rig (:func:`~retarget_cli.io.rig.load_rig`).
 
     This is the automatic "artist" for takes whose slider values are known
     (synthetic takes, or a performance recorded on a rig).
@@ -128,4 +128,27 @@ STAGE = Stage(
     extra_inputs=_pose_files,
     uses_base_dir=True,
     uses_cache=True,
+)
+
+
+def _cli_pose(values, out):
+    kw = dict(values, masks=dict(values["masks"]))
+    cache_dir = command_cache_dir(kw["output"], kw.pop("no_cache"), folder=True)
+    return run_pose(**kw, cache_dir=cache_dir)
+
+
+#: ``pose-keys`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "pose-keys",
+    """Pose RIG at every key frame's known slider values (automatic target keys).""",
+    lambda: [*PARAMS, NO_CACHE],
+    (Flag("keys", argument=True, path="file"), Flag("rig", argument=True, path="file"),
+     Flag("poses", path="file", required=True, show_default=False,
+          help="NPZ with per-frame slider values: 'curves' (T, E) and 'names' (E,)."),
+     Flag("masks", decls=("--mask",), value="mask", multiple=True, metavar="REGION=FILE", show_default=False,
+          help="Vertex mask of a region (needed with several regions). Repeatable."),
+     output_flag("targets", "Directory for the key OBJs and targets.yaml.", required=False),
+     NO_CACHE_FLAG),
+    _cli_pose,
+    folder_output=True,
 )

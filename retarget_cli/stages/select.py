@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_regions, validate_params
+from ..config import TOP_LEVEL, Command, Flag, Param, check_regions, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_json, write_text
 from ..io.landmarks import load_landmarks
@@ -173,4 +173,45 @@ STAGE = Stage(
     run_select,
     uses_seed=True,
     uses_progress=True,
+)
+
+
+def _cli_select(values, out):
+    kw = dict(values)
+    if kw.pop("no_neutral"):
+        kw["neutral_frame"] = None
+    return run_select(**dict(kw, regions=dict(kw["regions"]) or None), progress=out.progress)
+
+
+def _param(name: str) -> Param:
+    return next(p for p in PARAMS if p.name == name)
+
+
+#: ``--no-neutral`` of the command (in a config: ``neutral_frame: null``).
+NO_NEUTRAL = Param("no_neutral", "setting", bool, False, "Let the method choose all k keys.")
+
+#: ``select`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "select",
+    """Choose key frames from LANDMARKS (Chuang & Bregler §4.2) and optionally evaluate every method.""",
+    lambda: [*PARAMS, NO_NEUTRAL, TOP_LEVEL["seed"]],
+    (Flag("landmarks", argument=True, path="file"),
+     output_flag("keys.json", "Key frames per region (keys.json).", required=False),
+     Flag("k", decls=("-k",),
+          help=_param("k").help + " Ignored by convex-hull, whose size the data sets (a warning says so)."),
+     "method", "kmeans_components", "neutral_frame",
+     Flag("no_neutral", decls=("--no-neutral",), show_default=False),
+     Flag("regions", decls=("--region",), value="region", multiple=True, metavar="NAME[=SPEC][:K]",
+          show_default=False,
+          help="A region, its landmarks and optionally its own k, e.g. mouth=48-67,3-13:8, face=all, or a "
+               "68-point preset by name: brows-eyes, mouth, face (mouth:8). Repeatable; default face=all."),
+     Flag("template", path="file", show_default=False,
+          help="Also write a targets.yaml template for the artist (never overwrites a file select did not write)."),
+     Flag("evaluate", path="file", metavar="CURVE.csv", show_default=False),
+     Flag("plot", path="file", metavar="CURVE.png", show_default=False),
+     "evaluate_k",
+     Flag("contact_sheet", path="file", metavar="KEYS.png", show_default=False),
+     Flag("video", path="file", show_default=False, help="The take's video (for --contact-sheet)."),
+     Flag("seed", help="Random seed.")),
+    _cli_select,
 )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from ..config import ConfigError, Param, validate_params
+from ..config import Command, Flag, Param, output_flag, validate_params
 from ..io.atomic import check_not_input
 from ..io.rig.inverse import (
     check_quadratic_rig,
@@ -23,14 +23,9 @@ from ..methods.inverse_rig import (
     SOLVERS,
     solve,
 )
-from ._common import _no_progress
+from ._common import NO_CACHE, NO_CACHE_FLAG, _no_progress, command_cache_dir
 
 log = logging.getLogger(__name__)
-
-
-def _positive(value, where: str) -> None:
-    if not value > 0:
-        raise ConfigError(f"{where}: expected a number > 0, got {value!r}")
 
 
 #: Declared parameters of ``solve-rig``.
@@ -46,7 +41,7 @@ PARAMS = [
           "Sparsity weight alpha of eq. 8 (squared mesh units per unit weight).", min=0),
     Param("tol", "setting", float, DEFAULT_TOL,
           "mm/lbfgsb: stop when an iteration lowers the objective by less than tol x it.", min=0,
-          validate=_positive),
+          min_open=True),
     Param("max_iter", "setting", int, DEFAULT_MAX_ITER, "mm/lbfgsb: iteration cap per frame.", min=1),
     Param("metrics", "output", str, None, "Also write per-frame metrics with wall times as CSV.", nullable=True),
 ]
@@ -95,3 +90,37 @@ def run_solve_rig(*, rig, meshes, output, solver=DEFAULT_SOLVER, alpha=DEFAULT_A
         write_metrics_csv(metrics, res, sources)
         written.append(Path(metrics))
     return written, summary
+
+
+def _cli_solve_rig(values, out):
+    kw = dict(values)
+    cache_dir = command_cache_dir(kw["output"], kw.pop("no_cache"))
+    written, summary = run_solve_rig(**kw, progress=out.progress, cache_dir=cache_dir)
+    return written, summary, kw["solver"], kw["alpha"]
+
+
+def _show_solve_rig(result, out) -> None:
+    written, s, solver, alpha = result
+    out.echo(f"{s['frames']} frames, {s['vertices']} vertices, {s['shapes']} shapes, "
+             f"{s['correctives']} correctives; solver {solver}, alpha {alpha:g}")
+    out.echo(f"mean rmse {s['rmse']:.6g}  cardinality {s['cardinality']:.2f}  objective {s['objective']:.6g}  "
+             f"iterations {s['iterations']:.1f}  seconds/frame {s['seconds_per_frame']:.4f}")
+    for p in written:
+        out.echo(str(p))
+
+
+#: ``solve-rig`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "solve-rig",
+    """Slider weights in [0, 1] of RIG (with corrective shapes) that reproduce MESHES.
+
+    MESHES is a directory of frame_*.obj, a glob such as 'scans/*.obj', or an
+    NPZ with positions (T, N, 3).
+    """,
+    lambda: [*PARAMS, NO_CACHE],
+    (Flag("rig", argument=True, path="file"), Flag("meshes", argument=True),
+     output_flag(None, "Slider curves (NPZ: curves, names, per-frame metrics)."),
+     "solver", "alpha", "tol", "max_iter", Flag("metrics", path="file"), NO_CACHE_FLAG),
+    _cli_solve_rig,
+    _show_solve_rig,
+)

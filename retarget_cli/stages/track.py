@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Param, check_indices, check_size, check_strings, validate_params
+from ..config import Command, Flag, Param, check_indices, check_size, check_strings, output_flag, validate_params
 from ..errors import FaceLostError, InputError, ParameterError, TruncatedInputError
 from ..io.annotations import read_annotations, read_csv_landmarks
 from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file
@@ -527,3 +527,84 @@ STAGE = Stage(
     uses_progress=True,
     uses_base_dir=True,
 )
+
+
+# --------------------------------------------------------------------------- the commands
+
+
+def _cli_track(values, out):
+    kw = dict(values, annotations=list(values["annotations"]), rigid_points=values["rigid_points"] or None)
+    return run_track(**kw, progress=out.progress)
+
+
+def _cli_train_tracker(values, out):
+    kw = dict(values, annotations=list(values["annotations"]), rigid_points=values["rigid_points"] or None)
+    return run_train_tracker(**kw, progress=out.progress)
+
+
+def _cli_import(values, out):
+    return run_import(**dict(values, rigid_points=values["rigid_points"] or None))
+
+
+_FILTER_FLAGS = tuple(p.name for p in FILTER_PARAMS)
+_TRACK_FLAGS = (
+    Flag("video", argument=True, path="file"),
+    Flag("init", path="file", default="auto",
+         help="Annotation of the first tracked frame: iBUG .pts (frame from a name like face_00120.pts), "
+              "a frame,point,x,y CSV, or auto: the pretrained detector annotates it and writes "
+              "<output stem>.init_NNNNN.pts beside the output for review (needs the extra detect)."),
+    Flag("annotations", decls=("--annotation",), path="file", multiple=True, show_default=False,
+         help="More annotated frames (.pts or CSV); each re-anchors the track. Repeatable."),
+    "init_frame",
+    output_flag("landmarks.npz", "Landmarks file.", required=False),
+    Flag("overlay", path="file", show_default=False,
+         help="Also write an mp4 with the landmarks (green = confident, red = lost) and the head frame."),
+    "method", "fuse", Flag("model", path="file"), "window", "levels", "fb_threshold", "anchor", "start", "end",
+    "step", "downscale", "fps", "smooth_head",
+    Flag("rigid_points", decls=("--rigid-points",), value="indices", metavar="SPEC", show_default=False,
+         help="Landmarks that define head motion, e.g. 27-31,33,35,36,39,42,45 (default: eye corners "
+              "and nose for 68 points, else all)."),
+    "keep_partial", *_FILTER_FLAGS,
+)
+
+#: ``track``, ``train-tracker`` and ``import`` (the CLI builds them: :mod:`retarget_cli.cli.commands`).
+COMMANDS = [
+    Command(
+        "track",
+        """Track facial landmarks through VIDEO (a video file or an image-sequence pattern such as
+    'frames/%05d.png' or 'frames/*.exr'), from one or more annotated frames (by default the detector
+    annotates the first), or with --method detect by a pretrained detector on every frame.""",
+        _all_track_params,
+        lambda: (*_TRACK_FLAGS, *(p.name for p in tracker_params(q.name for q in PARAMS))),
+        _cli_track,
+    ),
+    Command(
+        "train-tracker",
+        """Train a Facemark tracking model on annotated frames of VIDEO (a video or an image-sequence pattern).
+
+    ANNOTATIONS are .pts files named with their frame number (face_00120.pts) or frame,point,x,y CSV files,
+    as for `track`; 5 or more frames that span the actor's expressions. Use the model with
+    `retarget track VIDEO --init face_00000.pts --method facemark --model facemark.yaml`.""",
+        lambda: TRAIN_PARAMS,
+        (Flag("video", argument=True, path="file"),
+         Flag("annotations", argument=True, nargs=-1, required=True, path="file"),
+         output_flag("facemark.yaml", "Model file (OpenCV Facemark LBF; gzip-compressed if the name ends in .gz).",
+                     required=False),
+         "fps", Flag("rigid_points", value="indices", metavar="SPEC"), "stages", "trees", "depth", "face_size",
+         "seed"),
+        _cli_train_tracker,
+    ),
+    Command(
+        "import",
+        """Bring landmarks from another tool into landmarks.npz, with head motion and stabilization.
+
+    SOURCE is a frame,point,x,y CSV, an NPZ with 'points' (T, L, 2) or a folder of .pts files (frame number
+    from each name, e.g. face_00120.pts).""",
+        lambda: IMPORT_PARAMS,
+        (Flag("source", argument=True, path="path"),
+         output_flag("landmarks.npz", "Landmarks file (landmarks.npz contract).", required=False),
+         "fps", Flag("frame_size", value="size", value_args=(("example", "1920x1080"),), metavar="WxH"),
+         Flag("rigid_points", value="indices", metavar="SPEC"), "smooth_head", *_FILTER_FLAGS),
+        _cli_import,
+    ),
+]

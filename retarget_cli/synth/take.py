@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import Command, Flag, Param
 from ..errors import ParameterError, ShapeError
 from ..io.annotations import write_pts
 from ..io.atomic import savez, write_bytes, write_text
@@ -1392,3 +1393,29 @@ def landmark_rig(*, n_extra: int = 60, seed: int = 0) -> dict:
     faces = inv[Delaunay(xy).simplices]
     return {"vertices": V[perm], "faces": faces, "deltas": D[:, perm], "names": EXPRESSIONS,
             "landmark_vertices": inv[:68]}
+
+
+#: ``synth`` (:func:`retarget_cli.synth.take.write_take`).
+SYNTH_PARAMS = [
+    Param("outdir", "output", str, help="Folder for the take."),
+    Param("frames", "setting", int, 240, "Number of frames.", min=2, max=100000),
+    Param("size", "setting", list, [320, 320], "Frame size WxH in pixels."),
+    Param("seed", "setting", int, 0, "Random seed.", min=0),
+]
+
+
+def _cli_synth(values, out):
+    return list(write_take(values["outdir"], n_frames=values["frames"], size=tuple(values["size"]),
+                           seed=values["seed"]).values())
+
+
+#: ``synth`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
+COMMAND = Command(
+    "synth",
+    """Write a synthetic performance (video, truth, target rig, config) into OUTDIR.""",
+    lambda: SYNTH_PARAMS,
+    (Flag("outdir", argument=True, path="folder"), "frames",
+     Flag("size", value="size", value_args=(("lo", 64), ("hi", 4096)), default="320x320", metavar="WxH"), "seed"),
+    _cli_synth,
+    folder_output=True,
+)

@@ -24,7 +24,7 @@ def test_misspelt_config_key_is_one_line_with_suggestion(tmp_path):
     cfg = tmp_path / "c.yaml"
     cfg.write_text("select:\n  methd: pca-extremes\n")
     result = CliRunner().invoke(main, ["run", str(cfg)])
-    assert result.exit_code == 1
+    assert result.exit_code == 2  # a config error is a usage error, whichever way it comes in
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1
     assert "unknown key 'methd'" in lines[0] and "did you mean 'method'?" in lines[0] and "c.yaml" in lines[0]
@@ -62,12 +62,14 @@ def test_invalid_yaml_is_one_line_naming_file_and_position(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("version: 1\nn_points: 68\n{\n1 2\n")
     (tmp_path / "anim.csv").write_text("frame,smile\n0,0.1\n")
-    for args in (["run", str(bad)], ["edit", str(tmp_path / "anim.csv"), str(bad), "--rig",
-                                     str(Path(__file__).resolve().parents[2] / "sample_data" / "rig.yaml"),
-                                     "-o", str(tmp_path / "o.csv")]):
+    # a bad config is a usage error (2); a bad edits file is a bad input (1)
+    for code, args in ((2, ["run", str(bad)]),
+                       (1, ["edit", str(tmp_path / "anim.csv"), str(bad), "--rig",
+                            str(Path(__file__).resolve().parents[2] / "sample_data" / "rig.yaml"),
+                            "-o", str(tmp_path / "o.csv")])):
         res = CliRunner().invoke(main, args)
         lines = [ln for ln in res.output.splitlines() if ln.strip()]
-        assert res.exit_code == 1, res.output
+        assert res.exit_code == code, res.output
         assert len(lines) == 1 and "invalid YAML" in lines[0] and "line 4" in lines[0], res.output
     try:
         read_targets(bad)

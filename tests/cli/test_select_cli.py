@@ -5,11 +5,13 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from retarget_cli.cli.commands import _parse_regions, main
+from retarget_cli.cli.commands import main
+from retarget_cli.cli.types import RegionSpec
 
 
 def test_region_specs_parse_presets_ranges_and_per_region_k():
-    assert _parse_regions(["mouth", "brows-eyes:6", "lips=48-50,60:4", "face=all"]) == {
+    specs = ["mouth", "brows-eyes:6", "lips=48-50,60:4", "face=all"]
+    assert dict(RegionSpec().convert(s, None, None) for s in specs) == {
         "mouth": None, "brows-eyes": {"points": None, "k": 6}, "lips": {"points": [48, 49, 50, 60], "k": 4},
         "face": "all"}
 

@@ -80,13 +80,13 @@ def _member_bytes(d: Path, name: str, member: str, payload: bytes) -> Path:
 def c_csv_overwrites_pts(d):
     def edit(c):
         c["decompose"]["csv"] = "../face_00000.pts"
-    return Case(_run(d, edit), ("decompose.csv", "outside output_dir"))
+    return Case(_run(d, edit), ("decompose.csv", "outside output_dir"), code=2)
 
 
 def c_select_output_overwrites_rig(d):
     def edit(c):
         c["select"]["output"] = "../rig.yaml"
-    return Case(_run(d, edit), ("select.output", "outside output_dir"))
+    return Case(_run(d, edit), ("select.output", "outside output_dir"), code=2)
 
 
 def c_decompose_csv_is_its_input(d):
@@ -99,14 +99,14 @@ def c_apply_output_parent_deletes_frames(d):
 
     def edit(c):
         c["apply"]["output"] = ".."
-    return Case(_run(d, edit, "--force"), ("apply.output", "outside output_dir"))
+    return Case(_run(d, edit, "--force"), ("apply.output", "outside output_dir"), code=2)
 
 
 def c_region_escapes_in_config(d):
     def edit(c):
         c["select"]["regions"] = {"../../../escaped-region": "all"}
         c["pose"]["masks"] = {"../../../escaped-region": "target/regions/mouth.txt"}
-    return Case(_run(d, edit), ("bad.yaml", "select.regions", "escaped-region"))
+    return Case(_run(d, edit), ("bad.yaml", "select.regions", "escaped-region"), code=2)
 
 
 def c_region_absolute_in_keys(d):
@@ -132,13 +132,13 @@ def c_region_absolute_in_masks(d):
 def c_output_key_escapes(d):
     def edit(c):
         c["select"]["output"] = "../../x.json"
-    return Case(_run(d, edit), ("select.output", "outside output_dir"))
+    return Case(_run(d, edit), ("select.output", "outside output_dir"), code=2)
 
 
 def c_output_key_absolute(d):
     def edit(c):
         c["decompose"]["output"] = str(d.parent / "abs.npz")
-    return Case(_run(d, edit), ("decompose.output", "outside output_dir"))
+    return Case(_run(d, edit), ("decompose.output", "outside output_dir"), code=2)
 
 
 def c_csv_huge_point_id(d):
@@ -156,7 +156,7 @@ def c_pts_huge_count(d):
 def c_section_not_mapping_with_set(d):
     def edit(c):
         c["apply"] = 5
-    return Case(_run(d, edit, "--set", "apply.head_motion=none"), ("bad.yaml", "'apply'", "mapping"))
+    return Case(_run(d, edit, "--set", "apply.head_motion=none"), ("bad.yaml", "'apply'", "mapping"), code=2)
 
 
 def c_yaml_alias_bomb(d):
@@ -165,7 +165,7 @@ def c_yaml_alias_bomb(d):
     lines += [f"    - &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 8)]
     text = (d / "config.yaml").read_text().replace("track:\n", "track:\n" + "\n".join(lines) + "\n", 1)
     (d / "bad.yaml").write_text(text)
-    return Case(["run", str(d / "bad.yaml")], ("bad.yaml", "alias"))
+    return Case(["run", str(d / "bad.yaml")], ("bad.yaml", "alias"), code=2)
 
 
 def c_fps_shape(d):
@@ -206,7 +206,7 @@ def c_integer_region_key(d):
     def edit(c):
         c["select"]["regions"] = {5: "all"}
         c["pose"]["masks"] = {5: "target/regions/mouth.txt"}
-    return Case(_run(d, edit), ("bad.yaml", "select.regions", "5"))
+    return Case(_run(d, edit), ("bad.yaml", "select.regions", "5"), code=2)
 
 
 def c_npz_member_not_npy(d):
@@ -273,7 +273,7 @@ def c_key_frames_bool(d):
 
 def c_config_not_utf8(d):
     (d / "bad.yaml").write_bytes((d / "config.yaml").read_bytes() + b"# caf\xe9\n")
-    return Case(["run", str(d / "bad.yaml")], ("bad.yaml", "UTF-8"))
+    return Case(["run", str(d / "bad.yaml")], ("bad.yaml", "UTF-8"), code=2)
 
 
 def c_keys_not_utf8(d):
@@ -293,7 +293,7 @@ def c_lost_fraction_nan(d):
 
     def edit(c):
         c["decompose"]["lost_fraction"] = float("nan")
-    return Case(_run(d, edit), ("bad.yaml", "decompose.lost_fraction", "finite"))
+    return Case(_run(d, edit), ("bad.yaml", "decompose.lost_fraction", "finite"), code=2)
 
 
 def c_alpha_nan(d):
@@ -303,13 +303,13 @@ def c_alpha_nan(d):
 
     def edit(c):
         c["decompose"]["alpha"] = float("nan")
-    return Case(_run(d, edit), ("bad.yaml", "decompose.alpha", "finite"))
+    return Case(_run(d, edit), ("bad.yaml", "decompose.alpha", "finite"), code=2)
 
 
 def c_output_dir_is_a_file(d):
     def edit(c):
         c["output_dir"] = "face.mp4"
-    return Case(_run(d, edit), ("bad.yaml", "output_dir", "not a folder"))
+    return Case(_run(d, edit), ("bad.yaml", "output_dir", "not a folder"), code=2)
 
 
 def c_unexpected_exception(d, monkeypatch=None):

@@ -92,7 +92,7 @@ def _rig_shapes(path: Path, data) -> dict:
         raise InputError(f"{path}: expected 'neutral: file.obj' and 'shapes: {{name: file.obj}}'")
     for key in data:
         if key not in RIG_KEYS:
-            raise unknown_key_error(str(path), str(key), RIG_KEYS)
+            raise unknown_key_error(str(path), str(key), RIG_KEYS, error=InputError)
     if not data["shapes"] or not all(isinstance(v, str) for v in data["shapes"].values()):
         raise InputError(f"{path}: shapes: expected a non-empty mapping of shape names to OBJ files")
     return {str(k): path.parent / v for k, v in data["shapes"].items()}

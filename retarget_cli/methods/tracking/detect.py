@@ -18,7 +18,7 @@ centre is ``(x, y)`` in the 0-based pixel-centre convention of
 ``landmarks.npz``, so they are used as they are (``.pts`` files add 1).
 
 dlib is imported lazily: without the optional extra ``detect`` the first
-call raises a one-line :class:`~retarget_cli.errors.ConfigError` saying which
+call raises a one-line :class:`~retarget_cli.errors.MissingExtraError` saying which
 extra to install.
 """
 
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...errors import ConfigError, ShapeError
+from ...errors import MissingExtraError, ShapeError
 from .facemark import _from_scaled, _scaled, _to_scaled
 from .lk import FaceLostError, _Box
 
@@ -66,7 +66,7 @@ class Detector:
 
     Raises
     ------
-    ConfigError
+    MissingExtraError
         If dlib or the model package is not installed (names the extra to install).
     """
 
@@ -77,7 +77,7 @@ class Detector:
             import dlib
             import face_recognition_models
         except ImportError as exc:
-            raise ConfigError(f"the landmark detector needs {exc.name or 'dlib'}: {INSTALL_HINT}") from None
+            raise MissingExtraError(f"the landmark detector needs {exc.name or 'dlib'}: {INSTALL_HINT}") from None
         self._dlib = dlib
         self.upsample = int(upsample)
         self.faces = dlib.get_frontal_face_detector()

@@ -5,7 +5,7 @@ import shlex
 import pytest
 
 from retarget_cli.batch.plan import format_table, load_plan
-from retarget_cli.errors import ConfigError, InputError
+from retarget_cli.errors import ConfigError, InputError, MissingExtraError
 
 
 @pytest.fixture
@@ -79,5 +79,5 @@ def test_missing_dask_is_a_one_line_error_naming_the_extra(monkeypatch):
     from retarget_cli.batch import engine
 
     monkeypatch.setitem(sys.modules, "distributed", None)
-    with pytest.raises(ConfigError, match=r"extra batch .*retarget\[batch\]"):
+    with pytest.raises(MissingExtraError, match=r"extra batch .*retarget\[batch\]"):
         engine.local_cluster(1)
