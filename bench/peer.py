@@ -18,7 +18,8 @@ Per clip (d3, d9, d12 of ``../shared/realdata/videos``) and per *start*:
   the largest mouth width (``smile``: mouth corners / outer eye corners), the lowest brow height
   (``frown``: brows to eye corners / inter-ocular distance) and the largest mouth opening (``open``:
   inner-lip gap / mouth width), among the frames with a face that leave at least ``--frames`` frames
-  (default 90) before the clip's end. A start equal to an earlier one is run once (labels joined).
+  (default 60) before the clip's end and lie more than 15 frames from the starts chosen before it, in
+  the order 0, smile, frown, open (d3's widest smile is also a wide-open mouth).
 
 Each start runs from its frame to the clip's end, or ``--frames`` frames. Systems:
 
@@ -45,13 +46,19 @@ Measures (``bench/realrig/measures.py``, plus mouth width here):
 - r mouth, eye L, eye R, brow, width: Pearson r over frames of inner-lip gap / mouth width, lid gap /
   eye width (eye L = the image's left eye), brow height, mouth width / inter-ocular distance;
 - lip contact: among the frames where the reference sees the lips closed (inner-lip gap < 0.02 of the
-  mouth width), the fraction where the character's are too: its inner-lip gap / mouth width at most
-  0.02 above the rig's own rest value (a gap below the rest gap, lips pressed, counts as closed);
+  mouth width), the fraction where the character's are too: its inner-lip gap / mouth width within
+  0.02 of the rig's own rest value (0.016), either side: lips that cross (a negative gap, which the
+  ICT lips reach at 0.1-0.45 of the mouth width under mouthPress + mouthShrugLower + mouthRoll*) are
+  not closed lips; the table also counts those frames where the character's lips are parted (gap above
+  the band) and crossed (below it);
 - eye contact: the same per eye (frames x 2 eyes pooled): the reference's lid gap < 0.05 of the eye
-  width (MediaPipe and dlib put closed lids at about 0; the open eye is 0.2-0.35), the character's
-  lid gap / eye width at most 0.05 above the rig's with ``eyeBlink_L`` = ``eyeBlink_R`` = 1;
+  width (closed lids are at about 0 for MediaPipe, the open eye at 0.2-0.35; dlib rarely goes below
+  0.05), the character's lid gap / eye width within 0.05 of the rig's with ``eyeBlink_L`` =
+  ``eyeBlink_R`` = 1 (0.013). 0.05 of an eye width is about 0.015 of the inter-ocular distance, as
+  0.02 of a mouth width is 0.011;
 - jitter: the character's mean landmark acceleration ``|x[t+1] - 2 x[t] + x[t-1]|`` over the 68
   projected points and the frames, divided by its inter-ocular distance (x 1000 in the table);
+- saturated: the fraction of frames with a slider at 1 (>= 0.99);
 - fps as above.
 
 Prints a markdown table per reference (rows clip x start x system, then a mean row per system).
@@ -100,8 +107,11 @@ SYSTEMS = ("ours", "peer")
 R_MEASURES = ("mouth", "eye_l", "eye_r", "brow", "width")
 LIP_CLOSED = 0.02   # inner-lip gap / mouth width
 EYE_CLOSED = 0.05   # lid gap / eye width
-MIN_FRAMES = 90     # a non-rest start leaves at least this many frames (without --frames)
+MIN_FRAMES = 60     # a non-rest start leaves at least this many frames (without --frames)
 SMOOTH = 5          # running median (frames) before the start rules' argmax/argmin
+APART = 15          # a start is at least this many frames from the starts chosen before it
+FLAT = 0.01         # a reference series with a smaller standard deviation barely moves: its r is noise
+SATURATED = 0.99    # a slider at or above this is saturated
 
 
 def log(msg: str) -> None:
@@ -228,20 +238,30 @@ def references(video: Path) -> dict:
 
 
 def choose_starts(ref: dict, n_video: int, frames: int | None, wanted) -> dict:
-    """Start frame per label (see the module docstring), from the MediaPipe reference; equal starts merged."""
+    """Start frame per label (see the module docstring), from the MediaPipe reference.
+
+    Labels are taken in :data:`STARTS` order; each rule's frame is searched outside :data:`APART` frames of
+    the starts already chosen, so that the starts differ (d3's widest smile is also a wide-open mouth).
+    """
     m, found = ref["m"], ref["found"]
     last = n_video - (frames or MIN_FRAMES)
     ok = found & (np.arange(n_video) <= max(last, 0))
     rules = {"smile": (m["width"], np.nanargmax), "frown": (m["brow"], np.nanargmin),
              "open": (m["mouth"], np.nanargmax)}
     picks = {}
-    for label in wanted:
-        f = 0
-        if label != "0":
-            series, pick = rules[label]
-            f = int(pick(np.where(ok, running_median(series), np.nan)))
-        picks.setdefault(f, []).append(label)
-    return {"+".join(labels): f for f, labels in picks.items()}
+    for label in (s for s in STARTS if s in wanted):
+        if label == "0":
+            picks[label] = 0
+            continue
+        free = ok.copy()
+        for f in picks.values():
+            free[max(0, f - APART):f + APART + 1] = False
+        if not free.any():
+            log(f"start {label}: no frame left {APART} frames away from {sorted(picks.values())}; not run")
+            continue
+        series, pick = rules[label]
+        picks[label] = int(pick(np.where(free, running_median(series), np.nan)))
+    return picks
 
 
 # --------------------------------------------------------------------------- the two systems
@@ -366,15 +386,25 @@ def rig_constants(ctx) -> dict:
 
 
 def contact(ref_m: dict, found, char_m: dict, rig: dict) -> dict:
-    """Lip and lid contact counts: reference-closed frames and, among them, character-closed ones."""
-    ref_lip = found & (ref_m["mouth"] < LIP_CLOSED)
-    char_lip = char_m["mouth"] <= rig["rest"]["mouth"][0] + LIP_CLOSED
-    eye_n = eye_k = 0
-    for e in ("eye_l", "eye_r"):
-        ref_eye = found & (ref_m[e] < EYE_CLOSED)
-        eye_n += int(ref_eye.sum())
-        eye_k += int((ref_eye & (char_m[e] <= rig["blink"][e][0] + EYE_CLOSED)).sum())
-    return {"lip_n": int(ref_lip.sum()), "lip_k": int((ref_lip & char_lip).sum()), "eye_n": eye_n, "eye_k": eye_k}
+    """Lip and lid contact counts over the reference-closed frames (eye-frames for the lids).
+
+    ``<c>_n``: reference-closed; ``<c>_k``: the character's gap within the tolerance of the rig's closed
+    gap; ``<c>_open``: above it (parted); ``<c>_cross``: below it (crossed), for ``c`` in ``lip``, ``eye``.
+    """
+    out = {}
+    pairs = {"lip": [("mouth", rig["rest"]["mouth"][0], LIP_CLOSED)],
+             "eye": [(e, rig["blink"][e][0], EYE_CLOSED) for e in ("eye_l", "eye_r")]}
+    for c, items in pairs.items():
+        n = k = above = below = 0
+        for m, closed, tol in items:
+            ref = found & (ref_m[m] < tol)
+            d = char_m[m][ref] - closed
+            n += int(ref.sum())
+            k += int((np.abs(d) <= tol).sum())
+            above += int((d > tol).sum())
+            below += int((d < -tol).sum())
+        out.update({f"{c}_n": n, f"{c}_k": k, f"{c}_open": above, f"{c}_cross": below})
+    return out
 
 
 def score(points, layout, refs: dict, frames, rig: dict | None) -> dict:
@@ -384,7 +414,8 @@ def score(points, layout, refs: dict, frames, rig: dict | None) -> dict:
     for name, ref in refs.items():
         found = ref["found"][frames]
         ref_m = {k: v[frames] for k, v in ref["m"].items()}
-        row = {"r": {k: pearson(m[k], ref_m[k], found) for k in R_MEASURES}, "n": int(found.sum())}
+        row = {"r": {k: pearson(m[k], ref_m[k], found) for k in R_MEASURES}, "n": int(found.sum()),
+               "flat": [k for k in R_MEASURES if not np.nanstd(ref_m[k][found]) >= FLAT]}
         if rig is not None:
             row.update(contact(ref_m, found, m, rig))
         out[name] = row
@@ -438,9 +469,10 @@ def run_clip(clip: str, ctx, rig: dict, args) -> dict:
         common = {"clip": clip, "start": label, "frame": start, "T": len(frames)}
         for system in SYSTEMS:
             L = ctx.landmarks_2d(curves[system])
-            out["rows"].append({**common, "system": system, "jitter": jitter(L), "fps": fps[system],
+            sat = float(np.mean(curves[system].max(axis=1) >= SATURATED))
+            out["rows"].append({**common, "system": system, "jitter": jitter(L), "fps": fps[system], "sat": sat,
                                 "refs": score(L, MULTIPIE68, refs, frames, rig)})
-        out["rows"].append({**common, "system": "tracker", "jitter": float("nan"), "fps": float("nan"),
+        out["rows"].append({**common, "system": "tracker", "jitter": float("nan"), "fps": float("nan"), "sat": None,
                             "refs": score(ours["points"], MULTIPIE68, refs, frames, None)})
         out["runs"].append({"start": label, "frame": start, "frames": frames, "curves": curves,
                             "rest": rest_like_frame(refs["mediapipe"], frames)})
@@ -462,23 +494,32 @@ def frac(k: int, n: int) -> str:
     return "— (0)" if not n else f"{100.0 * k / n:.0f} % ({n})"
 
 
+def contact_cell(s: dict, c: str) -> str:
+    """``k % of n (parted a, crossed b)`` for contact *c* (``lip``, ``eye``)."""
+    n = s[f"{c}_n"]
+    if not n:
+        return "— (0)"
+    return f"{100.0 * s[f'{c}_k'] / n:.0f} % of {n} (parted {s[f'{c}_open']}, crossed {s[f'{c}_cross']})"
+
+
 def _line(clip, start, system, row: dict, ref: str) -> str:
     s = row["refs"][ref]
     r = s["r"]
     cells = [clip, start, system, *(fmt(r[m]) for m in R_MEASURES)]
     if "lip_n" in s:
-        cells += [frac(s["lip_k"], s["lip_n"]), frac(s["eye_k"], s["eye_n"])]
+        cells += [contact_cell(s, "lip"), contact_cell(s, "eye")]
     else:
         cells += ["—", "—"]
-    cells += [fmt(1000 * row["jitter"], ".1f"), fmt(row["fps"], ".1f")]
+    sat = "—" if row["sat"] is None else f"{100 * row['sat']:.0f} %"
+    cells += [fmt(1000 * row["jitter"], ".1f"), sat, fmt(row["fps"], ".1f")]
     return "| " + " | ".join(cells) + " |"
 
 
 def table(rows: list, ref: str) -> str:
     """One markdown table against reference *ref*: a line per clip x start x system, then a mean per system."""
     lines = ["| clip | start (frame, frames) | system | r mouth | r eye L | r eye R | r brow | r width | "
-             "lip contact (ref-closed frames) | eye contact (ref-closed eye-frames) | jitter ×1000 | fps |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "lip contact (of ref-closed frames) | eye contact (of ref-closed eye-frames) | jitter ×1000 | saturated | fps |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         lines.append(_line(row["clip"], f"{row['start']} ({row['frame']}, {row['T']})", row["system"], row, ref))
     for system in (*SYSTEMS, "tracker"):
@@ -487,13 +528,26 @@ def table(rows: list, ref: str) -> str:
             continue
         mean = {"r": {m: float(np.nanmean([g["refs"][ref]["r"][m] for g in got])) for m in R_MEASURES}}
         if system != "tracker":
-            for k in ("lip_n", "lip_k", "eye_n", "eye_k"):
+            for k in (f"{c}_{x}" for c in ("lip", "eye") for x in ("n", "k", "open", "cross")):
                 mean[k] = sum(g["refs"][ref][k] for g in got)
         T = sum(g["T"] for g in got)
         fps = T / sum(g["T"] / g["fps"] for g in got) if system != "tracker" else float("nan")
-        agg = {"refs": {ref: mean}, "jitter": float(np.mean([g["jitter"] for g in got])), "fps": fps}
+        sat = None if system == "tracker" else sum(g["sat"] * g["T"] for g in got) / T
+        agg = {"refs": {ref: mean}, "jitter": float(np.mean([g["jitter"] for g in got])), "fps": fps, "sat": sat}
         lines.append(_line("**mean**", f"{len(got)} runs", system, agg, ref))
     return "\n".join(lines)
+
+
+def flat_notes(rows: list) -> list:
+    """Runs where a reference's series barely moves (std < FLAT): r there measures noise, not following."""
+    out = []
+    for row in rows:
+        if row["system"] != "ours":
+            continue
+        bits = [f"{', '.join(s['flat'])} ({ref})" for ref, s in row["refs"].items() if s["flat"]]
+        if bits:
+            out.append(f"- {row['clip']} {row['start']} ({row['frame']}): {'; '.join(bits)}")
+    return out
 
 
 def losses(rows: list, margin: float = 0.02) -> list:
@@ -649,11 +703,15 @@ def main(argv=None) -> int:
     rows = [r for res in results for r in res["rows"]]
     print(f"retarget (documented path, {args.config.name}, track.init auto) against the peer (MediaPipe Face "
           f"Landmarker blendshapes by name) on the ICT rig; frames {'all' if args.frames is None else args.frames} "
-          f"per start; {time.perf_counter() - t:.0f} s.\n")
+          f"per start.\n")
+    log(f"scored in {time.perf_counter() - t:.0f} s (cached runs reused unless --fresh)")
     for ref, title in (("mediapipe", "MediaPipe Face Mesh 0.10.14"), ("dlib", "raw per-frame dlib 68 points")):
         print(f"Against {title}:\n")
         print(table(rows, ref))
         print()
+    print(f"Reference series that barely move (std < {FLAT}; their r is noise):")
+    print("\n".join(flat_notes(rows)) or "- none")
+    print()
     print("Where ours is behind the peer (r by more than 0.02, contact, jitter):")
     print("\n".join(losses(rows)) or "- nowhere")
     if args.json:
