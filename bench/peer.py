@@ -122,14 +122,11 @@ def log(msg: str) -> None:
 
 
 def retarget_api():
-    """Every ``retarget_cli`` name this benchmark imports (the package is being reorganised: change paths here).
-
-    ``bench/real_rig.py``'s ``load_rig`` (used below) imports ``retarget_cli.rig.BlendshapeRig`` itself.
-    """
+    """Every ``retarget_cli`` name this benchmark imports (``bench/real_rig.py``'s ``load_rig`` loads the rig)."""
     from types import SimpleNamespace
 
     from retarget_cli.io.livelink import ARKIT_SHAPES, arkit_mapping, canonical_name, check_names_mapping
-    from retarget_cli.render import Camera, MeshRenderer, View
+    from retarget_cli.methods.render import Camera, MeshRenderer, View
 
     return SimpleNamespace(ARKIT_SHAPES=ARKIT_SHAPES, arkit_mapping=arkit_mapping, canonical_name=canonical_name,
                            check_names_mapping=check_names_mapping, Camera=Camera, MeshRenderer=MeshRenderer, View=View)
