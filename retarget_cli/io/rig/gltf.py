@@ -624,16 +624,22 @@ def _name_groups(f: GltfFile, instances: list[_Instance], table: list, unique: l
     return groups
 
 
-def _add_bind(groups: dict, slider: str, j: int, weight: float):
+def _add_bind(groups: dict, slider: str, j, weight: float):
+    """Add ``weight`` of target row *j* to *slider*; ``j is None`` counts a bind on a target not chosen."""
     binds = groups.setdefault(slider, {})
-    binds[j] = binds.get(j, 0.0) + weight
+    binds[j] = binds.get(j, 0.0) + (weight if j is not None else 1)
 
 
 def _finish(f: GltfFile, groups: dict, names: list[str]) -> dict:
     out = {}
     for name in names:
-        if groups.get(name):
-            out[name] = list(groups[name].items())
+        binds = dict(groups.get(name, {}))
+        dropped = int(binds.pop(None, 0))
+        if binds:
+            out[name] = list(binds.items())
+            if dropped:
+                log.info("%s: expression '%s' keeps %d binds, %d are on meshes or targets not chosen", f.name, name,
+                         len(binds), dropped)
         else:
             log.info("%s: expression '%s' moves no chosen target; not a slider", f.name, name)
     return out
@@ -666,9 +672,8 @@ def _vrm0_groups(f: GltfFile, vrm: dict, instances: list[_Instance], index: dict
             n = _targets_of(f, mesh, bw)
             if k >= n:
                 raise f.error(f"{bw}: morph target {k} of mesh {mesh}, which has {n}")
-            for i in by_mesh.get(mesh, []):
-                if (i, k) in index:
-                    _add_bind(groups, name, index[(i, k)], weight / 100.0)
+            for i in by_mesh.get(mesh, [None]):
+                _add_bind(groups, name, index.get((i, k)), weight / 100.0)
     return _finish(f, groups, names)
 
 
@@ -699,9 +704,7 @@ def _vrm1_groups(f: GltfFile, vrmc: dict, instances: list[_Instance], index: dic
                 n = _targets_of(f, f.field(target, "mesh", f"node {node}", int, low=0))
                 if k >= n:
                     raise f.error(f"{bw}: morph target {k} of node {node}'s mesh, which has {n}")
-                i = by_node.get(node)
-                if i is not None and (i, k) in index:
-                    _add_bind(groups, name, index[(i, k)], weight)
+                _add_bind(groups, name, index.get((by_node.get(node), k)), weight)
     return _finish(f, groups, names)
 
 

@@ -324,7 +324,7 @@ def test_skin_rest_pose_not_bind_pose_blends(tmp_path):
     np.testing.assert_allclose(rig.deltas[0], JAW[:3] * scale, atol=1e-6)
 
 
-def test_vrm0_blend_shape_groups(tmp_path):
+def test_vrm0_blend_shape_groups(tmp_path, caplog):
     groups = [{"name": "A", "presetName": "a", "binds": [{"mesh": 0, "index": 0, "weight": 100},
                                                          {"mesh": 1, "index": 0, "weight": 50}]},
               {"name": "Neutral", "presetName": "neutral", "binds": []},
@@ -338,8 +338,11 @@ def test_vrm0_blend_shape_groups(tmp_path):
     assert rig.kind == "vrm0"
     assert rig.groups == {"a": [(0, 1.0), (3, 0.5)], "Wink": [(1, 0.5)], "EyeOnly": [(4, 1.0)]}
     assert list(rig.raw_groups) == rig.target_names
+    caplog.set_level("INFO", logger="retarget_cli.io.rig.gltf")
     rig = read_gltf_rig(write_glb(tmp_path, mutate=mutate), meshes=["Head"])
     assert rig.groups == {"a": [(0, 1.0)], "Wink": [(1, 0.5)]}  # binds on the teeth are not chosen
+    assert "expression 'a' keeps 1 binds, 1 are on meshes or targets not chosen" in caplog.text
+    assert "expression 'EyeOnly' moves no chosen target" in caplog.text
     rig = read_gltf_rig(write_glb(tmp_path, mutate=mutate), targets=["smile"])  # no expression left: by name
     assert rig.kind == "gltf" and rig.groups == {"smile": [(0, 1.0)]}
 
