@@ -254,6 +254,8 @@ class GltfFile:
         target = (base / rel).resolve()
         if not target.is_relative_to(base):
             raise self.error(f"{where}: uri {_short(uri)} resolves outside the rig's folder")
+        if target.exists() and not target.is_file():  # a FIFO or device would block or never end
+            raise self.error(f"{where}: external buffer {rel} is not a regular file")
         try:
             with open(target, "rb") as fh:
                 return fh.read(length)

@@ -715,14 +715,4 @@ def _fresh(name: str, used: list[str]) -> str:
     return out
 
 
-def describe(rig: GltfRig) -> str:
-    """A short multi-line summary of *rig* (meshes, vertex and target counts, sliders) for logs and reports."""
-    lines = [f"{rig.kind}: {len(rig.neutral)} vertices, {len(rig.faces)} triangles, {len(rig.target_names)} "
-             f"targets, {len(rig.groups)} sliders"]
-    for name, start, stop in rig.mesh_ranges:
-        k = sum(1 for m in rig.target_meshes if m == name)
-        lines.append(f"  {name}: {stop - start} vertices, {k} targets")
-    return "\n".join(lines)
-
-
-__all__ = ["GltfRig", "read_gltf_rig", "describe", "MAX_DENSE_BYTES"]
+__all__ = ["GltfRig", "read_gltf_rig", "MAX_DENSE_BYTES"]

@@ -438,6 +438,15 @@ def test_error_symlink_out_of_the_folder(tmp_path):
     _one_line_error(d / "rig.gltf", "resolves outside the rig's folder")
 
 
+def test_error_external_buffer_not_a_regular_file(tmp_path):
+    b, meshes, nodes, roots = build_scene()
+    doc = b.doc(meshes, nodes, roots)
+    doc["buffers"][0]["uri"] = "pipe.bin"
+    os.mkfifo(tmp_path / "pipe.bin")
+    (tmp_path / "rig.gltf").write_text(json.dumps(doc))
+    _one_line_error(tmp_path / "rig.gltf", "external buffer pipe.bin is not a regular file")
+
+
 def test_error_truncated_files(tmp_path):
     data = write_glb(tmp_path).read_bytes()
     cut = tmp_path / "cut.glb"
