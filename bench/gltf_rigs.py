@@ -6,7 +6,7 @@ chin and the upper lids (and by how much), and the check behind the ``t_X -> X``
 teeth target ``t_X`` with a head target ``X``, the cosine between the teeth's displacement and the
 head target's displacement averaged at the 8 head vertices nearest each teeth vertex, the rank of
 ``X`` among all 65 head targets by that cosine, and the magnitude ratio; the teeth targets without a
-partner give the baseline. ``--png DIR`` renders (with retarget_cli.render) the VALID head neutral,
+partner give the baseline. ``--png DIR`` renders (with retarget_cli.methods.render) the VALID head neutral,
 mouth-open and eyes-closed, its mouth with and without the teeth joined to the slider, and Godette's
 face at a few presets. Without ``../shared/realdata`` it prints a skip line and exits 0.
 
@@ -126,7 +126,7 @@ def _valid_png(rig, out: Path) -> None:
     import cv2
 
     from retarget_cli.io.rig.gltf import read_gltf_rig
-    from retarget_cli.render import Camera, MeshRenderer
+    from retarget_cli.methods.render import Camera, MeshRenderer
 
     every = read_gltf_rig(VALID, meshes=["*"])
     v = every.neutral
@@ -165,7 +165,7 @@ def godette(png: Path | None) -> None:
     if png:
         import cv2
 
-        from retarget_cli.render import Camera, MeshRenderer
+        from retarget_cli.methods.render import Camera, MeshRenderer
 
         ren = MeshRenderer(rig.faces, rig.neutral, camera=Camera(yaw=180, fov=20), size=(320, 320))  # VRM 0.x faces -z
         imgs = [_label(ren.render(_pose(rig, {s: 1} if s else {})), s or "neutral")

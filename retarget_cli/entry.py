@@ -10,9 +10,6 @@ from __future__ import annotations
 
 import sys
 
-from .cli.commands import main as cli
-from .cli.commands import one_line
-
 
 def _fail(exc: BaseException) -> int:
     if isinstance(exc, KeyboardInterrupt) or type(exc).__name__ == "Abort":
@@ -23,6 +20,7 @@ def _fail(exc: BaseException) -> int:
 
         traceback.print_exception(exc)
     try:
+        from .cli.commands import one_line
 
         msg = one_line(exc)
     except BaseException:
@@ -36,6 +34,7 @@ def main(argv=None) -> None:
     try:
         import click
 
+        from .cli.commands import main as cli
 
         try:
             code = cli.main(args=argv, prog_name="retarget", standalone_mode=False)
