@@ -135,27 +135,44 @@ def temporal_events(frames, keys, *, lam: float, upper: float | None = None, con
         return (C * (S - W @ B) ** 2).reshape(T, -1, pd).sum(axis=2)
 
     p0 = per_point(W0)
-    r0 = p0.sum(axis=1)
-    scale = max(float(np.median(r0)), 1e-12 * float(np.mean(np.sum(C * S**2, axis=1))), 1e-300)
-    p_scale = np.maximum(np.median(p0, axis=0), 0.1 * scale / p0.shape[1])
+    floor = 1e-12 * float(np.mean(np.sum(C * S**2, axis=1)))
     rho = np.ones(T - 2)
     for it in range(max(int(passes), 1)):
-        p = per_point(W)
-        win = _window3(np.column_stack([(p.sum(axis=1) - r0) / scale, (p - p0) / p_scale]))
-        event = (win[:, 0] > robust) | (win[:, 1:].max(axis=1) > point_factor * robust)
-        if not event.any():
-            break
-        event[1:] |= event[:-1].copy()
-        event[:-1] |= event[1:].copy()
-        # term t (frames t, t+1, t+2) touches an event frame
-        touch = event[:-2] | event[1:-1] | event[2:]
+        touch = event_terms(per_point(W), p0, robust=robust, point_factor=point_factor, floor=floor)
         if not np.any(touch & (rho > 0)):
             break
         rho[touch] = 0.0
-        log.debug("temporal: pass %d, %d event frames, %d terms released", it + 1, int(event.sum()), int(touch.sum()))
+        log.debug("temporal: pass %d, %d terms released", it + 1, int(touch.sum()))
         W = temporal_whole(S, B, lam=lam, upper=upper, confidence=confidence, shape_space=shape_space,
                            row_weights=rho)
     return W
+
+
+def event_terms(p, p0, *, robust: float, point_factor: float = 5.0, floor: float = 0.0) -> np.ndarray:
+    """The second-difference terms a fast event touches (the test of :func:`temporal_events`).
+
+    Parameters
+    ----------
+    p, p0 : ndarray, shape (T, P)
+        Each frame's squared residual per point, of the smooth solution and of the per-frame one.
+    robust, point_factor : float
+        As :func:`temporal_events`.
+    floor : float
+        Lower bound of the median per-frame residual used as the unit.
+
+    Returns
+    -------
+    ndarray of bool, shape (T − 2,)
+        Term ``t`` (frames ``t, t+1, t+2``) touches a frame flagged (dilated by one frame).
+    """
+    r0 = p0.sum(axis=1)
+    scale = max(float(np.median(r0)), floor, 1e-300)
+    p_scale = np.maximum(np.median(p0, axis=0), 0.1 * scale / p0.shape[1])
+    win = _window3(np.column_stack([(p.sum(axis=1) - r0) / scale, (p - p0) / p_scale]))
+    event = (win[:, 0] > robust) | (win[:, 1:].max(axis=1) > point_factor * robust)
+    event[1:] |= event[:-1].copy()
+    event[:-1] |= event[1:].copy()
+    return event[:-2] | event[1:-1] | event[2:]
 
 
 def _window3(e: np.ndarray) -> np.ndarray:
@@ -173,6 +190,85 @@ def _second_difference(T: int):
     if T < 3:
         return sparse.csr_matrix((0, T))
     return sparse.diags([np.ones(T - 2), -2 * np.ones(T - 2), np.ones(T - 2)], [0, 1, 2], shape=(T - 2, T), format="csr")
+
+
+def sparse_box_qp(H, q, lower, upper, x0, *, max_iter: int = 60):
+    """``min ½ xᵀHx − qᵀx`` subject to ``lower ≤ x ≤ upper``, for a large sparse positive definite *H*.
+
+    The primal–dual active-set iteration of Hintermüller, Ito & Kunisch (2002) started from *x0* (whose
+    bounds that it touches are the first active set); each iteration is one sparse LU solve
+    (:func:`scipy.sparse.linalg.splu`) of *H* reduced to the free variables, and a returned solution
+    satisfies the KKT conditions. After a cycle it changes fewer variables at a time.
+
+    Parameters
+    ----------
+    H : scipy.sparse matrix, shape (n, n)
+    q : ndarray, shape (n,)
+    lower, upper : ndarray, shape (n,)
+        Finite lower bounds below the (possibly infinite) upper ones.
+    x0 : ndarray, shape (n,)
+    max_iter : int
+
+    Returns
+    -------
+    x : ndarray, shape (n,)
+        Clipped to the bounds.
+    settled : bool
+        False when the iteration stopped without certifying the KKT conditions (*x* is then the last iterate).
+    """
+    from scipy.sparse.linalg import splu
+
+    lo, hi_v = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    x = np.clip(np.asarray(x0, dtype=np.float64), lo, hi_v)
+    Hbig = H.tocsc()
+    n = len(q)
+    status = np.zeros(n, dtype=np.int8)
+    status[x <= lo] = -1
+    status[x >= hi_v] = 1
+    hscale = max(float(np.abs(Hbig.diagonal()).max()), 1e-300)
+    seen = set()
+    limit = None  # after a cycle: change at most this many of the worst violators per iteration
+    for it in range(4 * max_iter):
+        F = np.flatnonzero(status == 0)
+        xB = np.where(status == -1, lo, np.where(status == 1, hi_v, 0.0))
+        x = xB.copy()
+        if F.size:
+            rhs = q[F] - Hbig[F] @ xB
+            HF = Hbig[F][:, F].tocsc()
+            try:
+                x[F] = splu(HF).solve(rhs)
+            except RuntimeError:  # singular reduced Hessian: least-squares solve
+                from scipy.sparse.linalg import lsqr
+
+                x[F] = lsqr(HF, rhs, atol=1e-14, btol=1e-14)[0]
+        g = Hbig @ x - q
+        xs = 1.0 + np.abs(x).max()
+        tolx, tolg = 1e-10 * xs, 1e-9 * (np.abs(q).max(initial=0.0) + hscale * xs)
+        free = status == 0
+        below = free & (x < lo - tolx)
+        above = free & (x > hi_v + tolx)
+        wrong = ((status == -1) & (g < -tolg)) | ((status == 1) & (g > tolg))
+        nbad = int(below.sum() + above.sum() + wrong.sum())
+        log.debug("temporal: iteration %d, %d free of %d, %d KKT violations", it + 1, F.size, n, nbad)
+        if nbad == 0:
+            return np.clip(x, lo, hi_v), True
+        if limit is not None and nbad > limit:
+            score = np.where(below, (lo - x) / xs, 0.0) + np.where(above, (x - hi_v) / xs, 0.0) \
+                + np.where(wrong, np.abs(g) / (hscale * xs), 0.0)
+            keep = np.zeros(n, dtype=bool)
+            keep[np.argsort(-score, kind="stable")[:limit]] = True
+            below, above, wrong = below & keep, above & keep, wrong & keep
+        status[below] = -1
+        status[above] = 1
+        status[wrong] = 0
+        key = hash(status.tobytes())
+        if key in seen:  # cycling: change fewer variables at a time (the KKT check still certifies the end)
+            if limit == 1 or it >= max_iter and limit is None:
+                break
+            limit = max(1, (nbad if limit is None else limit) // 4)
+            seen.clear()
+        seen.add(key)
+    return np.clip(x, lo, hi_v), False
 
 
 def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, confidence=None,
@@ -219,7 +315,6 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
     ndarray, shape (T, K)
     """
     from scipy import sparse
-    from scipy.sparse.linalg import splu
 
     S = check_array(frames, "frames", ndim=2)
     B = check_array(keys, "keys", ndim=2)
@@ -247,55 +342,11 @@ def temporal_whole(frames, keys, *, lam: float, upper: float | None = None, conf
         x = box_qp_weighted(weighted_hessians(B, C), Q, lower=0.0, upper=hi_v).ravel()
     if lam == 0 or T < 3:
         return x.reshape(T, K)
-    n = T * K
-    status = np.zeros(n, dtype=np.int8)
-    status[x <= 0] = -1
-    status[x >= hi_v] = 1
-    hscale = max(float(np.abs(Hbig.diagonal()).max()), 1e-300)
-    seen = set()
-    limit = None  # after a cycle: change at most this many of the worst violators per iteration
-    for it in range(4 * max_iter):
-        F = np.flatnonzero(status == 0)
-        xB = np.where(status == -1, 0.0, np.where(status == 1, hi_v, 0.0))
-        x = xB.copy()
-        if F.size:
-            rhs = q[F] - Hbig[F] @ xB
-            HF = Hbig[F][:, F].tocsc()
-            try:
-                x[F] = splu(HF).solve(rhs)
-            except RuntimeError:  # singular reduced Hessian: least-squares solve
-                from scipy.sparse.linalg import lsqr
-
-                x[F] = lsqr(HF, rhs, atol=1e-14, btol=1e-14)[0]
-        g = Hbig @ x - q
-        xs = 1.0 + np.abs(x).max()
-        tolx, tolg = 1e-10 * xs, 1e-9 * (np.abs(q).max() + hscale * xs)
-        free = status == 0
-        below = free & (x < -tolx)
-        above = free & (x > hi_v + tolx)
-        wrong = ((status == -1) & (g < -tolg)) | ((status == 1) & (g > tolg))
-        nbad = int(below.sum() + above.sum() + wrong.sum())
-        log.debug("temporal: iteration %d, %d free of %d, %d KKT violations", it + 1, F.size, n, nbad)
-        if nbad == 0:
-            return np.clip(x, 0.0, hi_v).reshape(T, K)
-        if limit is not None and nbad > limit:
-            score = np.where(below, -x / xs, 0.0) + np.where(above, (x - hi_v) / xs, 0.0) \
-                + np.where(wrong, np.abs(g) / (hscale * xs), 0.0)
-            keep = np.zeros(n, dtype=bool)
-            keep[np.argsort(-score, kind="stable")[:limit]] = True
-            below, above, wrong = below & keep, above & keep, wrong & keep
-        status[below] = -1
-        status[above] = 1
-        status[wrong] = 0
-        key = hash(status.tobytes())
-        if key in seen:  # cycling: change fewer variables at a time (the KKT check still certifies the end)
-            if limit == 1 or it >= max_iter and limit is None:
-                break
-            limit = max(1, (nbad if limit is None else limit) // 4)
-            seen.clear()
-        seen.add(key)
+    x, settled = sparse_box_qp(Hbig, q, np.zeros(T * K), np.full(T * K, hi_v), x, max_iter=max_iter)
+    if settled:
+        return x.reshape(T, K)
     log.warning("temporal: the active-set iteration did not settle after %d iterations; finishing with "
-                "scipy.optimize.lsq_linear (weights may be slightly inexact; try a larger decompose.alpha)", it + 1)
+                "scipy.optimize.lsq_linear (weights may be slightly inexact; try a larger decompose.alpha)", 4 * max_iter)
     from scipy.optimize import lsq_linear
 
     if C_is_none:

@@ -530,3 +530,26 @@ def test_prefetch_kernel_only_for_solves_that_use_it():
     dm._await_kernel(True)
     assert not dm._PREFETCH[True].is_alive()  # loaded in the background; a solve waits for it
     assert False not in dm._PREFETCH  # no load started for the uniform-confidence kernel
+
+
+def test_sparse_box_qp_solves_a_banded_problem_with_per_variable_bounds_like_the_dense_solver():
+    from scipy import sparse
+
+    from retarget_cli.methods.decomposition import box_qp
+    from retarget_cli.methods.decomposition.temporal import sparse_box_qp
+
+    rng = np.random.default_rng(5)
+    T, K = 40, 3
+    A = rng.standard_normal((T, 4, K))
+    blocks = np.einsum("tri,trj->tij", A, A) + 0.01 * np.eye(K)
+    D2 = np.diff(np.eye(T), 2, axis=0)
+    H = sparse.block_diag(list(blocks)) + 0.5 * sparse.kron(D2.T @ D2, np.eye(K))
+    q = 2.0 * rng.standard_normal(T * K)
+    lo = np.where(rng.random(T * K) < 0.3, -0.5, 0.0)
+    hi = np.where(rng.random(T * K) < 0.5, 1.0, np.inf)
+    x, settled = sparse_box_qp(sparse.csr_matrix(H), q, lo, hi, np.zeros(T * K))
+    ref = box_qp(H.toarray(), q[None], lower=lo, upper=hi)[0]
+    assert settled
+    assert np.all(x >= lo) and np.all(x <= hi)
+    assert ((lo < x) & (x < hi)).sum() < T * K and ((x == lo) | (x == hi)).any()  # bounds are active
+    np.testing.assert_allclose(x, ref, atol=1e-6)
