@@ -35,11 +35,13 @@ between the two faces into expression.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
 from .._validate import check_array
 from ..errors import InputError, ParameterError, ShapeError
+from .blas import small_blas
 from .decomposition import box_qp
 from .editing import fit_orthographic
 
@@ -225,6 +227,14 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
     ndarray, shape (n,)
     """
 
+    return _slider_qp(B, m, lower, upper, weights=weights, sparsity=sparsity, ridge=ridge, exclusive=exclusive,
+                      free=free)[0]
+
+
+def _slider_qp(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE,
+               exclusive=None, free=None):
+    """:func:`fit_sliders`, also returning its QP: ``(w, H, q, free)``, ``½ wᵀHw − qᵀw`` over the final *free*
+    sliders (the exclusive pairs' losers removed); ``H`` is None when nothing is free."""
     B = check_array(B, "B", ndim=2)
     r, n = B.shape
     m = check_array(m, "m", ndim=1)
@@ -241,13 +251,13 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
     pairs = np.zeros((0, 2), np.int64) if exclusive is None else np.asarray(exclusive, dtype=np.int64).reshape(-1, 2)
     w = np.zeros(n)
     if not free.any():
-        return w
+        return w, None, None, free
     BtC = B.T * c
     H = BtC @ B
     q = BtC @ m
     hbar = float(np.mean(np.diag(H)[free]))
     if hbar <= 0:
-        return w
+        return w, None, None, np.zeros(n, dtype=bool)
     H = H + ridge * hbar * np.eye(n)
     q = q - sparsity * hbar * (lo >= 0)
     for _ in range(len(pairs) + 1):
@@ -259,12 +269,246 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
             break
         for a, b in both:
             free[b if abs(w[b]) <= abs(w[a]) else a] = False
-    return w
+    return w, H, q, free
+
+
+@dataclass(frozen=True)
+class Contact:
+    """Landmark pairs that meet when a feature closes: the lips, or one eye's lids.
+
+    Attributes
+    ----------
+    kind : {"lips", "lids"}
+        ``lips``: the rig's lips are closed at rest, and the actor's inner-lip gap is a target in itself
+        (:func:`contact_targets`); ``lids``: the eye's openness relative to the neutral frame.
+    pairs : tuple of (int, int)
+        (upper, lower) landmark rows.
+    corners : (int, int)
+        The feature's corners, image-left first; their line's normal is the direction of the gap.
+    """
+
+    kind: str
+    pairs: tuple
+    corners: tuple
+
+
+#: The contact pairs of the 68-point Multi-PIE layout: inner lips 61/67, 62/66, 63/65 between the outer mouth
+#: corners 48/54; the image-left eye's lids 37/41, 38/40 (corners 36/39), the image-right eye's 43/47, 44/46
+#: (corners 42/45).
+CONTACT_68 = (Contact("lips", ((61, 67), (62, 66), (63, 65)), (48, 54)),
+              Contact("lids", ((37, 41), (38, 40)), (36, 39)),
+              Contact("lids", ((43, 47), (44, 46)), (42, 45)))
+#: Default weight of a contact gap, in landmarks (a gap row counts as this many landmarks of the region).
+DEFAULT_CONTACT_WEIGHT = 4.0
+#: Default inner-lip gap / mouth width, above the neutral frame's, below which the actor's lips count as closed.
+DEFAULT_LIP_CLOSED = 0.02
+#: Default lid gap / eye width at which the actor's tracked eye counts as closed (see docs/auto-pose.md).
+DEFAULT_LID_CLOSED = 0.14
+CONTACT_KINDS = ("lips", "lids")
+#: Percentiles of :func:`contact_references`: the take's closed lips and open eyes; the closed lips' readings
+#: are those within CLOSED_BAND (of the mouth width) of that percentile.
+CLOSED_PERCENTILE = 5.0
+CLOSED_BAND = 0.03
+OPEN_PERCENTILE = 75.0
+#: Default tolerance of a contact gap, as a fraction of its feature's width on the rig (mouth or eye corners).
+DEFAULT_CONTACT_TOL = 0.0075
+#: Passes of :func:`_fit_region` that weigh a gap outside its tolerance CONTACT_BOOST times more.
+CONTACT_PASSES = 4
+CONTACT_BOOST = 8.0
+
+
+#: The 68-point landmarks of :func:`frontal_rotation`: the outer eye corners (image-left, image-right) and the chin.
+FRONT_68 = (36, 45, 8)
+
+
+def frontal_rotation(X0, left: int, right: int, down: int) -> np.ndarray:
+    """The rotation that shows the rig from the front, from three of its landmarks at rest.
+
+    Image x runs from landmark *left* to *right* (the outer eye corners), image y (down) towards *down* (the
+    chin) and z away from the viewer, snapped to the nearest of the rig file's axes (a face rig is modelled
+    facing one of them, glTF's +Z, and the chin sits in front of the eyes, which would tilt the view by
+    10°): lips that meet are then measured as a viewer facing the character sees them, not through the head
+    pose of some frame. Without a clear nearest axis the unsnapped rotation is returned.
+
+    Parameters
+    ----------
+    X0 : ndarray, shape (L, 3)
+        The rig's landmark vertices at rest.
+    left, right, down : int
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        Rows x, y, z: ``R @ X`` is in image-like axes.
+    """
+    ex = X0[right] - X0[left]
+    ex = ex / max(float(np.linalg.norm(ex)), 1e-300)
+    ey = X0[down] - 0.5 * (X0[left] + X0[right])
+    ey = ey - (ey @ ex) * ex
+    ey = ey / max(float(np.linalg.norm(ey)), 1e-300)
+    R = np.stack([ex, ey, np.cross(ex, ey)])
+    axes = np.argmax(np.abs(R), axis=1)
+    if len(set(axes.tolist())) < 3:
+        return R
+    snapped = np.zeros((3, 3))
+    snapped[np.arange(3), axes] = np.sign(R[np.arange(3), axes])
+    return snapped if np.linalg.det(snapped) > 0 else R
+
+
+def _normal(P, a: int, b: int) -> np.ndarray:
+    """Unit normal of the line from point *a* to *b* of ``P`` (L, 2), rotated +90° (down the image)."""
+    d = P[b] - P[a]
+    n = np.array([-d[1], d[0]])
+    return n / max(float(np.linalg.norm(n)), 1e-300)
+
+
+def _gaps(P, c: Contact) -> np.ndarray:
+    """Signed gaps of *c*'s pairs in the points ``P`` (L, 2) along its corner line's normal, shape (pairs,)."""
+    n = _normal(P, *c.corners)
+    return np.array([float(n @ (P[lo] - P[up])) for up, lo in c.pairs])
+
+
+def contact_ratios(points, c: Contact) -> np.ndarray:
+    """Each pair's gap over the feature's width (the corners' distance) in every frame.
+
+    Parameters
+    ----------
+    points : array_like, shape (T, L, 2) or (L, 2)
+    c : Contact
+
+    Returns
+    -------
+    ndarray, shape (T, pairs) (or (pairs,) for one frame)
+    """
+    P = np.asarray(points, dtype=np.float64)
+    one = P.ndim == 2
+    P = P[None] if one else P
+    a, b = c.corners
+    d = P[:, b] - P[:, a]
+    width = np.maximum(np.linalg.norm(d, axis=1), 1e-300)
+    n = np.stack([-d[:, 1], d[:, 0]], axis=1) / width[:, None]
+    out = np.stack([np.einsum("tc,tc->t", P[:, lo] - P[:, up], n) for up, lo in c.pairs], axis=1) / width[:, None]
+    return out[0] if one else out
+
+
+def contact_references(points, contact, confidence=None, *, neutral=None,
+                       closed_percentile: float = CLOSED_PERCENTILE,
+                       open_percentile: float = OPEN_PERCENTILE) -> list[np.ndarray]:
+    """What closed lips and open eyes read as in a take: the references of :func:`contact_targets`.
+
+    Contact is a state of the face, not a change from the neutral frame, and the tracker reads it with a
+    bias of its own (lips that meet keep a gap of 0–0.03 of the mouth width, lids that meet one of 0.1 of
+    the eye width). So per group, over the take's frames where its points are tracked: ``lips``, each pair's
+    median gap / mouth width over the frames within :data:`CLOSED_BAND` of its *closed_percentile*
+    percentile (the cluster of closed lips: they meet in most takes, on more than that fraction of the
+    frames); ``lids``, the *open_percentile* percentile of the mean lid gap / eye width
+    (the eye at rest: open on most frames, blinks and squints below it, wide eyes above), or the *neutral*
+    frame's when that is wider, so that the neutral frame's eyes are the rig's at rest unless they squint.
+
+    Parameters
+    ----------
+    points : array_like, shape (T, L, 2)
+    contact : sequence of Contact
+    confidence : array_like, shape (T, L), optional
+        Frames where a group's point has confidence 0 are left out of its statistic.
+    neutral : array_like, shape (L, 2), optional
+        The neutral frame's landmarks.
+
+    Returns
+    -------
+    list of ndarray, one per group, each shape (pairs,)
+    """
+    P = check_array(points, "points", ndim=3)
+    C = None if confidence is None else np.asarray(confidence, dtype=np.float64)
+    out = []
+    for c in contact or ():
+        r = contact_ratios(P, c)
+        ok = np.isfinite(r).all(axis=1)
+        if C is not None:
+            ok &= (C[:, [p for pair in c.pairs for p in pair] + list(c.corners)] > 0).all(axis=1)
+        r = r[ok] if ok.any() else np.zeros((1, len(c.pairs)))
+        if c.kind == "lips":
+            low = np.percentile(r, closed_percentile, axis=0)
+            out.append(np.array([np.median(r[r[:, j] <= low[j] + CLOSED_BAND, j]) for j in range(r.shape[1])]))
+        else:
+            r_open = float(np.percentile(r.mean(axis=1), open_percentile))
+            if neutral is not None:
+                r_open = max(r_open, float(np.mean(contact_ratios(neutral, c))))
+            out.append(np.full(len(c.pairs), r_open))
+    return out
+
+
+def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_closed: float = DEFAULT_LID_CLOSED,
+                    lip_closed: float = DEFAULT_LIP_CLOSED):
+    """The gap rows of one contact group: what the rig's gaps must change by, from its rest pose.
+
+    The delta fit asks the rig's landmarks to move as the actor's moved from the neutral frame, which
+    does not keep contact: lips that are parted in the neutral frame cross on the character when the actor
+    closes them, and a tracker whose closed lids keep a gap leaves the character's eyes half open. So the
+    gap of each pair becomes a target of its own, as a fraction of the feature's width (the corners'
+    distance) on the actor, against the take's references (:func:`contact_references`), carried over to the
+    rig's width:
+
+    - ``lips``: the rig's lips are closed at rest. The actor's opening is the pair's gap / mouth width above
+      the take's closed reading, less *lip_closed* (the tracker's noise on closed lips), never below 0: the
+      character's lips part by as much of their width, and never cross;
+    - ``lids``: the actor's openness ``o = (r_k − r_c) / (r_o − r_c)``, ``r_k`` the mean lid gap / eye width,
+      ``r_o`` the take's open reading and ``r_c = lid_closed`` (where the tracker's lids read closed),
+      clipped at 0, poses the rig's gap between its rest gap (``o = 1``) and its most closed one (the
+      slider among *free* that closes it most, at its bound, ``o = 0``); an eye wider than ``r_o`` widens
+      the rig's by ``r_k − r_o`` of its width.
+
+    Parameters
+    ----------
+    c : Contact
+    Yk : ndarray, shape (L, 2)
+        The actor's landmarks in the frame (pixels).
+    ref : ndarray, shape (pairs,)
+        The group's references (:func:`contact_references`).
+    P0 : ndarray, shape (L, 2)
+        The rig's rest landmarks seen through a camera rotation (rig units).
+    B : ndarray, shape (L, 2, n)
+        The rig's landmark displacements seen through the same rotation.
+    free : ndarray of bool, shape (n,)
+        The sliders that may move.
+    lower, upper : array_like, shape (n,)
+        Slider ranges.
+    lid_closed, lip_closed : float
+
+    Returns
+    -------
+    G : ndarray, shape (pairs, n)
+        Gap change per slider in that view, ``n · (B_lower − B_upper)``.
+    target : ndarray, shape (pairs,)
+        The gap change the rig must make (rig units).
+    closed : ndarray, shape (pairs,)
+        The gap change of the rig's closed feature (lips: 0, their rest).
+    """
+    if c.kind not in CONTACT_KINDS:
+        raise ParameterError(f"contact: kind {c.kind!r} is not one of {', '.join(CONTACT_KINDS)}")
+    n = _normal(P0, *c.corners)
+    G = np.stack([n @ (B[lo] - B[up]) for up, lo in c.pairs])
+    width_rig = float(np.linalg.norm(P0[c.corners[1]] - P0[c.corners[0]]))
+    ratio = contact_ratios(Yk, c)
+    if c.kind == "lips":
+        return G, np.maximum(ratio - np.asarray(ref) - lip_closed, 0.0) * width_rig, np.zeros(len(c.pairs))
+    reach = np.minimum(G * np.asarray(upper, dtype=np.float64), G * np.asarray(lower, dtype=np.float64))
+    closed = np.min(np.where(free, reach, 0.0), axis=1, initial=0.0)  # (pairs,): the most closing slider's
+    r_k, r_o = float(np.mean(ratio)), float(np.mean(ref))
+    if r_o - lid_closed <= 1e-6:
+        return G, np.zeros(len(c.pairs)), closed  # the open eye reads no more open than closed: no target
+    if r_k >= r_o:
+        return G, np.full(len(c.pairs), (r_k - r_o) * width_rig), closed
+    o = max((r_k - lid_closed) / (r_o - lid_closed), 0.0)
+    return G, (1.0 - o) * closed, closed
 
 
 def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights=None, regions=None,
                sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE, exclusive=None,
-               region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2) -> dict:
+               region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
+               contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
+               lid_closed: float = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
+               contact_tol: float = DEFAULT_CONTACT_TOL, contact_refs=None, front=None) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
 
     The delta transfer of the module docstring: one scaled orthographic
@@ -272,7 +516,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     landmark vertices and the actor's *neutral* landmarks, then per region the
     sliders it owns (:func:`slider_owners`) fitted by :func:`fit_sliders` to
     the region's landmark displacements divided by its scale
-    (:func:`region_scales`).
+    (:func:`region_scales`), with the gaps of *contact* pairs as targets of
+    their own (:func:`contact_targets`).
 
     Parameters
     ----------
@@ -311,6 +556,23 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         does not read as expression: the frame's displacement is measured
         from the neutral face seen in *that frame's* pose. Without it one
         camera (the neutral frame's) serves every frame.
+    contact : sequence of Contact, optional
+        Pairs whose gap is a target (:func:`contact_targets`; for 68 points
+        :data:`CONTACT_68`); a group is fitted with the region that holds all
+        its pairs. The pair's two landmarks keep their mean displacement from
+        the delta fit; their gap is replaced by the target.
+    contact_weight : float
+        Weight of each gap row, in landmarks (0: the gaps as the delta fit has them, no extra row). A gap
+        that crosses, or is not closed where the actor's is, by more than *contact_tol* of its feature's
+        width weighs :data:`CONTACT_BOOST` times more, up to :data:`CONTACT_PASSES` times.
+    lid_closed, lip_closed : float
+        See :func:`contact_targets`.
+    contact_tol : float
+    contact_refs : list of ndarray, optional
+        :func:`contact_references` of the take (default: of the neutral and target frames).
+    front : (int, int, int), optional
+        Landmarks that give the rig's front view (:func:`frontal_rotation`; for 68 points :data:`FRONT_68`), in
+        which the contact gaps are measured; default the neutral frame's view.
 
     Returns
     -------
@@ -341,6 +603,10 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     for r, i in zip(names, ids):
         if i.size == 0 or i.min() < 0 or i.max() >= L:
             raise ShapeError(f"regions: {r!r} must list landmark ids in [0, {L})")
+    if contact_weight > 0 and contact and contact_refs is None:
+        contact_refs = contact_references(np.concatenate([Y0[None], Y]), contact, np.concatenate([c0[None], C]),
+                                          neutral=Y0)
+    groups = _region_contacts(contact if contact_weight > 0 else None, contact_refs, ids, L)
     X0, DL = rig_landmarks(rig, v)
     rig_ids = None if rigid is None else np.asarray(rigid, dtype=np.int64)
     cam = slice(None) if rig_ids is None else rig_ids
@@ -353,42 +619,170 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         owner[np.asarray(fixed, dtype=bool)] = -1
     pairs = exclusive_indices(exclusive, rig.index) if exclusive is not None and len(exclusive) and isinstance(
         exclusive[0][0], str) else exclusive
+    opts = dict(sparsity=sparsity, ridge=ridge, exclusive=pairs, robust_iterations=robust_iterations,
+                contact_weight=contact_weight, contact_tol=contact_tol, lid_closed=lid_closed, lip_closed=lip_closed)
     W = np.zeros((K, rig.n_sliders))
     sq = np.zeros(K)
     cnt = np.zeros(K)
-    for k in range(K):
-        if rig_ids is None:
-            sk, Rk, tk = s, R, t
-        else:
-            ck = np.minimum(C[k, rig_ids], c0[rig_ids])
-            sk, Rk, tk = fit_orthographic(X0[rig_ids], Y[k, rig_ids] - e0[rig_ids], ck if np.count_nonzero(ck) >= 3
-                                          else None)
-        rest_k = sk * X0 @ Rk[:2].T + tk + (sk / s) * e0  # the neutral face in frame k's pose
-        Bk = project(DL, Rk)
-        for ri, (i, sr) in enumerate(zip(ids, scales)):
-            free = owner == ri
-            if not free.any():
-                continue
-            Br = Bk[i].reshape(-1, rig.n_sliders)
-            cw = np.repeat(np.minimum(C[k, i], c0[i]), 2)
-            m = ((Y[k, i] - rest_k[i]) / (sk * sr)).ravel()
-            w = fit_sliders(Br, m, rig.lower, rig.upper, weights=cw, sparsity=sparsity, ridge=ridge,
-                            exclusive=pairs, free=free)
-            for _ in range(robust_iterations):
-                # Huber reweighting per landmark: a point the tracker lost (tens of pixels off) must not pose the
-                # face. The threshold is ROBUST_PX pixels, or twice the median residual when that is larger.
-                e = np.linalg.norm((Br @ w - m).reshape(-1, 2), axis=1) * sk * sr
-                h = max(ROBUST_PX, 2.0 * float(np.median(e)))
-                cw = np.repeat(np.minimum(C[k, i], c0[i]) * np.minimum(1.0, h / np.maximum(e, 1e-12)), 2)
-                w = fit_sliders(Br, m, rig.lower, rig.upper, weights=cw, sparsity=sparsity, ridge=ridge,
-                                exclusive=pairs, free=free)
+    fits = [[] for _ in ids]
+    Rc = R if front is None else frontal_rotation(X0, *front)
+    P0n, Bn = X0 @ Rc[:2].T, project(DL, Rc)  # the rig seen from the front: where its contact gaps are measured
+    with small_blas():  # many small solves: BLAS threads only add overhead (methods/blas.py)
+        for k in range(K):
+            if rig_ids is None:
+                sk, Rk, tk = s, R, t
+            else:
+                ck = np.minimum(C[k, rig_ids], c0[rig_ids])
+                sk, Rk, tk = fit_orthographic(X0[rig_ids], Y[k, rig_ids] - e0[rig_ids], ck if np.count_nonzero(ck) >= 3
+                                              else None)
+            rest_k = sk * X0 @ Rk[:2].T + tk + (sk / s) * e0  # the neutral face in frame k's pose
+            frame = _Frame(Y[k], rest_k, X0 @ Rk[:2].T, project(DL, Rk), np.minimum(C[k], c0), sk, P0n, Bn)
+            for ri, (i, sr) in enumerate(zip(ids, scales)):
+                free = owner == ri
+                if not free.any():
+                    continue
+                fits[ri].append(_fit_region(rig, frame, i, sr, free, groups[ri], **opts))
+    for ri in range(len(ids)):
+        for k, f in enumerate(fits[ri]):
+            w = f.w
             W[k] += w
-            res = (Br @ w - m) * sk * sr
-            sq[k] += float(np.sum(cw * res**2))
-            cnt[k] += float(cw.sum()) / 2
+            e2, n2 = f.residual(w)
+            sq[k] += e2
+            cnt[k] += n2
     rms = np.sqrt(sq / np.maximum(cnt, 1e-300))
     return {"w": W, "owner": owner, "regions": names, "scale": float(s), "region_scales": scales * s,
             "rotation": R, "translation": t, "rms": rms}
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """One target frame as :func:`_fit_region` needs it: the actor's points and the neutral face in the frame's
+    pose (pixels), the rig's rest points and displacements through the frame's rotation (rig
+    units), the landmark weights (L,), the frame's camera scale, and the rig's rest points and displacements
+    through the neutral frame's rotation."""
+
+    Y: np.ndarray
+    rest: np.ndarray
+    P0: np.ndarray
+    B: np.ndarray
+    c: np.ndarray
+    s: float
+    P0n: np.ndarray
+    Bn: np.ndarray
+
+
+def _region_contacts(contact, refs, ids, L: int) -> list:
+    """Per region, ``(group, references)`` of the contact groups all of whose pairs' landmarks lie in it."""
+    out = [[] for _ in ids]
+    for c, ref in zip(contact or (), refs or ()):
+        pts = [p for pair in c.pairs for p in pair]
+        if c.kind not in CONTACT_KINDS or not c.pairs or any(not 0 <= p < L for p in (*pts, *c.corners)):
+            raise ShapeError(f"contact: expected kind lips or lids and pairs/corners of landmark ids in [0, {L}), "
+                             f"got {c!r}")
+        for ri, i in enumerate(ids):
+            if set(pts) <= set(i.tolist()):
+                out[ri].append((c, np.asarray(ref, dtype=np.float64)))
+                break
+    return out
+
+
+def _fit_region(rig, fr: _Frame, i, sr, free, groups, *, sparsity, ridge, exclusive, robust_iterations,
+                contact_weight, contact_tol, lid_closed, lip_closed):
+    """One region of one frame: sliders (n,), the weighted squared residual (pixels²) and its weight."""
+    n = rig.n_sliders
+    scale = fr.s * sr
+    m = ((fr.Y[i] - fr.rest[i]) / scale)  # (|i|, 2) the delta fit's displacements, rig units
+    Br = fr.B[i]
+    pos = {int(p): j for j, p in enumerate(i)}
+    G_rows, g_t, g_c, g_tol, g_closed = [], [], [], [], []
+    for c, ref in groups:
+        # the pair's gap in the frame's view replaces the delta's (their mean displacement is kept) ...
+        _, target_k, _ = contact_targets(c, fr.Y, ref, fr.P0, fr.B, free, rig.lower, rig.upper,
+                                         lid_closed=lid_closed, lip_closed=lip_closed)
+        # ... and the gap seen in the neutral frame's view is a row of its own (contact is the face's, not the view's)
+        G, target, closed = contact_targets(c, fr.Y, ref, fr.P0n, fr.Bn, free, rig.lower, rig.upper,
+                                            lid_closed=lid_closed, lip_closed=lip_closed)
+        nrm = _normal(fr.P0, *c.corners)
+        for (up, lo), tg in zip(c.pairs, target_k):
+            # keep the pair's mean displacement, replace its gap change by the target
+            fix = 0.5 * (tg - float(nrm @ (m[pos[lo]] - m[pos[up]]))) * nrm
+            m[pos[lo]] += fix
+            m[pos[up]] -= fix
+            g_c.append(min(fr.c[up], fr.c[lo]))
+        G_rows.append(G)
+        g_t.append(target)
+        g_closed.append(closed)
+        g_tol += [contact_tol * float(np.linalg.norm(fr.P0n[c.corners[1]] - fr.P0n[c.corners[0]]))] * len(c.pairs)
+    A = Br.reshape(-1, n)
+    b = m.ravel()
+    cl = fr.c[i]
+    if G_rows:
+        A = np.vstack([A, *G_rows])
+        b = np.concatenate([b, *g_t])
+    n_lm = 2 * len(i)
+
+    boost = np.ones(len(g_c))
+
+    def row_weights(h):
+        cw = np.repeat(cl * h, 2)
+        if len(b) > n_lm:
+            hp = [min(h[pos[up]], h[pos[lo]]) for c, _ in groups for up, lo in c.pairs]
+            cw = np.concatenate([cw, contact_weight * boost * np.asarray(g_c) * np.asarray(hp)])
+        return cw
+
+    h = np.ones(len(i))
+    cw = row_weights(h)
+    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free)
+    w, H, q, used = _slider_qp(A, b, rig.lower, rig.upper, weights=cw, **qp)
+    for _ in range(robust_iterations):
+        # Huber reweighting per landmark: a point the tracker lost (tens of pixels off) must not pose the
+        # face. The threshold is ROBUST_PX pixels, or twice the median residual when that is larger.
+        e = np.linalg.norm((A[:n_lm] @ w - b[:n_lm]).reshape(-1, 2), axis=1) * scale
+        thr = max(ROBUST_PX, 2.0 * float(np.median(e)))
+        h = np.minimum(1.0, thr / np.maximum(e, 1e-12))
+        cw = row_weights(h)
+        w, H, q, used = _slider_qp(A, b, rig.lower, rig.upper, weights=cw, **qp)
+    tol = np.asarray(g_tol)
+    closed = np.concatenate(g_closed) if g_closed else np.zeros(0)
+    shut = b[n_lm:] <= closed + tol  # the actor's feature is closed: contact
+    for _ in range(CONTACT_PASSES if len(b) > n_lm else 0):
+        # a gap that crosses (below the closed one by more than contact_tol of its feature's width), or that is
+        # not closed where the actor's is, weighs CONTACT_BOOST times more, until none is
+        g = A[n_lm:] @ w
+        off = (g < closed - tol) | (shut & (np.abs(g - b[n_lm:]) > tol))
+        if not off.any():
+            break
+        boost[off] *= CONTACT_BOOST
+        cw = row_weights(h)
+        w, H, q, used = _slider_qp(A, b, rig.lower, rig.upper, weights=cw, **qp)
+    return _RegionFit(w, H, q, used, A, b, cw, n_lm, scale)
+
+
+@dataclass
+class _RegionFit:
+    """One region of one frame, fitted (:func:`_fit_region`): the sliders ``w`` (n,), the QP they solve (``H``
+    (n, n) or None, ``q`` (n,), the sliders ``free`` in it), its rows ``A`` (r, n), ``b`` (r,) and weights ``cw``
+    (r,), of which the first ``n_lm`` are landmark coordinates, and the pixels per rig unit ``scale``."""
+
+    w: np.ndarray
+    H: np.ndarray | None
+    q: np.ndarray | None
+    free: np.ndarray
+    A: np.ndarray
+    b: np.ndarray
+    cw: np.ndarray
+    n_lm: int
+    scale: float
+
+    def point_residuals(self, w) -> np.ndarray:
+        """Weighted squared residual of *w* per landmark (its two rows together) and per gap row, (P,)."""
+        e = self.cw * (self.A @ w - self.b) ** 2
+        return np.concatenate([e[:self.n_lm].reshape(-1, 2).sum(axis=1), e[self.n_lm:]])
+
+    def residual(self, w) -> tuple[float, float]:
+        """The landmark rows' weighted squared residual of *w* in pixels² and their total weight / 2."""
+        res = (self.A[:self.n_lm] @ w - self.b[:self.n_lm]) * self.scale
+        return float(np.sum(self.cw[:self.n_lm] * res**2)), float(self.cw[:self.n_lm].sum()) / 2
 
 
 def rig_curves(region_weights, region_sliders, lower=None, upper=None) -> np.ndarray:

@@ -7,14 +7,20 @@ from scipy.spatial.transform import Rotation
 from retarget_cli.methods.editing import auto_pose
 from retarget_cli.methods.rig import BlendshapeRig
 from retarget_cli.methods.rigpose import (
+    CONTACT_68,
+    DEFAULT_LIP_CLOSED,
+    FRONT_68,
+    contact_ratios,
+    contact_references,
     delta_pose,
     fit_sliders,
+    frontal_rotation,
     infer_exclusive,
     rig_curves,
     rig_region_masks,
     slider_owners,
 )
-from retarget_cli.synth.take import expression_curves, landmark_rig
+from retarget_cli.synth.take import expression_curves, landmark_rig, source_neutral
 
 
 def _rigs(seed=1, identity=0.08):
@@ -119,3 +125,106 @@ def test_slider_owners_and_masks_from_the_rig():
     disp = np.abs(L["deltas"]).sum(axis=(0, 2)) > 0
     assert np.all(M[:, disp].sum(0) == pytest.approx(1.0))
     assert np.all(M[:, ~disp] == 0)
+
+
+# --------------------------------------------------------------------------- contact (issue 27)
+
+LOWER_OUTER, CHIN = [55, 56, 57, 58, 59], [6, 7, 8, 9, 10]
+UPPER_INNER, LOWER_INNER, UPPER_OUTER = [61, 62, 63], [65, 66, 67], [49, 50, 51, 52, 53]
+MOUTH = list(range(48, 68)) + CHIN
+PAIRS = ((61, 67), (62, 66), (63, 65))
+
+
+def _mouth_rig():
+    """68 landmark vertices (the synthetic source face, y up) and three mouth shapes that part or cross the
+    lips in combination: mouthShrugLower raises the lower lip and chin, its inner edge furthest (alone it
+    crosses the lips), mouthRollUpper raises the upper lip (alone it parts them), jawOpen lowers the jaw."""
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    up = np.array([0.0, 1.0, 0.0])
+    D = np.zeros((3, 68, 3))
+    D[0, LOWER_OUTER + CHIN] = 0.03 * up
+    D[0, LOWER_INNER] = 0.045 * up
+    D[1, UPPER_INNER] = 0.03 * up
+    D[1, UPPER_OUTER] = 0.01 * up
+    D[2, LOWER_OUTER + LOWER_INNER + CHIN] = -0.08 * up
+    return BlendshapeRig(V, D, ["mouthShrugLower", "mouthRollUpper", "jawOpen"]), V
+
+
+def _lip_gap(rig, w) -> float:
+    """The posed rig's mean inner-lip gap / mouth width, seen from the front (y down the image)."""
+    X = rig.evaluate(w)
+    gap = np.mean([X[up, 1] - X[lo, 1] for up, lo in PAIRS])
+    return float(gap / np.linalg.norm(X[54] - X[48]))
+
+
+def test_a_closed_lip_pout_keeps_the_lips_closed_on_a_rig_whose_shapes_cross_them_in_combination():
+    rig, V = _mouth_rig()
+    Y0 = 140.0 * source_neutral() + [150.0, 160.0]
+    Yk = Y0.copy()  # a pout with closed lips: lower lip, chin and both inner lips rise together
+    Yk[LOWER_OUTER + CHIN + LOWER_INNER + UPPER_INNER, 1] -= 140.0 * 0.03
+    Y = np.stack([Y0, Yk])
+    rest = _lip_gap(rig, np.zeros(3))
+    kw = dict(regions={"mouth": MOUTH}, sparsity=0.0, ridge=1e-6, contact=CONTACT_68, front=FRONT_68)
+    plain = delta_pose(rig, np.arange(68), Y0, Yk[None], contact_weight=0.0, **kw)["w"][0]
+    assert _lip_gap(rig, plain) - rest < -0.02  # the plain delta fit crosses the lips (the stack of issue 27)
+    refs = contact_references(Y, CONTACT_68)
+    w = delta_pose(rig, np.arange(68), Y0, Yk[None], contact_refs=refs, **kw)["w"][0]
+    assert abs(_lip_gap(rig, w) - rest) <= 0.0075 + 1e-6  # closed: within the contact tolerance of the rest gap
+    assert w[0] > 0.3  # still a pout: the lower lip rises
+    # lips parted on the actor part on the character by as much of the mouth width
+    Yo = Y0.copy()
+    Yo[LOWER_INNER + LOWER_OUTER + CHIN, 1] += 140.0 * 0.05
+    wo = delta_pose(rig, np.arange(68), Y0, Yo[None], contact_refs=refs, **kw)["w"][0]
+    opening = (np.mean(contact_ratios(Yo, CONTACT_68[0])) - np.mean(refs[0])) - DEFAULT_LIP_CLOSED
+    assert abs((_lip_gap(rig, wo) - rest) - opening) < 0.01
+
+
+def test_lids_the_tracker_never_shuts_close_the_rig_eye():
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    D = np.zeros((1, 68, 3))
+    for up, lo in ((37, 41), (38, 40)):
+        D[0, up, 1] = V[lo, 1] - V[up, 1]  # eyeBlink_R: the upper lid onto the lower one
+    rig = BlendshapeRig(V, D, ["eyeBlink_R"])
+    Y0 = 140.0 * n + [150.0, 160.0]
+    T = 40
+    Y = np.repeat(Y0[None], T, axis=0)
+    width = np.linalg.norm(Y0[39] - Y0[36])
+    closed = list(range(20, 24))  # the tracker's closed lids keep a gap of 0.1 of the eye width
+    for up, lo in ((37, 41), (38, 40)):
+        Y[closed, up, 1] = Y0[lo, 1] - 0.1 * width
+    kw = dict(regions={"eye": list(range(36, 42))}, sparsity=0.0, ridge=1e-6, contact=CONTACT_68, front=FRONT_68)
+    plain = delta_pose(rig, np.arange(68), Y0, Y, contact_weight=0.0, **kw)["w"][:, 0]
+    w = delta_pose(rig, np.arange(68), Y0, Y, **kw)["w"][:, 0]
+    assert plain[closed].max() < 0.8  # the delta fit follows the tracker: the character's eye stays open
+    assert w[closed].min() > 0.95 and np.abs(np.delete(w, closed)).max() < 0.01
+
+
+def test_contact_references_are_the_takes_closed_lips_and_open_eyes():
+    lips, eye = CONTACT_68[0], CONTACT_68[1]
+    n = 140.0 * source_neutral()
+    rng = np.random.default_rng(0)
+    T = 200
+    Y = np.repeat(n[None], T, axis=0) + 0.2 * rng.standard_normal((T, 68, 2))
+    open_ = np.arange(T) % 3 == 0  # a third of the frames talk: the lower lip drops by 0.1 of the mouth width
+    Y[np.ix_(open_, [65, 66, 67], [1])] += 0.1 * np.linalg.norm(n[54] - n[48])
+    refs = contact_references(Y, CONTACT_68)
+    np.testing.assert_allclose(refs[0], contact_ratios(n, lips), atol=0.01)  # the cluster of closed lips
+    # the open eye: the take's 75th percentile, or the neutral frame's when wider
+    r = contact_ratios(Y, eye).mean(axis=1)
+    assert refs[1][0] == pytest.approx(np.percentile(r, 75))
+    wide = n.copy()
+    wide[[37, 38], 1] -= 5.0
+    assert contact_references(Y, CONTACT_68, neutral=wide)[1][0] == pytest.approx(contact_ratios(wide, eye).mean())
+
+
+def test_frontal_rotation_snaps_to_the_rig_files_axes():
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], 0.3 * (1 - n[:, 1])])  # the chin in front of the eyes (a 10°+ tilt)
+    np.testing.assert_allclose(frontal_rotation(V, *FRONT_68), np.diag([1.0, -1.0, -1.0]))
+    turned = V @ Rotation.from_euler("y", 90, degrees=True).as_matrix().T  # a rig facing +x
+    R = frontal_rotation(turned, *FRONT_68)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose((turned @ R.T)[:, :2], (V @ np.diag([1.0, -1.0, -1.0]))[:, :2], atol=1e-12)
+
