@@ -43,6 +43,7 @@ from .._validate import check_array
 from ..errors import InputError, ParameterError, ShapeError
 from .blas import small_blas
 from .decomposition import box_qp
+from .decomposition.temporal import _second_difference, event_terms, sparse_box_qp
 from .editing import fit_orthographic
 
 log = logging.getLogger(__name__)
@@ -508,7 +509,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
                contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
                lid_closed: float = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
-               contact_tol: float = DEFAULT_CONTACT_TOL, contact_refs=None, front=None) -> dict:
+               smooth: float = 0.0, smooth_robust: float = 1.0, contact_tol: float = DEFAULT_CONTACT_TOL,
+               contact_refs=None, front=None) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
 
     The delta transfer of the module docstring: one scaled orthographic
@@ -567,6 +569,10 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         width weighs :data:`CONTACT_BOOST` times more, up to :data:`CONTACT_PASSES` times.
     lid_closed, lip_closed : float
         See :func:`contact_targets`.
+    smooth : float
+        λ of :func:`smooth_sliders` (the targets are then consecutive frames; 0: each frame alone).
+    smooth_robust : float
+        Its event threshold.
     contact_tol : float
     contact_refs : list of ndarray, optional
         :func:`contact_references` of the take (default: of the neutral and target frames).
@@ -642,9 +648,13 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                 if not free.any():
                     continue
                 fits[ri].append(_fit_region(rig, frame, i, sr, free, groups[ri], **opts))
-    for ri in range(len(ids)):
-        for k, f in enumerate(fits[ri]):
-            w = f.w
+    B0 = project(DL, R)
+    for ri, i in enumerate(ids):
+        if not fits[ri]:
+            continue
+        Bi = B0[i].reshape(-1, rig.n_sliders)
+        Wr = smooth_sliders(fits[ri], Bi.T @ Bi, rig.lower, rig.upper, lam=smooth, robust=smooth_robust)
+        for k, (f, w) in enumerate(zip(fits[ri], Wr)):
             W[k] += w
             e2, n2 = f.residual(w)
             sq[k] += e2
@@ -783,6 +793,84 @@ class _RegionFit:
         """The landmark rows' weighted squared residual of *w* in pixels² and their total weight / 2."""
         res = (self.A[:self.n_lm] @ w - self.b[:self.n_lm]) * self.scale
         return float(np.sum(self.cw[:self.n_lm] * res**2)), float(self.cw[:self.n_lm].sum()) / 2
+
+
+def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = 1.0, passes: int = 3,
+                   point_factor: float = 5.0) -> np.ndarray:
+    """One region's sliders over consecutive frames, smoothed where the face does not move fast.
+
+    The per-frame fits of :func:`delta_pose` (their QPs, with the Huber weights and the exclusive pairs'
+    choices of each frame) joined by the acceleration of the rig's landmarks, as the ``temporal`` solver
+    of the decomposition does for key weights in shape space (docs/temporal.md):
+
+    .. math::
+
+        \\min_{l \\le w_t \\le u} \\sum_t \\tfrac12 w_t^T H_t w_t - q_t^T w_t
+        + \\tfrac{\\lambda}{2} \\sum_t \\rho_t \\lVert w_{t-1} - 2 w_t + w_{t+1} \\rVert_M^2
+
+    with ``M = Σ_i P D_iᵀ P D_i`` over the region's landmarks (rig units, so ``λ`` is unitless). Sliders a
+    frame's fit held at 0 stay at 0 there. ``ρ_t`` is released (0) around fast events, by the test of
+    :func:`retarget_cli.methods.decomposition.temporal.event_terms` on each landmark's (and gap's) excess
+    residual over its per-frame fit, so blinks keep their amplitude. Solved exactly by
+    :func:`retarget_cli.methods.decomposition.temporal.sparse_box_qp`.
+
+    Parameters
+    ----------
+    fits : list of _RegionFit
+        One per frame, in order.
+    M : ndarray, shape (n, n)
+    lower, upper : ndarray, shape (n,)
+    lam : float
+        ``λ`` (0: the per-frame fits).
+    robust, point_factor : float
+        The event test's thresholds (``robust`` 0: no release).
+    passes : int
+
+    Returns
+    -------
+    ndarray, shape (T, n)
+    """
+    from scipy import sparse
+
+    T = len(fits)
+    W0 = np.stack([f.w for f in fits]) if fits else np.zeros((0, len(lower)))
+    if T < 3 or not lam > 0:
+        return W0
+    n = W0.shape[1]
+    live = np.stack([f.free if f.H is not None else np.zeros(n, dtype=bool) for f in fits])
+    cols = np.flatnonzero(live.any(axis=0))  # sliders free in some frame
+    if not cols.size:
+        return W0
+    k = len(cols)
+    Hb = np.stack([f.H[np.ix_(cols, cols)] if f.H is not None else np.eye(k) for f in fits])
+    q = np.concatenate([f.q[cols] if f.q is not None else np.zeros(k) for f in fits])
+    var = live[:, cols].ravel()  # the unknowns: (frame, slider) pairs a frame's fit left free
+    lo = np.tile(np.asarray(lower, dtype=np.float64)[cols], T)[var]
+    hi = np.tile(np.asarray(upper, dtype=np.float64)[cols], T)[var]
+    blocks = sparse.bsr_matrix((Hb, np.arange(T), np.arange(T + 1)), shape=(T * k, T * k)).tocsr()
+    D2 = _second_difference(T)
+    Mk = sparse.csr_matrix(np.asarray(M, dtype=np.float64)[np.ix_(cols, cols)])
+    p0 = np.stack([f.point_residuals(f.w) for f in fits])
+    rho = np.ones(T - 2)
+    W = W0
+    for it in range(max(int(passes), 1)):
+        pen = sparse.kron(D2.T @ sparse.diags(rho) @ D2, Mk, format="csr")
+        Hv = (blocks + lam * pen)[var][:, var]
+        x, settled = sparse_box_qp(Hv, q[var], lo, hi, W0[:, cols].ravel()[var])
+        if not settled:
+            log.warning("auto-pose: the smoothing of %d frames did not settle; its last iterate is kept", T)
+        full = np.zeros(T * k)
+        full[var] = x
+        W = W0.copy()
+        W[:, cols] = full.reshape(T, k)
+        if not robust > 0 or it == passes - 1:
+            break
+        p = np.stack([f.point_residuals(w) for f, w in zip(fits, W)])
+        touch = event_terms(p, p0, robust=robust, point_factor=point_factor)
+        if not np.any(touch & (rho > 0)):
+            break
+        rho[touch] = 0.0
+    return W
 
 
 def rig_curves(region_weights, region_sliders, lower=None, upper=None) -> np.ndarray:

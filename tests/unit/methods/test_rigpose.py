@@ -228,3 +228,36 @@ def test_frontal_rotation_snaps_to_the_rig_files_axes():
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose((turned @ R.T)[:, :2], (V @ np.diag([1.0, -1.0, -1.0]))[:, :2], atol=1e-12)
 
+
+def test_smoothing_across_frames_removes_jitter_and_keeps_a_three_frame_blink():
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    D = np.zeros((2, 68, 3))
+    for up, lo in ((37, 41), (38, 40)):
+        D[0, up, 1] = V[lo, 1] - V[up, 1]  # eyeBlink_R
+    D[1, [17, 18, 19, 20, 21], 1] = 0.05  # browOuterUp_R
+    rig = BlendshapeRig(V, D, ["eyeBlink_R", "browOuterUp_R"])
+    rng = np.random.default_rng(3)
+    T = 90
+    truth = np.zeros((T, 2))
+    truth[:, 1] = 0.4 + 0.3 * np.sin(np.arange(T) / 9.0)
+    truth[44:47, 0] = [0.6, 1.0, 0.6]  # a three-frame blink
+    X = np.stack([rig.evaluate(c) for c in truth])
+    Y = 140.0 * np.stack([X[:, :, 0], -X[:, :, 1]], axis=2) + [150.0, 160.0] + 0.4 * rng.standard_normal((T, 68, 2))
+    Y0 = 140.0 * np.column_stack([V[:, 0], -V[:, 1]]) + [150.0, 160.0]
+    kw = dict(regions={"brows-eye": list(range(17, 22)) + list(range(36, 42))}, sparsity=0.0, ridge=1e-6,
+              contact_weight=0.0)
+    each = delta_pose(rig, np.arange(68), Y0, Y, **kw)["w"]
+    smooth = delta_pose(rig, np.arange(68), Y0, Y, smooth=1.0, **kw)["w"]
+    calm = np.ones(T - 2, bool)
+    calm[40:50] = False
+
+    def jitter(W):
+        return np.abs(W[2:] - 2 * W[1:-1] + W[:-2])[calm].mean()
+
+    assert jitter(smooth) < 0.5 * jitter(each)
+    assert np.abs(smooth - truth)[1:-1][calm].mean() < np.abs(each - truth)[1:-1][calm].mean()
+    assert smooth[45, 0] > 0.9 and smooth[45, 0] > each[45, 0] - 0.05  # the blink keeps its amplitude
+    # without the event release the same penalty flattens it
+    flat = delta_pose(rig, np.arange(68), Y0, Y, smooth=1.0, smooth_robust=0.0, **kw)["w"]
+    assert flat[45, 0] < smooth[45, 0] - 0.1
