@@ -200,6 +200,9 @@ class Targets:
     rig: Path | None = None
     #: The key frames' slider values (``sliders:``, an animation CSV/NPZ, one row per key frame), or None.
     sliders: Path | None = None
+    #: Every frame's slider values (``curves:``, an animation CSV/NPZ, one row per frame of the take; written by
+    #: ``auto-pose --frames all``), or None: ``apply`` then drives the rig with them instead of the weights.
+    curves: Path | None = None
 
     def files(self) -> list[Path]:
         """Every file the targets reference (inputs for up-to-date checks)."""
@@ -212,6 +215,8 @@ class Targets:
             out += [self.rig, *read_rig(self.rig).files()]
         if self.sliders is not None:
             out.append(self.sliders)
+        if self.curves is not None:
+            out.append(self.curves)
         return list(dict.fromkeys(out))
 
 
@@ -227,14 +232,16 @@ def read_targets(path: str | os.PathLike) -> Targets:
     data = read_yaml_file(path, "targets")
     if not isinstance(data, dict) or not isinstance(data.get("regions"), dict) or not data["regions"]:
         raise InputError(f"{path}: expected 'regions: {{name: {{keys: {{frame: file.obj}}}}}}'")
-    unknown = set(data) - {"neutral", "regions", "rig", "sliders"}
+    unknown = set(data) - {"neutral", "regions", "rig", "sliders", "curves"}
     if unknown:
-        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected neutral, regions, rig, sliders")
-    for key in ("rig", "sliders", "neutral"):
+        raise InputError(f"{path}: unknown key {sorted(unknown)[0]!r}; expected neutral, regions, rig, sliders, curves")
+    for key in ("rig", "sliders", "neutral", "curves"):
         if data.get(key) is not None and not isinstance(data[key], str):
             raise InputError(f"{path}: {key}: expected a file path, got {data[key]!r}")
     if (data.get("rig") is None) != (data.get("sliders") is None):
         raise InputError(f"{path}: 'rig' and 'sliders' go together (keys posed on a rig, with their slider values)")
+    if data.get("curves") is not None and data.get("rig") is None:
+        raise InputError(f"{path}: 'curves' (every frame's sliders) needs 'rig' and 'sliders'")
     base = path.parent
     regions = {}
     for name, reg in data["regions"].items():
@@ -259,13 +266,14 @@ def read_targets(path: str | os.PathLike) -> Targets:
         regions[str(name)] = {"keys": keys, "vertices": base / verts if isinstance(verts, str) else None,
                               "falloff": float(falloff), "sliders": owned}
     neutral = data.get("neutral")
-    rig, sliders = data.get("rig"), data.get("sliders")
+    rig, sliders, curves = data.get("rig"), data.get("sliders"), data.get("curves")
     return Targets(path, base / neutral if isinstance(neutral, str) else None, regions,
-                   None if rig is None else base / rig, None if sliders is None else base / sliders)
+                   None if rig is None else base / rig, None if sliders is None else base / sliders,
+                   None if curves is None else base / curves)
 
 
 def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = "", rig: str | None = None,
-                 sliders: str | None = None) -> str:
+                 sliders: str | None = None, curves: str | None = None) -> str:
     """Text of a ``targets.yaml`` (deterministic, commented).
 
     Parameters
@@ -279,6 +287,8 @@ def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = ""
     if rig:
         lines.append(f"rig: {json.dumps(rig)}")
         lines.append(f"sliders: {json.dumps(sliders)}")
+        if curves:
+            lines.append(f"curves: {json.dumps(curves)}")
     lines.append("regions:")
     for name, reg in regions.items():
         lines.append(f"  {name}:")
@@ -294,9 +304,11 @@ def targets_yaml(regions: dict, *, neutral: str | None = None, comment: str = ""
     return "\n".join(lines) + "\n"
 
 
-def write_targets(path, regions: dict, *, neutral=None, comment: str = "", rig=None, sliders=None) -> None:
+def write_targets(path, regions: dict, *, neutral=None, comment: str = "", rig=None, sliders=None,
+                  curves=None) -> None:
     """Atomically write a ``targets.yaml``; see :func:`targets_yaml`."""
-    write_text(path, targets_yaml(regions, neutral=neutral, comment=comment, rig=rig, sliders=sliders))
+    write_text(path, targets_yaml(regions, neutral=neutral, comment=comment, rig=rig, sliders=sliders,
+                                  curves=curves))
 
 
 def read_vertex_mask(path: Path, n_vertices: int) -> np.ndarray:

@@ -5,10 +5,11 @@ Two ways to drive it, chosen by ``targets.yaml``:
 - **key shapes** (sculpted, or posed by ``pose-keys``): each region's frame is
   ``Σ_k w_k B_k`` over its target key shapes, regions blended by their masks;
 - **a rig** (``targets.yaml`` names ``rig:`` and ``sliders:``, as ``auto-pose``
-  writes it): every frame's rig sliders follow from the weights and the key
-  frames' sliders (:func:`retarget_cli.methods.rigpose.rig_curves`), are written as
-  curves (``curves.csv``, ``curves.npz``), and the meshes are the rig posed at
-  them, so correctives aside every shell the rig moves (teeth, tongue, eyes)
+  writes it): every frame's rig sliders are the ``curves:`` it names (``auto-pose
+  --frames all``, the rig posed at every frame), or else follow from the weights and
+  the key frames' sliders (:func:`retarget_cli.methods.rigpose.rig_curves`); they are
+  written as curves (``curves.csv``, ``curves.npz``), and the meshes are the rig posed
+  at them, so correctives aside every shell the rig moves (teeth, tongue, eyes)
   moves.
 """
 
@@ -187,12 +188,31 @@ def rig_key_sliders(regions, tg, targets, rig):
     return out
 
 
+def rig_frame_sliders(tg, rig, T: int) -> np.ndarray:
+    """Every frame's sliders from ``targets.yaml``'s ``curves:`` (``auto-pose --frames all``), clipped to the
+    rig's ranges; shape (T, n). Its frames must be the weights' 0 … T−1."""
+    names, C, frames, _ = read_animation(tg.curves)
+    unknown = [n for n in names if n not in rig.index]
+    if unknown:
+        raise InputError(f"{tg.curves}: slider {unknown[0]!r} is not a shape of {tg.rig}")
+    if len(frames) != T or not np.array_equal(frames, np.arange(T)):
+        raise InputError(f"{tg.curves}: {len(frames)} frames ({int(frames[0]) if len(frames) else '-'} to "
+                         f"{int(frames[-1]) if len(frames) else '-'}), the weights have frames 0 to {T - 1}: "
+                         "rerun auto-pose")
+    out = np.zeros((T, rig.n_sliders))
+    out[:, [rig.index[n] for n in names]] = C
+    return np.clip(out, rig.lower, rig.upper)
+
+
 def _rig_driver(regions, tg, targets, cache_dir):
     """Rig driving: curves from the weights, meshes from the rig at the curves."""
 
     rig = load_rig(tg.rig, cache_dir=cache_dir)
-    S = rig_key_sliders(regions, tg, targets, rig)
-    curves = rig_curves([W for _, (W, _, _) in sorted(regions.items())], S, rig.lower, rig.upper)
+    if tg.curves is not None:
+        curves = rig_frame_sliders(tg, rig, next(iter(regions.values()))[0].shape[0])
+    else:
+        S = rig_key_sliders(regions, tg, targets, rig)
+        curves = rig_curves([W for _, (W, _, _) in sorted(regions.items())], S, rig.lower, rig.upper)
 
     def positions(sl):
         return rig.evaluate(curves[sl])
