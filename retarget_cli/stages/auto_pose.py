@@ -29,8 +29,12 @@ from ..io.rig.vertexmap import read_vertex_map
 from ..io.stagefiles import read_keys, write_targets
 from ..methods.editing import auto_pose
 from ..methods.rigpose import (
+    CONTACT_68,
     DEFAULT_RIDGE,
     DEFAULT_SPARSITY,
+    FRONT_68,
+    Contact,
+    contact_references,
     delta_pose,
     infer_exclusive,
     project,
@@ -58,6 +62,22 @@ PARAMS = [
           "stays out of the sliders); absolute: the landmark positions (Lewis & Anjyo eq. 3).",
           choices=("delta", "absolute")),
     Param("neutral_frame", "setting", int, 0, "The actor's neutral frame (the rig's rest pose).", min=0),
+    Param("frames", "setting", str, "all",
+          "all: pose the rig at every frame (targets/curves.csv, which apply then drives it with); keys: "
+          "at the key frames only, and apply interpolates their sliders by the weights (Chuang & Bregler §5).",
+          choices=("all", "keys")),
+    Param("smooth", "setting", float, 1.0,
+          "delta fit, frames all: weight of the rig's landmark acceleration across frames, released at "
+          "fast events such as blinks; 0: every frame alone.", min=0),
+    Param("contact_weight", "setting", float, 4.0,
+          "delta fit: weight of each lip and lid gap (68 points), in landmarks, so lips and lids closed on "
+          "the actor close on the character; 0: off.", min=0),
+    Param("lip_closed", "setting", float, 0.02,
+          "Inner-lip gap / mouth width, above the take's closed lips, below which the actor's lips count "
+          "as closed (the tracker's noise on closed lips).", min=0),
+    Param("lid_closed", "setting", float, 0.14,
+          "Lid gap / eye width at or below which the tracked eye counts as closed (the 68-point detector's "
+          "closed lids read 0.09-0.19).", min=0),
     Param("sparsity", "setting", float, None,
           "L1 weight keeping unneeded sliders at 0, relative to the sliders' mean landmark energy "
           "(null: 0.01).", min=0, nullable=True),
@@ -122,8 +142,10 @@ def _mask_text(weights: np.ndarray) -> str:
 @validate_params(PARAMS)
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame=0, sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
-                  rigid_points=None, alpha=0.001, mu=0.0001, base_dir=None, cache_dir=None) -> list[Path]:
-    """Pose *rig* at each key frame of *keys*; write key OBJs, ``sliders.csv``, masks and ``targets.yaml``.
+                  rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=1.0, contact_weight=4.0,
+                  lip_closed=0.02, lid_closed=0.14, base_dir=None, cache_dir=None) -> list[Path]:
+    """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
+    ``sliders.csv``, masks, ``targets.yaml`` (and ``curves.csv``).
 
     ``fit="delta"`` (default): :func:`retarget_cli.methods.rigpose.delta_pose`, the
     key frame's landmark displacement from *neutral_frame* (Lewis et al.
@@ -146,6 +168,14 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
     rigid_points : sequence of int, optional
         Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
+    frames : {"all", "keys"}
+        ``all``: pose every frame too, written as ``curves.csv`` and named in ``targets.yaml`` (``curves:``),
+        so ``apply`` drives the rig with them; the key frames' rows are the same poses.
+    smooth : float
+        ``frames="all"``, delta fit: λ of :func:`retarget_cli.methods.rigpose.smooth_sliders`.
+    contact_weight, lip_closed, lid_closed : float
+        Delta fit, 68 points: the lip and lid gaps as targets of their own
+        (:func:`retarget_cli.methods.rigpose.contact_targets`, :data:`~retarget_cli.methods.rigpose.CONTACT_68`).
     """
 
     if fit not in FITS:
@@ -157,7 +187,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
     # Everything that is cheap to check, before the rig's OBJs are read.
-    spec, kf, lm, frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame,
+    spec, kf, lm, key_frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame,
                                                      skip_points, rigid_points, masks, base_dir)
     r = load_rig(rig_path, cache_dir=cache_dir)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
@@ -165,14 +195,37 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
     Y = lm.stabilized[:, lm_ids].astype(np.float64)
     Cf = lm.confidence[:, lm_ids].astype(np.float64)
+    posed = list(range(lm.n_frames)) if frames == "all" else key_frames
     if fit == "delta":
-        poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed,
-                                                    rigid, sparsity, ridge)
+        contact, front = _contact_rows(lm_ids, lm.n_points)
+        opts = dict(sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
+                    ridge=DEFAULT_RIDGE if ridge is None else ridge, contact=contact, front=front,
+                    contact_refs=contact_references(Y, contact, Cf, neutral=Y[neutral_frame]) if contact else None,
+                    contact_weight=contact_weight, lip_closed=lip_closed, lid_closed=lid_closed,
+                    smooth=smooth if frames == "all" else 0.0)
+        poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, neutral_frame, region_rows, fixed,
+                                                    rigid, opts)
     else:
-        poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, frames, list(kf.regions), region_rows, fixed,
+        poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, posed, list(kf.regions), region_rows, fixed,
                                                        alpha, mu)
-    return _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit,
-                       neutral_frame)
+    return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
+                       neutral_frame, every_frame=frames == "all")
+
+
+def _contact_rows(lm_ids, L: int):
+    """:data:`~retarget_cli.methods.rigpose.CONTACT_68` and :data:`~retarget_cli.methods.rigpose.FRONT_68` in rows
+    among the mapped landmarks (68 points only; a group with an unmapped point is left out)."""
+    if L != 68:
+        return None, None
+    pos = {int(p): i for i, p in enumerate(lm_ids)}
+    out = []
+    for c in CONTACT_68:
+        pts = [*(p for pair in c.pairs for p in pair), *c.corners]
+        if all(p in pos for p in pts):
+            out.append(Contact(c.kind, tuple((pos[u], pos[d]) for u, d in c.pairs), (pos[c.corners[0]],
+                                                                                    pos[c.corners[1]])))
+    front = tuple(pos[p] for p in FRONT_68) if all(p in pos for p in FRONT_68) else None
+    return out, front
 
 
 def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame, skip_points, rigid_points, masks,
@@ -185,8 +238,9 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_fra
     inputs = [keys, landmarks, rig_path, *spec.files()] + ([landmark_vertices] if landmark_vertices else [])
     check_not_input(out / "targets.yaml", inputs)
     check_not_input(out / "sliders.csv", inputs)
-    frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
-    bad = [f for f in frames if f >= lm.n_frames]
+    check_not_input(out / "curves.csv", inputs)
+    key_frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
+    bad = [f for f in key_frames if f >= lm.n_frames]
     if bad:
         raise InputError(f"{keys}: key frame {bad[0]} is outside {landmarks} ({lm.n_frames} frames)")
     if not 0 <= neutral_frame < lm.n_frames:
@@ -200,7 +254,7 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_fra
     if unknown:
         raise InputError(f"masks: region {unknown[0]!r} is not a region of {keys} ({', '.join(kf.regions)})")
     mask_files = {name: _require(Path(base_dir or ".") / m, "region mask") for name, m in masks.items()}
-    return spec, kf, lm, frames, mask_files
+    return spec, kf, lm, key_frames, mask_files
 
 
 def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
@@ -221,8 +275,9 @@ def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
     return region_rows, rigid
 
 
-def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, rigid, sparsity, ridge):
-    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`): poses by frame, slider owners, sliders by region."""
+def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, rigid, opts):
+    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*:
+    poses by frame, slider owners, sliders by region."""
 
     exclusive = spec.exclusive
     if exclusive is None:
@@ -231,12 +286,12 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, 
         exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
         log.info("auto-pose: inferred exclusive pairs %s", exclusive)
     res = delta_pose(r, vx, Y[neutral_frame], Y[frames], weights=Cf[frames], neutral_weights=Cf[neutral_frame],
-                     regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,
-                     sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
-                     ridge=DEFAULT_RIDGE if ridge is None else ridge)
+                     regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **opts)
     owner = res["owner"]
+    log.info("auto-pose: %d frames posed, landmark displacement rms %.3f px (median)", len(frames),
+             float(np.median(res["rms"])) if len(frames) else 0.0)
     for f, e in zip(frames, res["rms"]):
-        log.info("key %d: landmark displacement rms %.3f px", f, e)
+        log.debug("frame %d: landmark displacement rms %.3f px", f, e)
     region_sliders = {name: [r.names[j] for j in np.flatnonzero(owner == ri)] for ri, name in enumerate(res["regions"])}
     return dict(zip(frames, res["w"])), owner, region_sliders
 
@@ -262,13 +317,16 @@ def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
     return poses, owner, region_sliders
 
 
-def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit, neutral_frame):
-    """Key OBJs, region masks, ``sliders.csv`` and ``targets.yaml``; a failure part-way removes what it wrote."""
+def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit, neutral_frame,
+                every_frame=False):
+    """Key OBJs, region masks, ``sliders.csv``, ``curves.csv`` (*every_frame*: *poses* holds every frame) and
+    ``targets.yaml``; a failure part-way removes what it wrote."""
 
     names = list(kf.regions)
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
     planned = [out / f"{name}/key_{f:05d}.obj" for name in names for f in kf.regions[name]["frames"]]
     planned += [out / f"masks/{name}.txt" for name in names] + [out / "sliders.csv", out / "targets.yaml"]
+    planned += [out / "curves.csv"] if every_frame else []
     regions = {}
     # a failure part-way removes the files written so far; a rerun with other keys removes the old keys' OBJs
     with tracked_outputs(out, "auto-pose", planned=planned) as ledger:
@@ -291,10 +349,16 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
         write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames,
                         meta={"fit": fit, "neutral_frame": neutral_frame})
         written.append(out / "sliders.csv")
+        if every_frame:
+            every = sorted(poses)
+            write_animation(out / "curves.csv", r.names, np.stack([poses[f] for f in every]), every)
+            written.append(out / "curves.csv")
         nrel = os.path.relpath(spec.neutral.resolve(), out.resolve())
         rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
         write_targets(out / "targets.yaml", regions, neutral=nrel, rig=rrel, sliders="sliders.csv",
-                      comment=f"Written by retarget auto-pose ({fit} fit, neutral frame {neutral_frame}).")
+                      curves="curves.csv" if every_frame else None,
+                      comment=f"Written by retarget auto-pose ({fit} fit, neutral frame {neutral_frame}"
+                              + (", every frame posed" if every_frame else "") + ").")
         written.append(out / "targets.yaml")
     return written
 
@@ -337,7 +401,7 @@ COMMAND = Command(
      Flag("landmark_vertices", path="file", show_default=False),
      Flag("masks", decls=("--mask",), value="mask", multiple=True, metavar="REGION=FILE", show_default=False,
           help="Vertex mask of a region, overriding the mask derived from the rig. Repeatable."),
-     "fit", "neutral_frame", "sparsity", "ridge",
+     "fit", "neutral_frame", "frames", "smooth", "contact_weight", "lip_closed", "lid_closed", "sparsity", "ridge",
      Flag("exclude", decls=("--exclude",), value="text", multiple=True, metavar="PATTERN", default=None,
           show_default=False,
           help="Slider-name pattern kept at 0 (repeatable; default eyeLook*, *pupil*: gaze and pupils)."),

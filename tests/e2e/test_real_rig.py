@@ -5,6 +5,7 @@ Uses the committed real assets (sample_data/real/d3.mp4 and sample_data/ict, bot
 """
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -78,6 +79,27 @@ def test_curves_are_the_rig_sliders_with_a_neutral_first_frame(real_run, ict):
     assert C[:, names.index("jawOpen")].max() > 0.05
 
 
+def test_apply_drives_the_rig_with_every_frame_auto_pose_posed(real_run, ict, tmp_path):
+    out = real_run / "out"
+    tg = read_targets(out / "targets" / "targets.yaml")
+    assert tg.curves == out / "targets" / "curves.csv"  # auto_pose.frames: all (the default)
+    names, P, frames, _ = read_animation(tg.curves)
+    _, C, _, _ = read_animation(out / "frames" / "curves.npz")
+    assert list(frames) == list(range(60)) and names == list(ict.names)
+    np.testing.assert_allclose(C, np.clip(P, ict.lower, ict.upper), atol=1e-6)
+    man = json.loads((out / ".retarget" / "apply.json").read_text())
+    assert any(k.endswith("targets/curves.csv") for k in man["inputs"])
+    # curves of another take length are refused in one line
+    short = tmp_path / "targets"
+    shutil.copytree(out / "targets", short)
+    data = yaml.safe_load((short / "targets.yaml").read_text())
+    data.update(rig=str(tg.rig), neutral=str(tg.neutral), sliders=str(tg.sliders))
+    (short / "targets.yaml").write_text(yaml.safe_dump(data))
+    (short / "curves.csv").write_text("\n".join(tg.curves.read_text().splitlines()[:30]) + "\n")
+    res = invoke("apply", out / "weights.npz", short / "targets.yaml", "--format", "curves", "-o", tmp_path / "f")
+    assert res.exit_code == 1 and "curves.csv: 29 frames (0 to 28), the weights have frames 0 to 59" in res.output
+
+
 def test_curves_reproduce_the_meshes_for_a_linear_rig(real_run, ict):
     _, C, _, _ = read_animation(real_run / "out" / "frames" / "curves.npz")
     for t in (0, 17, 42, 59):
@@ -121,17 +143,24 @@ def test_masks_derived_from_the_rig_cover_every_moving_vertex_and_teeth_follow_j
 
 
 def test_driving_the_key_shapes_moves_the_teeth_like_the_rig(real_run, tmp_path, ict, ict_rig_dir):
+    # the key path (auto-pose --frames keys: the rig's curves interpolate the key sliders by the weights), whose
+    # key shapes blended by the same weights must move the teeth as the rig does
     out = real_run / "out"
-    res = invoke("apply", out / "weights.npz", out / "targets" / "targets.yaml", "--drive", "keys",
-                 "--format", "obj", "-o", tmp_path / "keys")
+    res = invoke("auto-pose", out / "keys.json", out / "landmarks.npz", ict_rig_dir / "rig.yaml", "--frames", "keys",
+                 "-o", tmp_path / "targets")
     assert res.exit_code == 0, res.output
-    _, C, _, _ = read_animation(out / "frames" / "curves.npz")
+    assert read_targets(tmp_path / "targets" / "targets.yaml").curves is None
+    for drive, formats in (("rig", ("--format", "obj,curves")), ("keys", ("--format", "obj"))):
+        res = invoke("apply", out / "weights.npz", tmp_path / "targets" / "targets.yaml", "--drive", drive,
+                     *formats, "-o", tmp_path / drive)
+        assert res.exit_code == 0, res.output
+    _, C, _, _ = read_animation(tmp_path / "rig" / "curves.npz")
     t = int(np.argmax(C[:, ict.index["jawOpen"]]))
     D = np.asarray(ict.D).reshape(ict.n_vertices, 3, -1)
     teeth = material_vertices(ict_rig_dir / "generic_neutral_mesh.obj", {"M_Teeth", "M_GumsTongue"})
     shells = teeth[np.linalg.norm(D[teeth, :, ict.index["jawOpen"]], axis=1) > 1e-2]
     keys = read_obj(tmp_path / "keys" / f"frame_{t:05d}.obj").vertices[shells]
-    rig = read_obj(out / "frames" / f"frame_{t:05d}.obj").vertices[shells]
+    rig = read_obj(tmp_path / "rig" / f"frame_{t:05d}.obj").vertices[shells]
     moved = np.linalg.norm(rig - ict.neutral[shells], axis=1)
     assert moved.mean() > 0.05  # cm: the teeth really open
     assert np.linalg.norm(keys - rig, axis=1).mean() < 0.1 * moved.mean()
