@@ -313,6 +313,9 @@ CLOSED_BAND = 0.03
 OPEN_PERCENTILE = 75.0
 #: Default tolerance of a contact gap, as a fraction of its feature's width on the rig (mouth or eye corners).
 DEFAULT_CONTACT_TOL = 0.0075
+#: A slider whose full range changes an eye's lid gap by more than this fraction of its width opens or closes it
+#: (:func:`lid_antagonists`).
+ANTAGONIST_CHANGE = 0.03
 #: Passes of :func:`_fit_region` that weigh a gap outside its tolerance CONTACT_BOOST times more.
 CONTACT_PASSES = 4
 CONTACT_BOOST = 8.0
@@ -504,6 +507,46 @@ def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_close
     return G, (1.0 - o) * closed, closed
 
 
+def lid_antagonists(P0, B, contact, lower, upper, *, change: float = ANTAGONIST_CHANGE) -> np.ndarray:
+    """Pairs of sliders that one opens and the other closes the same eye: kept mutually exclusive.
+
+    Stacked, an opener (eyeWide) and a closer (eyeSquint, cheekSquint, cheekRaiser, eyeBlink, …) of the same
+    lids cancel on the lid gap and move both lids together: no face does that, but a least-squares fit
+    reaches for it to explain an eye that the head's motion or the tracker shifted (issue 27 counted
+    300–500 such frames in 12 runs on the shared clips). Lids only: on the lips, jawOpen with mouthClose
+    is a real pose (closed lips, open jaw).
+
+    Parameters
+    ----------
+    P0 : ndarray, shape (L, 2)
+        The rig's rest landmarks (front view).
+    B : ndarray, shape (L, 2, n)
+        Its landmark displacements, same view.
+    contact : sequence of Contact
+        The ``lids`` groups are used.
+    lower, upper : array_like, shape (n,)
+    change : float
+        A slider opens (closes) the eye when its full range widens (narrows) the mean lid gap by more than
+        this fraction of the eye's width.
+
+    Returns
+    -------
+    ndarray of int, shape (P, 2)
+    """
+    lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    out = []
+    for c in contact or ():
+        if c.kind != "lids":
+            continue
+        n = _normal(P0, *c.corners)
+        g = np.mean([n @ (B[d] - B[u]) for u, d in c.pairs], axis=0)  # (n,) mean gap change per unit
+        width = max(float(np.linalg.norm(P0[c.corners[1]] - P0[c.corners[0]])), 1e-300)
+        opens = np.flatnonzero(np.maximum(g * hi, g * lo) > change * width)
+        closes = np.flatnonzero(np.minimum(g * hi, g * lo) < -change * width)
+        out += [(int(a), int(b)) for a in opens for b in closes if a != b]
+    return np.array(sorted(set(out)), dtype=np.int64).reshape(-1, 2)
+
+
 def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights=None, regions=None,
                sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE, exclusive=None,
                region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
@@ -566,7 +609,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     contact_weight : float
         Weight of each gap row, in landmarks (0: the gaps as the delta fit has them, no extra row). A gap
         that crosses, or is not closed where the actor's is, by more than *contact_tol* of its feature's
-        width weighs :data:`CONTACT_BOOST` times more, up to :data:`CONTACT_PASSES` times.
+        width weighs :data:`CONTACT_BOOST` times more, up to :data:`CONTACT_PASSES` times. With the lids'
+        groups, their :func:`lid_antagonists` join the *exclusive* pairs.
     lid_closed, lip_closed : float
         See :func:`contact_targets`.
     smooth : float
@@ -625,14 +669,18 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         owner[np.asarray(fixed, dtype=bool)] = -1
     pairs = exclusive_indices(exclusive, rig.index) if exclusive is not None and len(exclusive) and isinstance(
         exclusive[0][0], str) else exclusive
+    Rc = R if front is None else frontal_rotation(X0, *front)
+    P0n, Bn = X0 @ Rc[:2].T, project(DL, Rc)  # the rig seen from the front: where its contact gaps are measured
+    lid_pairs = lid_antagonists(P0n, Bn, [c for g in groups for c, _ in g], rig.lower, rig.upper)
+    if len(lid_pairs):
+        pairs = lid_pairs if pairs is None else np.unique(np.vstack([np.asarray(pairs, np.int64).reshape(-1, 2),
+                                                                     lid_pairs]), axis=0)
     opts = dict(sparsity=sparsity, ridge=ridge, exclusive=pairs, robust_iterations=robust_iterations,
                 contact_weight=contact_weight, contact_tol=contact_tol, lid_closed=lid_closed, lip_closed=lip_closed)
     W = np.zeros((K, rig.n_sliders))
     sq = np.zeros(K)
     cnt = np.zeros(K)
     fits = [[] for _ in ids]
-    Rc = R if front is None else frontal_rotation(X0, *front)
-    P0n, Bn = X0 @ Rc[:2].T, project(DL, Rc)  # the rig seen from the front: where its contact gaps are measured
     with small_blas():  # many small solves: BLAS threads only add overhead (methods/blas.py)
         for k in range(K):
             if rig_ids is None:

@@ -16,6 +16,8 @@ from retarget_cli.methods.rigpose import (
     fit_sliders,
     frontal_rotation,
     infer_exclusive,
+    lid_antagonists,
+    project,
     rig_curves,
     rig_region_masks,
     slider_owners,
@@ -261,3 +263,27 @@ def test_smoothing_across_frames_removes_jitter_and_keeps_a_three_frame_blink():
     # without the event release the same penalty flattens it
     flat = delta_pose(rig, np.arange(68), Y0, Y, smooth=1.0, smooth_robust=0.0, **kw)["w"]
     assert flat[45, 0] < smooth[45, 0] - 0.1
+
+
+def test_an_eye_the_fit_sees_shifted_is_not_explained_by_an_opener_and_a_closer_at_once():
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    up = np.array([0.0, 1.0, 0.0])
+    D = np.zeros((3, 68, 3))
+    D[0, [37, 38]] = 0.02 * up        # eyeWide_R: the upper lid up
+    D[1, [40, 41]] = 0.02 * up        # eyeSquint_R: the lower lid up
+    D[2, [17, 18, 19, 20, 21]] = 0.03 * up  # browOuterUp_R: no lid
+    rig = BlendshapeRig(V, D, ["eyeWide_R", "eyeSquint_R", "browOuterUp_R"])
+    R = frontal_rotation(V, *FRONT_68)
+    pairs = lid_antagonists(V @ R[:2].T, project(D.transpose(1, 2, 0), R), CONTACT_68, rig.lower, rig.upper)
+    assert pairs.tolist() == [[0, 1]]
+    Y0 = 140.0 * n + [150.0, 160.0]
+    Yk = Y0.copy()
+    Yk[[37, 38, 40, 41], 1] -= 140.0 * 0.015  # both lids up by as much: the eye moved, it did not open or close
+    kw = dict(regions={"eye": list(range(17, 22)) + list(range(36, 42))}, sparsity=0.0, ridge=1e-6,
+              contact=CONTACT_68, front=FRONT_68)
+    stacked = delta_pose(rig, np.arange(68), Y0, Yk[None], contact_weight=0.0, **kw)["w"][0]
+    assert min(stacked[0], stacked[1]) > 0.5  # the plain fit stacks the opener and the closer
+    w = delta_pose(rig, np.arange(68), Y0, Yk[None], contact_refs=contact_references(np.stack([Y0, Yk]), CONTACT_68),
+                   **kw)["w"][0]
+    assert min(w[0], w[1]) == 0.0
