@@ -547,6 +547,18 @@ def lid_antagonists(P0, B, contact, lower, upper, *, change: float = ANTAGONIST_
     return np.array(sorted(set(out)), dtype=np.int64).reshape(-1, 2)
 
 
+def _exclusive_pairs(exclusive, rig, P0, B, contact):
+    """*exclusive* (names or indices) as indices (P, 2), with the :func:`lid_antagonists` of *contact*; or None."""
+    pairs = exclusive_indices(exclusive, rig.index) if exclusive is not None and len(exclusive) and isinstance(
+        exclusive[0][0], str) else exclusive
+    lid_pairs = lid_antagonists(P0, B, contact, rig.lower, rig.upper)
+    if not len(lid_pairs):
+        return pairs
+    if pairs is None:
+        return lid_pairs
+    return np.unique(np.vstack([np.asarray(pairs, np.int64).reshape(-1, 2), lid_pairs]), axis=0)
+
+
 def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights=None, regions=None,
                sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE, exclusive=None,
                region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
@@ -667,14 +679,9 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     owner = slider_owners(project(DL, R), ids)
     if fixed is not None:
         owner[np.asarray(fixed, dtype=bool)] = -1
-    pairs = exclusive_indices(exclusive, rig.index) if exclusive is not None and len(exclusive) and isinstance(
-        exclusive[0][0], str) else exclusive
     Rc = R if front is None else frontal_rotation(X0, *front)
     P0n, Bn = X0 @ Rc[:2].T, project(DL, Rc)  # the rig seen from the front: where its contact gaps are measured
-    lid_pairs = lid_antagonists(P0n, Bn, [c for g in groups for c, _ in g], rig.lower, rig.upper)
-    if len(lid_pairs):
-        pairs = lid_pairs if pairs is None else np.unique(np.vstack([np.asarray(pairs, np.int64).reshape(-1, 2),
-                                                                     lid_pairs]), axis=0)
+    pairs = _exclusive_pairs(exclusive, rig, P0n, Bn, [c for g in groups for c, _ in g])
     opts = dict(sparsity=sparsity, ridge=ridge, exclusive=pairs, robust_iterations=robust_iterations,
                 contact_weight=contact_weight, contact_tol=contact_tol, lid_closed=lid_closed, lip_closed=lip_closed)
     W = np.zeros((K, rig.n_sliders))
