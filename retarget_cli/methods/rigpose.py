@@ -299,6 +299,11 @@ class Contact:
 CONTACT_68 = (Contact("lips", ((61, 67), (62, 66), (63, 65)), (48, 54)),
               Contact("lids", ((37, 41), (38, 40)), (36, 39)),
               Contact("lids", ((43, 47), (44, 46)), (42, 45)))
+#: Default λ of :func:`smooth_sliders` in ``auto-pose --frames all``, and its event threshold (measured with
+#: bench/peer.py on the shared clips: λ 1 / threshold 1 left the character's jitter above the peer's on 3 of 12
+#: runs, λ 3 / threshold 3 on 2, both neutral-dependent; λ 10 released more events and jittered more).
+DEFAULT_SMOOTH = 3.0
+DEFAULT_SMOOTH_ROBUST = 3.0
 #: Default weight of a contact gap, in landmarks (a gap row counts as this many landmarks of the region).
 DEFAULT_CONTACT_WEIGHT = 4.0
 #: Default inner-lip gap / mouth width, above the neutral frame's, below which the actor's lips count as closed.
@@ -564,7 +569,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
                contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
                lid_closed: float = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
-               smooth: float = 0.0, smooth_robust: float = 1.0, contact_tol: float = DEFAULT_CONTACT_TOL,
+               smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, contact_tol: float = DEFAULT_CONTACT_TOL,
                contact_refs=None, front=None) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
 
@@ -850,7 +855,7 @@ class _RegionFit:
         return float(np.sum(self.cw[:self.n_lm] * res**2)), float(self.cw[:self.n_lm].sum()) / 2
 
 
-def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = 1.0, passes: int = 3,
+def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT_SMOOTH_ROBUST, passes: int = 3,
                    point_factor: float = 5.0) -> np.ndarray:
     """One region's sliders over consecutive frames, smoothed where the face does not move fast.
 

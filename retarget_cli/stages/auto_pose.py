@@ -66,7 +66,7 @@ PARAMS = [
           "all: pose the rig at every frame (targets/curves.csv, which apply then drives it with); keys: "
           "at the key frames only, and apply interpolates their sliders by the weights (Chuang & Bregler §5).",
           choices=("all", "keys")),
-    Param("smooth", "setting", float, 1.0,
+    Param("smooth", "setting", float, 3.0,
           "delta fit, frames all: weight of the rig's landmark acceleration across frames, released at "
           "fast events such as blinks; 0: every frame alone.", min=0),
     Param("contact_weight", "setting", float, 4.0,
@@ -142,7 +142,7 @@ def _mask_text(weights: np.ndarray) -> str:
 @validate_params(PARAMS)
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame=0, sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
-                  rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=1.0, contact_weight=4.0,
+                  rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=3.0, contact_weight=4.0,
                   lip_closed=0.02, lid_closed=0.14, base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
     ``sliders.csv``, masks, ``targets.yaml`` (and ``curves.csv``).
