@@ -33,7 +33,7 @@ PARAMS = [
     Param("keys", "input", str, help="keys.json.", link="select.output"),
     Param("output", "output", str, "weights.npz", "Weights per region."),
     Param("csv", "output", str, None, "Also write the weights as CSV.", nullable=True),
-    Param("solver", "setting", str, "nnls",
+    Param("solver", "setting", str, "temporal",
           "Solver: nnls (eq. 4), ls, bounded, ridge, ridge-clipped, temporal, temporal-causal, sparse, "
           "sequential.", choices=SOLVERS),
     Param("formulation", "setting", str, "whole",
@@ -62,7 +62,7 @@ PARAMS = [
 
 
 @validate_params(PARAMS)
-def run_decompose(*, landmarks, keys, output, csv=None, solver="nnls", formulation="whole", alpha=None, upper=None,
+def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formulation="whole", alpha=None, upper=None,
                   neutral_frame=0, confidence=True, lost_fraction=0.5, smooth_space="shape",
                   robust=1.0) -> list[Path]:
     """Weights over the key shapes for every frame and region; writes ``weights.npz``.

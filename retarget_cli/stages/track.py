@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from pathlib import Path
 
@@ -99,7 +98,7 @@ TRAIN_PARAMS = [
     Param("seed", "setting", int, 0, "Seed of every random choice."),
 ]
 
-#: Declared parameters of ``import`` (its landmark filter is off by default: imported points stay as given).
+#: Declared parameters of ``import`` (the landmark filter of ``track``, rts by default too; see run_import).
 IMPORT_PARAMS = [
     Param("source", "input", str, help="frame,point,x,y CSV, NPZ with 'points' (T, L, 2) or a folder of .pts files."),
     Param("output", "output", str, "landmarks.npz", "Landmarks file (landmarks.npz contract)."),
@@ -110,7 +109,7 @@ IMPORT_PARAMS = [
           validate=check_indices),
     Param("smooth_head", "setting", int, 0,
           "Temporal smoothing of the head track (Savitzky-Golay window in frames).", min=0, max=301),
-    *(dataclasses.replace(p, default="none") if p.name == "filter" else p for p in FILTER_PARAMS),
+    *FILTER_PARAMS,
 ]
 
 
@@ -450,7 +449,8 @@ def _read_npz_source(src: Path, fps, frame_size):
 
 
 @validate_params(IMPORT_PARAMS)
-def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0, filter="none",
+def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, smooth_head=0,
+               filter=FILTER_DEFAULTS["filter"],
                filter_model=FILTER_DEFAULTS["filter_model"], filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
                filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
                filter_robust=FILTER_DEFAULTS["filter_robust"], filter_min_cutoff=FILTER_DEFAULTS["filter_min_cutoff"],
@@ -464,9 +464,10 @@ def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, 
     stabilization are computed with :func:`~retarget_cli.methods.tracking.head.estimate_head`
     (the routine ``track`` uses), optionally smoothed in time. The landmark
     filter settings (``filter``, ``filter_*``) are those of :func:`run_track`,
-    but *filter* defaults to ``none`` here (imported points stay as given;
-    the source's points are kept as ``points_raw`` when a filter is applied).
-    Filtering assumes consecutive frames.
+    ``rts`` by default as there (it was ``none``; measured on bench/temporal.py's ICT take, 2026-12-02,
+    nnls: mesh error 40.4 → 31.5 %, jitter 12.4 → 1.9× the truth's; docs/temporal.md); the source's points
+    are kept as ``points_raw``. Filtering assumes consecutive frames: a source with gaps between its
+    frames is imported unfiltered, with a warning.
     """
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
@@ -490,6 +491,11 @@ def run_import(*, source, output, fps=None, frame_size=None, rigid_points=None, 
                 raise InputError(f"{src}: landmark {i} has no finite coordinate in any frame")
             near = ok[np.abs(np.arange(len(points))[:, None] - ok[None]).argmin(1)]
             points[:, i] = points[near, i]
+    gaps = np.flatnonzero(np.diff(frames) != 1)
+    if fset["filter"] != "none" and gaps.size:
+        log.warning("%s: frames %d and %d are not consecutive; imported without the %s filter", src,
+                    int(frames[gaps[0]]), int(frames[gaps[0] + 1]), fset["filter"])
+        fset["filter"] = "none"
     points, raw, fmeta = apply_filter(points, conf, fps=fps or 30.0, settings=fset, where=str(src))
     try:
         head, stab = estimate_head(points, conf, rigid_points=rigid_points)

@@ -132,7 +132,7 @@ def test_import_round_trip_csv_npz_pts(small_take, truth, tmp_path):
     savez(tmp_path / "other.npz", {"points": P.astype(np.float32), "fps": np.float64(25)})
     for src, frames in ((csv, np.arange(60)), (folder, np.array([0, 5, 9])), (tmp_path / "other.npz", np.arange(60))):
         out = tmp_path / f"{src.stem}.landmarks.npz"
-        r = run("import", src, "-o", out)
+        r = run("import", src, "-o", out, "--filter", "none")
         assert r.exit_code == 0, r.output
         lm = load_landmarks(out)
         np.testing.assert_allclose(lm.points, P[frames], atol=1e-3)
@@ -142,8 +142,27 @@ def test_import_round_trip_csv_npz_pts(small_take, truth, tmp_path):
     # back to CSV and in again: identical points
     lm = load_landmarks(tmp_path / "lm.landmarks.npz")
     write_csv_landmarks(tmp_path / "again.csv", lm.points)
-    assert run("import", tmp_path / "again.csv", "-o", tmp_path / "again.npz").exit_code == 0
+    assert run("import", tmp_path / "again.csv", "-o", tmp_path / "again.npz", "--filter", "none").exit_code == 0
     np.testing.assert_allclose(load_landmarks(tmp_path / "again.npz").points, lm.points, atol=1e-4)
+
+
+def test_import_filters_like_track_unless_the_frames_have_gaps(truth, tmp_path):
+    rng = np.random.default_rng(0)
+    P = truth["points"].astype(np.float64) + 0.8 * rng.standard_normal(truth["points"].shape)
+    write_csv_landmarks(tmp_path / "noisy.csv", P)
+    assert run("import", tmp_path / "noisy.csv", "-o", tmp_path / "f.npz").exit_code == 0
+    data = load_npz(tmp_path / "f.npz")
+    np.testing.assert_allclose(data["points_raw"], P, atol=1e-3)  # the source's points are kept
+    err = lambda X: np.abs(X - truth["points"]).mean()  # noqa: E731
+    assert err(data["points"]) < 0.7 * err(P)  # rts by default, as track
+    assert '"method": "rts"' in str(data["meta"])
+    folder = tmp_path / "pts"
+    for f in (0, 5, 9):
+        write_pts(folder / f"face_{f:05d}.pts", P[f])
+    r = run("import", folder, "-o", tmp_path / "g.npz")
+    assert r.exit_code == 0
+    np.testing.assert_allclose(load_landmarks(tmp_path / "g.npz").points, P[[0, 5, 9]], atol=1e-3)
+    assert "frames 0 and 5 are not consecutive; imported without the rts filter" in r.output
 
 
 def test_import_bad_inputs(tmp_path):

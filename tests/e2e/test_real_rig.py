@@ -16,7 +16,7 @@ from retarget_cli.cli.commands import main
 from retarget_cli.io.editfiles import read_animation
 from retarget_cli.io.obj import read_obj
 from retarget_cli.io.rig import load_rig
-from retarget_cli.io.stagefiles import read_targets, read_vertex_mask
+from retarget_cli.io.stagefiles import load_weights, read_targets, read_vertex_mask
 
 
 def material_vertices(obj_path, materials) -> np.ndarray:
@@ -65,6 +65,8 @@ def test_one_config_runs_video_to_rig_curves_with_manifests(real_run):
         assert man["outputs"] and man["inputs"], stage
     res = invoke("run", real_run / "config.yaml")
     assert res.exit_code == 0 and "ran" not in res.output.replace("skipped", ""), res.output
+    # the config names no solver: decompose's default, the temporal solver (issue 27)
+    assert load_weights(out / "weights.npz")[1]["solver"] == "temporal"
 
 
 def test_curves_are_the_rig_sliders_with_a_neutral_first_frame(real_run, ict):
