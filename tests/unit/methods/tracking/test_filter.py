@@ -168,5 +168,7 @@ def test_import_with_filter_keeps_points_raw(tmp_path):
     d2 = lambda p: np.mean(np.diff(p, n=2, axis=0) ** 2)  # noqa: E731
     assert d2(lm.points) < 0.1 * d2(lm.points_raw)           # ... and smoother
     assert lm.meta["filter"]["method"] == "rts"
-    run_import(source=tmp_path / "lm.csv", output=tmp_path / "n.npz")  # import's default: as given
+    run_import(source=tmp_path / "lm.csv", output=tmp_path / "n.npz", filter="none")  # as given
     assert load_landmarks(tmp_path / "n.npz").points_raw is None
+    run_import(source=tmp_path / "lm.csv", output=tmp_path / "d.npz")  # import's default (issue 27): rts, as track
+    np.testing.assert_allclose(load_landmarks(tmp_path / "d.npz").points, lm.points)
