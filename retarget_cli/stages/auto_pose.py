@@ -1,11 +1,12 @@
-"""``auto-pose``: pose a rig at every key frame from the landmarks (the rig as the artist).
+"""``auto-pose``: pose a rig at every frame (or every key frame) from the landmarks (the rig as the artist).
 
 Reads ``keys.json``, ``landmarks.npz`` and ``rig.yaml``; writes into the output
 directory ``REGION/key_%05d.obj`` (the rig posed at each key's sliders),
 ``sliders.csv`` (one row per key frame, the animation CSV that ``edit`` reads),
+``curves.csv`` (``frames: all``, the default: one row per frame of the take),
 ``masks/REGION.txt`` (region masks derived from the rig) and ``targets.yaml``,
-which names the rig and the sliders so that ``apply`` writes the rig's slider
-curves. The math is in :mod:`retarget_cli.methods.rigpose` (delta fit, default) and
+which names the rig, the sliders and the curves so that ``apply`` writes the rig's
+slider curves. The math is in :mod:`retarget_cli.methods.rigpose` (delta fit, default) and
 :func:`retarget_cli.methods.editing.auto_pose` (absolute fit).
 """
 
@@ -369,8 +370,9 @@ __all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_slider
 #: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
 STAGE = Stage(
     "auto_pose",
-    "Pose a rig at each key frame from its landmarks (the rig as the artist): key OBJs, their sliders, "
-    "region masks and a targets.yaml from which apply writes the rig's slider curves.",
+    "Pose a rig at every frame (frames: all) or each key frame from its landmarks (the rig as the artist): "
+    "key OBJs, their sliders, every frame's curves, region masks and a targets.yaml from which apply writes "
+    "the rig's slider curves.",
     PARAMS,
     run_auto_pose,
     extra_inputs=_pose_files,
@@ -389,11 +391,12 @@ def _cli_auto_pose(values, out):
 #: ``auto-pose`` (the CLI builds it: :mod:`retarget_cli.cli.commands`).
 COMMAND = Command(
     "auto-pose",
-    """Pose RIG at every key frame of KEYS from its LANDMARKS: the rig as the artist.
+    """Pose RIG at every frame of LANDMARKS (--frames keys: at the key frames of KEYS): the rig as the artist.
 
-    The default delta fit reproduces each key frame's landmark displacement
+    The default delta fit reproduces each frame's landmark displacement
     from the neutral frame, so the actor's face shape stays out of the
-    sliders; apply then writes the rig's slider curves.
+    sliders, with the lips and lids kept in contact where the actor's meet;
+    apply then writes the rig's slider curves.
     """,
     lambda: [*PARAMS, NO_CACHE],
     (Flag("keys", argument=True, path="file"), Flag("landmarks", argument=True, path="file"),
