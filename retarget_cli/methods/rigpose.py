@@ -400,7 +400,7 @@ def contact_ratios(points, c: Contact) -> np.ndarray:
     return out[0] if one else out
 
 
-def contact_references(points, contact, confidence=None, *, neutral=None,
+def contact_references(points, contact, confidence=None, *, neutral=None, lid_closed: float = DEFAULT_LID_CLOSED,
                        closed_percentile: float = CLOSED_PERCENTILE,
                        open_percentile: float = OPEN_PERCENTILE) -> list[np.ndarray]:
     """What closed lips and open eyes read as in a take: the references of :func:`contact_targets`.
@@ -412,7 +412,8 @@ def contact_references(points, contact, confidence=None, *, neutral=None,
     percentile (the cluster of closed lips: they meet in most takes, on more than that fraction of the
     frames); ``lids``, the *open_percentile* percentile of the mean lid gap / eye width
     (the eye at rest: open on most frames, blinks and squints below it, wide eyes above), or the *neutral*
-    frame's when that is wider, so that the neutral frame's eyes are the rig's at rest unless they squint.
+    frame's when that is nearer it than *lid_closed*, so that the neutral frame's eyes are the rig's at rest
+    unless they squint, wink or blink.
 
     Parameters
     ----------
@@ -422,6 +423,8 @@ def contact_references(points, contact, confidence=None, *, neutral=None,
         Frames where a group's point has confidence 0 are left out of its statistic.
     neutral : array_like, shape (L, 2), optional
         The neutral frame's landmarks.
+    lid_closed : float
+        As :func:`contact_targets`.
 
     Returns
     -------
@@ -442,7 +445,9 @@ def contact_references(points, contact, confidence=None, *, neutral=None,
         else:
             r_open = float(np.percentile(r.mean(axis=1), open_percentile))
             if neutral is not None:
-                r_open = max(r_open, float(np.mean(contact_ratios(neutral, c))))
+                r_n = float(np.mean(contact_ratios(neutral, c)))
+                if r_n >= 0.5 * (lid_closed + r_open):  # nearer open than closed: the neutral frame's eye is the rest
+                    r_open = r_n
             out.append(np.full(len(c.pairs), r_open))
     return out
 
@@ -672,7 +677,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
             raise ShapeError(f"regions: {r!r} must list landmark ids in [0, {L})")
     if contact_weight > 0 and contact and contact_refs is None:
         contact_refs = contact_references(np.concatenate([Y0[None], Y]), contact, np.concatenate([c0[None], C]),
-                                          neutral=Y0)
+                                          neutral=Y0, lid_closed=lid_closed)
     groups = _region_contacts(contact if contact_weight > 0 else None, contact_refs, ids, L)
     X0, DL = rig_landmarks(rig, v)
     rig_ids = None if rigid is None else np.asarray(rigid, dtype=np.int64)

@@ -201,7 +201,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         contact, front = _contact_rows(lm_ids, lm.n_points)
         opts = dict(sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
                     ridge=DEFAULT_RIDGE if ridge is None else ridge, contact=contact, front=front,
-                    contact_refs=contact_references(Y, contact, Cf, neutral=Y[neutral_frame]) if contact else None,
+                    contact_refs=contact_references(Y, contact, Cf, neutral=Y[neutral_frame], lid_closed=lid_closed)
+                    if contact else None,
                     contact_weight=contact_weight, lip_closed=lip_closed, lid_closed=lid_closed,
                     smooth=smooth if frames == "all" else 0.0)
         poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, neutral_frame, region_rows, fixed,

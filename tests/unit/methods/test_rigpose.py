@@ -8,6 +8,7 @@ from retarget_cli.methods.editing import auto_pose
 from retarget_cli.methods.rig import BlendshapeRig
 from retarget_cli.methods.rigpose import (
     CONTACT_68,
+    DEFAULT_LID_CLOSED,
     DEFAULT_LIP_CLOSED,
     FRONT_68,
     contact_ratios,
@@ -213,12 +214,16 @@ def test_contact_references_are_the_takes_closed_lips_and_open_eyes():
     Y[np.ix_(open_, [65, 66, 67], [1])] += 0.1 * np.linalg.norm(n[54] - n[48])
     refs = contact_references(Y, CONTACT_68)
     np.testing.assert_allclose(refs[0], contact_ratios(n, lips), atol=0.01)  # the cluster of closed lips
-    # the open eye: the take's 75th percentile, or the neutral frame's when wider
+    # the open eye: the take's 75th percentile, or the neutral frame's unless that is nearer closed than open
     r = contact_ratios(Y, eye).mean(axis=1)
-    assert refs[1][0] == pytest.approx(np.percentile(r, 75))
-    wide = n.copy()
-    wide[[37, 38], 1] -= 5.0
-    assert contact_references(Y, CONTACT_68, neutral=wide)[1][0] == pytest.approx(contact_ratios(wide, eye).mean())
+    p75 = np.percentile(r, 75)
+    assert refs[1][0] == pytest.approx(p75)
+    for shift, own in ((3.0, True), (-0.5, True), (-5.0, False)):  # wider, a little narrower, squinting
+        neutral = n.copy()
+        neutral[[37, 38], 1] -= shift
+        r_n = contact_ratios(neutral, eye).mean()
+        assert contact_references(Y, CONTACT_68, neutral=neutral)[1][0] == pytest.approx(r_n if own else p75)
+        assert (r_n >= 0.5 * (DEFAULT_LID_CLOSED + p75)) == own
 
 
 def test_frontal_rotation_snaps_to_the_rig_files_axes():
