@@ -315,6 +315,9 @@ CONTACT_KINDS = ("lips", "lids")
 #: are those within CLOSED_BAND (of the mouth width) of that percentile.
 CLOSED_PERCENTILE = 5.0
 CLOSED_BAND = 0.03
+#: The neutral frame's eye is the open reference unless it is closed by more than three quarters, from the take's
+#: open reading towards ``lid_closed`` (a squint, a wink, a blink).
+NEUTRAL_OPEN = 0.25
 OPEN_PERCENTILE = 75.0
 #: Default tolerance of a contact gap, as a fraction of its feature's width on the rig (mouth or eye corners).
 DEFAULT_CONTACT_TOL = 0.0075
@@ -412,8 +415,9 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
     percentile (the cluster of closed lips: they meet in most takes, on more than that fraction of the
     frames); ``lids``, the *open_percentile* percentile of the mean lid gap / eye width
     (the eye at rest: open on most frames, blinks and squints below it, wide eyes above), or the *neutral*
-    frame's when that is nearer it than *lid_closed*, so that the neutral frame's eyes are the rig's at rest
-    unless they squint, wink or blink.
+    frame's unless that is closed by more than three quarters of the way to *lid_closed*
+    (:data:`NEUTRAL_OPEN`), so that the neutral frame's eyes are the rig's at rest unless they squint, wink or
+    blink.
 
     Parameters
     ----------
@@ -446,7 +450,7 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
             r_open = float(np.percentile(r.mean(axis=1), open_percentile))
             if neutral is not None:
                 r_n = float(np.mean(contact_ratios(neutral, c)))
-                if r_n >= 0.5 * (lid_closed + r_open):  # nearer open than closed: the neutral frame's eye is the rest
+                if r_n >= lid_closed + NEUTRAL_OPEN * (r_open - lid_closed):  # the neutral frame's eye is the rest
                     r_open = r_n
             out.append(np.full(len(c.pairs), r_open))
     return out

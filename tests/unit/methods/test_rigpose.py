@@ -11,6 +11,7 @@ from retarget_cli.methods.rigpose import (
     DEFAULT_LID_CLOSED,
     DEFAULT_LIP_CLOSED,
     FRONT_68,
+    NEUTRAL_OPEN,
     contact_ratios,
     contact_references,
     delta_pose,
@@ -223,7 +224,7 @@ def test_contact_references_are_the_takes_closed_lips_and_open_eyes():
         neutral[[37, 38], 1] -= shift
         r_n = contact_ratios(neutral, eye).mean()
         assert contact_references(Y, CONTACT_68, neutral=neutral)[1][0] == pytest.approx(r_n if own else p75)
-        assert (r_n >= 0.5 * (DEFAULT_LID_CLOSED + p75)) == own
+        assert (r_n >= DEFAULT_LID_CLOSED + NEUTRAL_OPEN * (p75 - DEFAULT_LID_CLOSED)) == own
 
 
 def test_frontal_rotation_snaps_to_the_rig_files_axes():
