@@ -304,12 +304,16 @@ CONTACT_68 = (Contact("lips", ((61, 67), (62, 66), (63, 65)), (48, 54)),
 #: runs, λ 3 / threshold 3 on 2, both neutral-dependent; λ 10 released more events and jittered more).
 DEFAULT_SMOOTH = 3.0
 DEFAULT_SMOOTH_ROBUST = 3.0
+#: Openness within this of the open eye counts as open (:func:`contact_targets`): the lid gap is held at rest
+#: there instead of following the tracker's lid noise, which the openness map amplifies (by 1.8x on the
+#: 68-point detector); a squint deeper than this is followed.
+LID_DEADBAND = 0.15
 #: Default weight of a contact gap, in landmarks (a gap row counts as this many landmarks of the region).
 DEFAULT_CONTACT_WEIGHT = 4.0
 #: Default inner-lip gap / mouth width, above the neutral frame's, below which the actor's lips count as closed.
 DEFAULT_LIP_CLOSED = 0.02
 #: Default lid gap / eye width at which the actor's tracked eye counts as closed (see docs/auto-pose.md).
-DEFAULT_LID_CLOSED = 0.14
+DEFAULT_LID_CLOSED = 0.15
 CONTACT_KINDS = ("lips", "lids")
 #: Percentiles of :func:`contact_references`: the take's closed lips and open eyes; the closed lips' readings
 #: are those within CLOSED_BAND (of the mouth width) of that percentile.
@@ -472,7 +476,8 @@ def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_close
       character's lips part by as much of their width, and never cross;
     - ``lids``: the actor's openness ``o = (r_k − r_c) / (r_o − r_c)``, ``r_k`` the mean lid gap / eye width,
       ``r_o`` the take's open reading and ``r_c = lid_closed`` (where the tracker's lids read closed),
-      clipped at 0, poses the rig's gap between its rest gap (``o = 1``) and its most closed one (the
+      clipped at 0 and stretched by :data:`LID_DEADBAND` (an eye within it of open is open), poses the
+      rig's gap between its rest gap (``o = 1``) and its most closed one (the
       slider among *free* that closes it most, at its bound, ``o = 0``); an eye wider than ``r_o`` widens
       the rig's by ``r_k − r_o`` of its width.
 
@@ -517,7 +522,7 @@ def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_close
         return G, np.zeros(len(c.pairs)), closed  # the open eye reads no more open than closed: no target
     if r_k >= r_o:
         return G, np.full(len(c.pairs), (r_k - r_o) * width_rig), closed
-    o = max((r_k - lid_closed) / (r_o - lid_closed), 0.0)
+    o = min(max((r_k - lid_closed) / (r_o - lid_closed), 0.0) / (1.0 - LID_DEADBAND), 1.0)
     return G, (1.0 - o) * closed, closed
 
 

@@ -76,7 +76,7 @@ PARAMS = [
     Param("lip_closed", "setting", float, 0.02,
           "Inner-lip gap / mouth width, above the take's closed lips, below which the actor's lips count "
           "as closed (the tracker's noise on closed lips).", min=0),
-    Param("lid_closed", "setting", float, 0.14,
+    Param("lid_closed", "setting", float, 0.15,
           "Lid gap / eye width at or below which the tracked eye counts as closed (the 68-point detector's "
           "closed lids read 0.09-0.19).", min=0),
     Param("sparsity", "setting", float, None,
@@ -144,7 +144,7 @@ def _mask_text(weights: np.ndarray) -> str:
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame=0, sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=3.0, contact_weight=4.0,
-                  lip_closed=0.02, lid_closed=0.14, base_dir=None, cache_dir=None) -> list[Path]:
+                  lip_closed=0.02, lid_closed=0.15, base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
     ``sliders.csv``, masks, ``targets.yaml`` (and ``curves.csv``).
 
