@@ -14,11 +14,13 @@ import json
 import logging
 import struct
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from retarget_cli.errors import InputError
+from retarget_cli.io.exports import EXPORTS, SameExport
 from retarget_cli.io.gltf_animation import (
     ANIMATION_NAME,
     animated_copy_bytes,
@@ -398,6 +400,71 @@ def test_plain_glb_has_no_vrma(tmp_path, caplog):
     with caplog.at_level(logging.INFO, logger="retarget_cli.io.gltf_animation"):
         assert write_vrma(tmp_path / "x.vrma", src, np.zeros((T, 1)), ["jawOpen"], FPS) is None
     assert not (tmp_path / "x.vrma").exists() and "no .vrma written" in caplog.text
+
+
+# ---------------------------------------------------------------------- the exporter (apply --format same)
+def _ctx(tmp_path, source, names, curves, rig_file=None):
+    spec = SimpleNamespace(source=source)
+    rig = SimpleNamespace(spec=spec, names=names, lower=np.zeros(len(names)), upper=np.ones(len(names)))
+    out = tmp_path / "out"
+    out.mkdir(exist_ok=True)
+    return SimpleNamespace(out=out, fps=FPS, rig=rig, curves=curves, rig_file=rig_file, weights=tmp_path / "w.npz",
+                           targets=tmp_path / "t.yaml", landmarks=None)
+
+
+def test_same_export_writes_the_copy_and_vrma(tmp_path, caplog):
+    assert EXPORTS["same"] is SameExport and SameExport.needs_rig
+    src, _, _ = write_source(tmp_path, name="avatar.vrm", vrm=1)
+    names = ["aa", "blink", "notInTheFile"]
+    C = curves_for(names, seed=3)
+    ctx = _ctx(tmp_path, src, names, C)
+    SameExport.check_context(ctx)
+    with caplog.at_level(logging.WARNING):
+        written = SameExport(ctx).finish()
+    assert written == [ctx.out / "avatar_animated.glb", ctx.out / "avatar_animated.vrma"]
+    assert "1 slider(s) are not sliders or morph targets of the file" in caplog.text and "notInTheFile" in caplog.text
+    _, W = animation_weights(written[0])
+    np.testing.assert_allclose(W[4][:, 0], 0.5 * np.clip(C[:, 0], 0, 1), rtol=0, atol=1e-6)
+    _, tracks = vrma_tracks(written[1])
+    assert sorted(tracks) == [("preset", "aa"), ("preset", "blink")]
+
+
+def test_same_export_needs_a_rig_from_a_gltf_file(tmp_path):
+    for source in (None, tmp_path / "rig" / "neutral.obj"):
+        ctx = _ctx(tmp_path, source, ["jawOpen"], np.zeros((T, 1)), rig_file=tmp_path / "rig" / "rig.yaml")
+        with pytest.raises(InputError) as info:
+            SameExport.check_context(ctx)
+        assert str(info.value) == (f"{tmp_path / 'rig' / 'rig.yaml'}: apply.formats: same needs a rig read from a "
+                                   ".glb/.gltf/.vrm file (rig.yaml source:)")
+    assert not any((tmp_path / "out").iterdir())
+
+
+def test_apply_format_same_with_a_rig_of_objs_is_an_error_before_any_frame(tmp_path):
+    from retarget_cli.io.editfiles import write_animation
+    from retarget_cli.io.obj import format_obj
+    from retarget_cli.io.stagefiles import save_weights, write_targets
+    from retarget_cli.stages import run_apply
+
+    r = tmp_path / "rig"
+    r.mkdir()
+    faces = np.array([[0, 1, 2, 3]])
+    (r / "neutral.obj").write_bytes(format_obj(HEAD_P.astype(float), faces))
+    (r / "jaw.obj").write_bytes(format_obj((HEAD_P + JAW).astype(float), faces))
+    (r / "rig.yaml").write_text("neutral: neutral.obj\nshapes:\n  jawOpen: jaw.obj\n")
+    t = tmp_path / "t"
+    t.mkdir()
+    (t / "k0.obj").write_bytes(format_obj(HEAD_P.astype(float), faces))
+    (t / "k1.obj").write_bytes(format_obj((HEAD_P + JAW).astype(float), faces))
+    write_animation(t / "sliders.npz", ["jawOpen"], np.array([[0.0], [1.0]]), np.array([0, 3]))
+    write_targets(t / "targets.yaml", {"face": {"keys": {0: "k0.obj", 3: "k1.obj"}}}, rig="../rig/rig.yaml",
+                  sliders="sliders.npz")
+    W = np.array([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]])
+    save_weights(tmp_path / "weights.npz", {"face": (W, np.array([0, 3]), np.zeros(3))}, {"fps": FPS})
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"rig.yaml: apply.formats: same needs a rig read from a "
+                                         r"\.glb/\.gltf/\.vrm file \(rig.yaml source:\)"):
+        run_apply(weights=tmp_path / "weights.npz", targets=t / "targets.yaml", output=out, formats=["obj", "same"])
+    assert not list(out.glob("*.obj")) and not list(out.glob("*.glb"))
 
 
 # ---------------------------------------------------------------------- the two real rigs (skipped without them)
