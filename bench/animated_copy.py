@@ -90,13 +90,14 @@ def check_copy(src: Path, out: Path, rig, groups: dict, names: list[str], C: np.
     print(f"  morph weights vs curves x bind weights, every frame, {sum(w.size for w in W.values())} values: "
           f"max |diff| {err:.2e}; read_gltf_rig of the copy: deltas equal the source's: "
           f"{np.array_equal(back.deltas, rig.deltas)}, sliders equal: {back.groups == rig.groups}")
-    try:
-        import trimesh
+    for what, path in (("the copy", out), ("the source", src)):
+        try:
+            import trimesh
 
-        scene = trimesh.load(out, force="scene")
-        print(f"  trimesh {trimesh.__version__} loads it: {len(scene.geometry)} geometries")
-    except Exception as exc:  # report what trimesh says; it is not the reader under test
-        print(f"  trimesh does not load it: {type(exc).__name__}: {str(exc)[:120]}")
+            scene = trimesh.load(path, force="scene", file_type="glb")
+            print(f"  trimesh {trimesh.__version__} loads {what}: {len(scene.geometry)} geometries")
+        except Exception as exc:  # report what trimesh says; it is not the reader under test
+            print(f"  trimesh does not load {what}: {type(exc).__name__}: {str(exc)[:120]}")
     return W
 
 
