@@ -230,13 +230,11 @@ def _image_mime(image: dict, data: bytes) -> str:
 
 def _base_buffer(f: GltfFile, doc: dict) -> bytes:
     """The bytes buffer 0 starts with in the copy (the source's BIN chunk, whole); buffer 0 made the BIN chunk's."""
-    buffers = doc.get("buffers")
-    if not buffers:
+    if not f.items("buffers"):
         doc["buffers"] = [{"byteLength": 0}]
         return b""
+    f.item("buffers", 0, "the copy")
     first = doc["buffers"][0]
-    if not isinstance(first, dict):
-        raise f.error("buffer 0 is not an object")
     if "uri" in first:
         data = bytes(f.buffer(0, "the copy"))
         del first["uri"]
@@ -277,6 +275,8 @@ def _glb(f: GltfFile, doc: dict, binary: bytes, *, sort_keys: bool = False) -> b
                         sort_keys=sort_keys).encode("utf-8")
     except ValueError:
         raise f.error("the JSON holds a number that is not finite (NaN or Infinity); not written") from None
+    except RecursionError:
+        raise f.error("the JSON is nested too deeply to write") from None
     js += b" " * (-len(js) % 4)
     binary = bytes(binary) + b"\0" * (-len(binary) % 4)
     body = struct.pack("<II", len(js), 0x4E4F534A) + js
@@ -306,9 +306,14 @@ def animated_copy_bytes(source, curves, names, fps: float, groups: dict, *, lowe
         Each slider's range; the curves are clipped to it.
     """
     f = GltfFile(source)
+    for key in ("bufferViews", "accessors", "animations", "images"):
+        f.items(key)  # lists, or absent (checked: the copy appends to them)
     C = _curves(curves, names, fps, lower, upper)
     weights = target_weights(f, C, list(names), groups)
-    doc = copy.deepcopy(f.json)
+    try:
+        doc = copy.deepcopy(f.json)
+    except RecursionError:
+        raise f.error("the JSON is nested too deeply to copy") from None
     base = _base_buffer(f, doc)
     _embed_external(f, doc)
     out = _Appender(doc, base + b"\0" * (-len(base) % 4))
@@ -380,7 +385,8 @@ def _humanoid(f: GltfFile) -> tuple[dict[str, int], bool]:
     for b, bone in enumerate(f.field(hum, "humanBones", "VRM.humanoid", list, [])):
         if not isinstance(bone, dict):
             raise f.error(f"VRM.humanoid.humanBones[{b}] is not an object")
-        name = _VRM0_THUMBS.get(bone.get("bone"), bone.get("bone"))
+        name = f.field(bone, "bone", f"VRM.humanoid.humanBones[{b}]", str, "")
+        name = _VRM0_THUMBS.get(name, name)
         if name in VRMA_BONES and name not in bones:
             bones[name] = f.field(bone, "node", f"VRM.humanoid.humanBones[{b}]", int, low=0)
     return bones, True

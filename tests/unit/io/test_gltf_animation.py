@@ -12,14 +12,18 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import struct
+import tempfile
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from retarget_cli.errors import InputError
+from retarget_cli.errors import InputError, RetargetError
 from retarget_cli.io.exports import EXPORTS, SameExport
 from retarget_cli.io.gltf_animation import (
     ANIMATION_NAME,
@@ -42,6 +46,8 @@ REAL = Path(__file__).resolve().parents[3].parent / "shared" / "realdata" / "rig
 VALID = REAL / "valid-glb" / "White_F_2_Busi.glb"
 GODETTE = REAL / "godette-vrm" / "Godette_vrm_v4.vrm"
 T, FPS = 9, 24.0
+FUZZ = settings(max_examples=int(os.environ.get("RETARGET_FUZZ_EXAMPLES", "150")), deadline=None,
+                suppress_health_check=[HealthCheck.too_slow])
 HEAD_P = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
 JAW = np.array([[0, -0.25, 0], [0, -0.25, 0], [0, 0, 0], [0, 0, 0]], np.float32)
 BLINK = np.array([[0, 0, 0], [0, 0, 0], [0, -0.1, 0], [0, -0.1, 0]], np.float32)
@@ -335,6 +341,46 @@ def test_bad_binds_and_a_file_without_targets_are_one_line_errors(tmp_path):
     src.write_bytes(glb_bytes(doc, binary))
     with pytest.raises(InputError, match="char.glb: no node has a mesh with morph targets"):
         animated_copy_bytes(src, np.zeros((T, 1)), ["jawOpen"], FPS, {})
+
+
+@FUZZ
+@given(st.data())
+def test_fuzzed_sources_raise_only_the_tools_errors(data):
+    """JSON edits, flipped bytes and cuts of a VRM source: a copy and a .vrma, or a one-line RetargetError."""
+    with tempfile.TemporaryDirectory() as d:
+        doc, binary = scene(vrm=data.draw(st.sampled_from([0, 1])))
+        kind = data.draw(st.sampled_from(["json", "json", "flip", "cut"]))
+        if kind == "json":
+            where = data.draw(st.sampled_from(["accessors", "bufferViews", "nodes", "meshes", "buffers", "images",
+                                               "skins", "animations", "extensions", "top"]))
+            entry = doc if where == "top" else doc[where]
+            if isinstance(entry, list):
+                entry = entry[data.draw(st.integers(0, len(entry) - 1))]
+            if where == "extensions":
+                entry = entry.get("VRM") or entry["VRMC_vrm"]
+                entry = entry[data.draw(st.sampled_from(sorted(k for k in entry if k != "specVersion")))]
+            key = data.draw(st.sampled_from(sorted(entry) + ["uri", "weights", "children", "humanBones"]))
+            entry[key] = data.draw(st.sampled_from([-1, 0, 1, 7, 2**31, 1.5, "x", "../x.bin", None, [], {}, [0, 0],
+                                                    True, [{"node": 99}], {"hips": {"node": -1}}]))
+            blob = glb_bytes(doc, binary)
+        else:
+            blob = glb_bytes(doc, binary)
+            if kind == "flip":
+                buf = bytearray(blob)
+                for _ in range(data.draw(st.integers(1, 8))):
+                    buf[data.draw(st.integers(0, len(buf) - 1))] = data.draw(st.integers(0, 255))
+                blob = bytes(buf)
+            else:
+                blob = blob[:data.draw(st.integers(0, len(blob)))]
+        src = Path(d) / "f.vrm"
+        src.write_bytes(blob)
+        C = np.linspace(0, 1, 2 * T).reshape(T, 2)
+        for call in (lambda: animated_copy_bytes(src, C, ["a", "b"], FPS, {"a": [(3, 0, 1.0)], "b": [(4, 0, 0.5)]}),
+                     lambda: vrma_bytes(src, C, ["a", "blink"], FPS)):
+            try:
+                call()
+            except RetargetError as exc:
+                assert "\n" not in str(exc).strip(), str(exc)
 
 
 # ---------------------------------------------------------------------- VRM: the copy and the .vrma
