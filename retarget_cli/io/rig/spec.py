@@ -57,6 +57,9 @@ class Rig:
     #: ``names:``: ARKit column to the slider names it averages, for the Live Link Face CSV
     #: (:mod:`retarget_cli.io.livelink`); empty when the rig does not say.
     names: dict = field(default_factory=dict)
+    #: The glTF/GLB/VRM file the rig was read from, or None for a rig of OBJs (issue 29; read by
+    #: ``apply --format same``). Always None here until ``rig.yaml`` takes ``source:``.
+    source: Path | None = None
 
     def files(self) -> list[Path]:
         return [self.neutral, *self.shapes.values()]
