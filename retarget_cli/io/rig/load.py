@@ -109,7 +109,7 @@ def _source_arrays(spec) -> dict:
         rows.append(moving)
         values.append(d[moving])
         offsets.append(offsets[-1] + len(moving))
-    return {"neutral": g.neutral, "faces": g.faces, "rows": np.concatenate(rows).astype(np.int64),
+    return {"neutral": g.neutral, "faces": g.faces, "rows": np.concatenate(rows).astype(np.int32),
             "values": np.concatenate(values).reshape(-1, 3), "offsets": np.asarray(offsets, dtype=np.int64),
             "meshes": np.array(json.dumps(g.mesh_ranges))}
 
