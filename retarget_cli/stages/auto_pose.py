@@ -97,7 +97,7 @@ def no_landmark_map_error(spec, rig_path) -> InputError:
     where = ("in a rig.yaml with 'source: " + Path(rig_path).name + "'") if spec.path == spec.source else "in it"
     return InputError(f"{rig_path}: the rig has no landmark map (the rig vertex of each tracked landmark); make one "
                       f"with 'retarget map-landmarks {rig_path} -o map.txt' and name it as 'landmarks: map.txt' "
-                      f"{where}, or pass --landmark-vertices map.txt")
+                      f"{where}, or pass it as --landmark-vertices (auto_pose.landmark_vertices)")
 
 
 def _rig_landmark_vertices(spec, landmark_vertices, n_points: int, n_vertices: int, rig_path):
