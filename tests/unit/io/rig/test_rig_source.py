@@ -184,6 +184,7 @@ def test_unusable_cache_is_rebuilt(tmp_path, glb, caplog):
     load_rig(glb, cache_dir=cache)
     (f,) = cache.glob("rig-*.npz")
     f.write_bytes(b"not a zip")
+    caplog.set_level("WARNING", logger="retarget_cli.io.rig.cache")
     rig = load_rig(glb, cache_dir=cache)
     assert rig.names == ("jawOpen", "blink", "smile") and "is unusable" in caplog.text
     assert rigcache.CACHE_VERSION == 1
