@@ -279,6 +279,17 @@ class GltfFile:
         except OSError as exc:
             raise self.error(f"{where}: cannot read external buffer {rel} ({exc.strerror})") from None
 
+    def resource(self, uri: str, where: str, limit: int) -> bytes:
+        """The bytes of a ``uri`` (an image's, a buffer's): a base64 ``data:`` URI or a file inside the rig's folder.
+
+        Checked as buffers are (no ``..``, no absolute path, no URL, regular files only); more than *limit*
+        bytes is an error.
+        """
+        data = self._data_uri(uri, where) if uri.startswith("data:") else self._external(uri, where, limit + 1)
+        if len(data) > limit:
+            raise self.error(f"{where}: uri {_short(uri)} holds more than {limit} bytes")
+        return data
+
     # ------------------------------------------------------------------ buffer views
     def view(self, index, where: str) -> memoryview:
         """The bytes of bufferView *index* (decompressed when it has ``EXT_meshopt_compression``)."""

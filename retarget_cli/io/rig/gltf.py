@@ -109,6 +109,9 @@ class GltfRig:
         ``"gltf"``, ``"vrm0"`` or ``"vrm1"``: where ``groups`` comes from.
     target_meshes : list of str
         The mesh name of each target.
+    target_refs : list of (int, int)
+        ``(node index, morph target index)`` of each target in the file: where
+        a writer animates it (a node's ``weights``).
     """
 
     neutral: np.ndarray
@@ -120,6 +123,7 @@ class GltfRig:
     raw_groups: dict
     kind: str = "gltf"
     target_meshes: list = field(default_factory=list)
+    target_refs: list = field(default_factory=list)
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,7 +218,13 @@ def read_gltf_rig(path, *, meshes=None, targets=None) -> GltfRig:
     return GltfRig(neutral=neutral, faces=np.concatenate(faces).astype(np.int64), mesh_ranges=ranges,
                    target_names=unique, deltas=deltas, groups=groups,
                    raw_groups={name: [(k, 1.0)] for k, name in enumerate(unique)}, kind=kind,
-                   target_meshes=[instances[i].name for i, _ in table])
+                   target_meshes=[instances[i].name for i, _ in table],
+                   target_refs=[(instances[i].node, k) for i, k in table])
+
+
+def node_world_matrices(f: GltfFile) -> list[np.ndarray]:
+    """World matrix (4, 4), float64, of every node of an opened file (checked: types, one parent, no cycle, finite)."""
+    return _node_matrices(f)
 
 
 def _prepare(f: GltfFile, meshes, targets):
@@ -769,4 +779,5 @@ def _fresh(name: str, used: list[str]) -> str:
     return out
 
 
-__all__ = ["GltfOutline", "GltfRig", "read_gltf_outline", "read_gltf_rig", "MAX_DENSE_BYTES"]
+__all__ = ["GltfFile", "GltfOutline", "GltfRig", "read_gltf_outline", "read_gltf_rig", "node_world_matrices",
+           "MAX_DENSE_BYTES"]

@@ -72,8 +72,9 @@ class Rig:
     #: ``names:``: ARKit column to the slider names it averages, for the Live Link Face CSV
     #: (:mod:`retarget_cli.io.livelink`); empty when the rig does not say.
     names: dict = field(default_factory=dict)
-    #: ``source:``, the ``.glb``/``.gltf``/``.vrm`` character the rig is read from, or None for an OBJ rig.
-    #: A source rig has ``neutral`` None and every slider of ``shapes`` names this file.
+    #: ``source:``, the ``.glb``/``.gltf``/``.vrm`` character the rig is read from (also the file itself when
+    #: given as the rig), or None for a rig of OBJs (issue 29; read by ``apply --format same``). A source rig
+    #: has ``neutral`` None and every slider of ``shapes`` names this file.
     source: Path | None = None
     #: ``meshes:`` / ``targets:``: glob patterns choosing the source's meshes and morph targets (None: the
     #: reader's defaults, every mesh with targets and all their targets).
