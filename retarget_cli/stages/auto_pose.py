@@ -39,7 +39,7 @@ from ..methods.rigpose import (
     slider_owners,
 )
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
-from .pose import _pose_files
+from .pose import NEUTRAL_OBJ, _pose_files, targets_neutral
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,8 @@ log = logging.getLogger(__name__)
 PARAMS = [
     Param("keys", "input", str, help="keys.json.", link="select.output"),
     Param("landmarks", "input", str, help="landmarks.npz.", link="track.output"),
-    Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs (and 'landmarks:')."),
+    Param("rig", "input", str, help="rig.yaml (a neutral OBJ plus named shape OBJs, or 'source:' a character "
+          "file; and 'landmarks:'), or a .glb/.gltf/.vrm character with morph targets."),
     Param("landmark_vertices", "input", str, None,
           "Rig vertex of each landmark (one id per line, or 'landmark vertex' pairs); default the "
           "rig.yaml's 'landmarks:' list.", nullable=True),
@@ -91,12 +92,19 @@ CONTOUR_68 = (0, 1, 2, 3, 4, 5, 11, 12, 13, 14, 15, 16)
 RIGID_68 = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)
 
 
+def no_landmark_map_error(spec, rig_path) -> InputError:
+    """The rig has no landmark map: one line naming ``retarget map-landmarks`` and the ``landmarks:`` key."""
+    where = ("in a rig.yaml with 'source: " + Path(rig_path).name + "'") if spec.path == spec.source else "in it"
+    return InputError(f"{rig_path}: the rig has no landmark map (the rig vertex of each tracked landmark); make one "
+                      f"with 'retarget map-landmarks {rig_path} -o map.txt' and name it as 'landmarks: map.txt' "
+                      f"{where}, or pass it as --landmark-vertices (auto_pose.landmark_vertices)")
+
+
 def _rig_landmark_vertices(spec, landmark_vertices, n_points: int, n_vertices: int, rig_path):
     """(landmark ids, vertex ids) from --landmark-vertices, else from rig.yaml's ``landmarks:``."""
     source = landmark_vertices if landmark_vertices is not None else spec.landmarks
     if source is None:
-        raise InputError(f"{rig_path}: the rig does not say which vertex is each landmark; add "
-                         "'landmarks: [vertex ids]' to it or pass --landmark-vertices")
+        raise no_landmark_map_error(spec, rig_path)
     if isinstance(source, (str, os.PathLike)):
         return read_vertex_map(source, n_points, n_vertices)
     vx = np.asarray(source, dtype=np.int64)
@@ -181,10 +189,12 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_fra
     ids, masks. Returns the rig spec, the keys, the landmarks, the sorted key frames and the mask files."""
 
     spec = read_rig(rig_path)
+    if landmark_vertices is None and spec.landmarks is None:
+        raise no_landmark_map_error(spec, rig_path)
     kf, lm = read_keys(keys), load_landmarks(landmarks)
     inputs = [keys, landmarks, rig_path, *spec.files()] + ([landmark_vertices] if landmark_vertices else [])
-    check_not_input(out / "targets.yaml", inputs)
-    check_not_input(out / "sliders.csv", inputs)
+    for name in ("targets.yaml", "sliders.csv") + ((NEUTRAL_OBJ,) if spec.neutral is None else ()):
+        check_not_input(out / name, inputs)
     frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
     bad = [f for f in frames if f >= lm.n_frames]
     if bad:
@@ -269,6 +279,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
     planned = [out / f"{name}/key_{f:05d}.obj" for name in names for f in kf.regions[name]["frames"]]
     planned += [out / f"masks/{name}.txt" for name in names] + [out / "sliders.csv", out / "targets.yaml"]
+    planned += [out / NEUTRAL_OBJ] if spec.neutral is None else []
     regions = {}
     # a failure part-way removes the files written so far; a rerun with other keys removes the old keys' OBJs
     with tracked_outputs(out, "auto-pose", planned=planned) as ledger:
@@ -291,7 +302,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
         write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames,
                         meta={"fit": fit, "neutral_frame": neutral_frame})
         written.append(out / "sliders.csv")
-        nrel = os.path.relpath(spec.neutral.resolve(), out.resolve())
+        nrel = targets_neutral(out, r, ledger.add)
         rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
         write_targets(out / "targets.yaml", regions, neutral=nrel, rig=rrel, sliders="sliders.csv",
                       comment=f"Written by retarget auto-pose ({fit} fit, neutral frame {neutral_frame}).")
@@ -299,7 +310,8 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
     return written
 
 
-__all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "run_auto_pose"]
+__all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "no_landmark_map_error",
+           "run_auto_pose"]
 
 
 #: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
