@@ -289,11 +289,12 @@ def _visible_vertices(cam, xy, tris, tri_id, bary, tol: float, ortho: bool) -> n
     return visible & (cos > -0.1)
 
 
-def mesh_pieces(vertices, tris) -> np.ndarray:
+def mesh_pieces(vertices, tris, *, weld: bool = True) -> np.ndarray:
     """Connected piece of each vertex; (N,) int.
 
-    Vertices are joined by triangles and by sharing a position (to 1e-6 of
-    the mesh's size: glTF files split vertices along UV and normal seams).
+    Vertices are joined by triangles and, with *weld*, by sharing a position
+    (to 1e-6 of the mesh's size: glTF files split vertices along UV and
+    normal seams).
     """
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
@@ -301,12 +302,15 @@ def mesh_pieces(vertices, tris) -> np.ndarray:
     V = np.asarray(vertices, np.float64)
     t = np.asarray(tris, np.int64)
     scale = max(float(np.ptp(V, axis=0).max()), 1e-300)
-    _, weld = np.unique(np.round(V / (1e-6 * scale)).astype(np.int64), axis=0, return_inverse=True)
-    weld = weld.ravel()
+    if weld:
+        _, same = np.unique(np.round(V / (1e-6 * scale)).astype(np.int64), axis=0, return_inverse=True)
+        same = same.ravel()
+    else:
+        same = np.arange(len(V))
     n = len(V)
     rows = np.concatenate([t[:, 0], t[:, 1], t[:, 2], np.arange(n)])
-    cols = np.concatenate([t[:, 1], t[:, 2], t[:, 0], n + weld])
-    g = sp.coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n + weld.max() + 1,) * 2)
+    cols = np.concatenate([t[:, 1], t[:, 2], t[:, 0], n + same])
+    g = sp.coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n + same.max() + 1,) * 2)
     return connected_components(g, directed=False)[1][:n]
 
 
@@ -315,9 +319,20 @@ def skin_vertices(render: FaceRender, tris, points=None) -> np.ndarray:
 
     The piece is the one under most of *points* (68, 2) when given, else the
     one that covers the most pixels (the skin, not an eyeball or a tooth).
+    Pieces are joined by triangles; when the piece found so holds less than
+    :data:`WELD_BELOW` of the visible vertices, vertices that share a
+    position are joined too (a glTF face split along its UV seams). Not
+    always: the ICT FaceKit's eye occlusion shells share its lids' positions.
     """
     tris = np.asarray(tris, np.int64)
-    pieces = mesh_pieces(render.vertices, tris)
+    skin = _skin_piece(render, tris, points, weld=False)
+    if skin.sum() < WELD_BELOW * render.visible.sum():
+        skin = _skin_piece(render, tris, points, weld=True)
+    return skin
+
+
+def _skin_piece(render: FaceRender, tris, points, *, weld: bool) -> np.ndarray:
+    pieces = mesh_pieces(render.vertices, tris, weld=weld)
     hit = np.zeros(0, np.int64)
     if points is not None:
         H, W = render.tri_id.shape
@@ -348,6 +363,9 @@ def lift(points, render: FaceRender, skin) -> np.ndarray:
     _, k = cKDTree(render.xy[ids]).query(np.asarray(points, np.float64).reshape(-1, 2))
     return ids[k]
 
+
+#: :func:`skin_vertices` welds the mesh when the skin piece holds less than this share of the visible vertices.
+WELD_BELOW = 0.25
 
 #: Jaw-line points (on the face's outline face-on).
 CONTOUR_68 = tuple(range(17))

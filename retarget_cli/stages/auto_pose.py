@@ -39,6 +39,7 @@ from ..methods.rigpose import (
     slider_owners,
 )
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
+from .map_landmarks import cached_landmark_map
 from .pose import _pose_files
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,7 @@ PARAMS = [
     Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs (and 'landmarks:')."),
     Param("landmark_vertices", "input", str, None,
           "Rig vertex of each landmark (one id per line, or 'landmark vertex' pairs); default the "
-          "rig.yaml's 'landmarks:' list.", nullable=True),
+          "rig.yaml's 'landmarks:' list, else found automatically (landmark_map.txt in the output).", nullable=True),
     Param("output", "output", str, "targets",
           "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml."),
     Param("fit", "setting", str, "delta",
@@ -96,7 +97,8 @@ def _rig_landmark_vertices(spec, landmark_vertices, n_points: int, n_vertices: i
     source = landmark_vertices if landmark_vertices is not None else spec.landmarks
     if source is None:
         raise InputError(f"{rig_path}: the rig does not say which vertex is each landmark; add "
-                         "'landmarks: [vertex ids]' to it or pass --landmark-vertices")
+                         "'landmarks: [vertex ids]' to it, pass --landmark-vertices, or track 68 points (the map "
+                         "is then found automatically; see retarget map-landmarks)")
     if isinstance(source, (str, os.PathLike)):
         return read_vertex_map(source, n_points, n_vertices)
     vx = np.asarray(source, dtype=np.int64)
@@ -160,6 +162,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     spec, kf, lm, frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame,
                                                      skip_points, rigid_points, masks, base_dir)
     r = load_rig(rig_path, cache_dir=cache_dir)
+    if landmark_vertices is None and spec.landmarks is None and lm.n_points == 68:
+        landmark_vertices = cached_landmark_map(rig_path, r, spec, out)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
     fixed = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
@@ -185,6 +189,9 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_fra
     inputs = [keys, landmarks, rig_path, *spec.files()] + ([landmark_vertices] if landmark_vertices else [])
     check_not_input(out / "targets.yaml", inputs)
     check_not_input(out / "sliders.csv", inputs)
+    if landmark_vertices is None and spec.landmarks is None:
+        check_not_input(out / "landmark_map.txt", inputs)
+        check_not_input(out / "landmark_map.png", inputs)
     frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
     bad = [f for f in frames if f >= lm.n_frames]
     if bad:
