@@ -168,6 +168,11 @@ def summary_lines(q: dict) -> list[str]:
              f"inter-ocular distance (points 36-45): {q['iod']:.4g} rig units",
              f"left/right symmetry: mean {q['symmetry_mean']:.3f}, max {q['symmetry_max']:.3f} inter-ocular "
              f"distances (worst pair {a}/{b})"]
+    total: dict = {}
+    for by in q["regions"].values():
+        for src, n in by.items():
+            total[src] = total.get(src, 0) + n
+    lines.append("points by source: " + ", ".join(f"{n} {s}" for s, n in sorted(total.items())))
     for region, by in q["regions"].items():
         lines.append(f"  {region:<11} " + ", ".join(f"{n} {s}" for s, n in sorted(by.items())))
     if q["shared"]:
