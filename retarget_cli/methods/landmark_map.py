@@ -556,10 +556,11 @@ def _eye_anchors(cues: _Cues, side: int, first: int, anchors: dict) -> None:
     a, b = ids[xy[ids, 0].argmin()], ids[xy[ids, 0].argmax()]  # image-left and image-right ends of the moved lid
     anchors[first], anchors[first + 3] = (a, "sliders:blink"), (b, "sliders:blink")  # 36 -> 39, 42 -> 45 run right
     w = xy[b, 0] - xy[a, 0]
+    down = np.clip(cues.closed[:, 1] - xy[:, 1], 0, None)  # how far each vertex comes down the picture
     for j, t in ((1, 1 / 3), (2, 2 / 3)):
         band = near & (np.abs(xy[:, 0] - (xy[a, 0] + t * w)) < max(w / 8, 1.0))
         k = np.flatnonzero(band if band.any() else near)
-        k = k[np.argmax(m[k])]
+        k = k[np.argmax(down[k])] if down[k].max() > 0 else k[np.argmax(m[k])]
         anchors[first + j] = (k, "sliders:blink")
         # below 37 is 41, below 38 is 40 (43/47, 44/46)
         low = cues.closed[k]
@@ -593,7 +594,7 @@ def slider_landmarks(render: FaceRender, skin, vertices, deltas, names):
     Anchors, each a vertex: per eye the blink shapes' moved lid (corners at
     the ends of the region they move at least :data:`EYE_SHARE` as much as
     their most moved vertex on that side, upper-lid points where they move
-    most in the lid's thirds, lower-lid points the first vertex below where
+    most down the picture in the lid's thirds, lower-lid points the first vertex below where
     the closed upper lid lands); the mouth corners where the smile shapes
     move most on each side; the chin, the lowest vertex of the face's middle
     column among those the jaw-open shapes move at least :data:`CHIN_SHARE`
