@@ -163,9 +163,9 @@ def clips(auto_map: Path) -> None:
     print("|" + "---|" * (2 + len(keys)))
     for label, rs in rows.items():
         for r in rs:
-            ref = r["refs"]["mediapipe"]
+            ref = r["refs"]["mediapipe"]["r"]
             print(f"| {r['clip']} | {label} | " + " | ".join(f"{ref.get(k, float('nan')):.3f}" for k in keys) + " |")
-        mean = [np.nanmean([r["refs"]["mediapipe"].get(k, np.nan) for r in rs]) for k in keys]
+        mean = [np.nanmean([r["refs"]["mediapipe"]["r"].get(k, np.nan) for r in rs]) for k in keys]
         print(f"| mean | {label} | " + " | ".join(f"{v:.3f}" for v in mean) + " |")
 
 
