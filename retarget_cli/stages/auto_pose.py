@@ -39,6 +39,7 @@ from ..methods.rigpose import (
     slider_owners,
 )
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
+from .map_landmarks import cached_landmark_map
 from .pose import NEUTRAL_OBJ, _pose_files, targets_neutral
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,7 @@ PARAMS = [
           "file; and 'landmarks:'), or a .glb/.gltf/.vrm character with morph targets."),
     Param("landmark_vertices", "input", str, None,
           "Rig vertex of each landmark (one id per line, or 'landmark vertex' pairs); default the "
-          "rig.yaml's 'landmarks:' list.", nullable=True),
+          "rig.yaml's 'landmarks:' list, else found automatically (landmark_map.txt in the output).", nullable=True),
     Param("output", "output", str, "targets",
           "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml."),
     Param("fit", "setting", str, "delta",
@@ -95,7 +96,8 @@ RIGID_68 = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)
 def no_landmark_map_error(spec, rig_path) -> InputError:
     """The rig has no landmark map: one line naming ``retarget map-landmarks`` and the ``landmarks:`` key."""
     where = ("in a rig.yaml with 'source: " + Path(rig_path).name + "'") if spec.path == spec.source else "in it"
-    return InputError(f"{rig_path}: the rig has no landmark map (the rig vertex of each tracked landmark); make one "
+    return InputError(f"{rig_path}: the rig has no landmark map (the rig vertex of each tracked landmark; found "
+                      f"automatically for the 68-point layout only); make one "
                       f"with 'retarget map-landmarks {rig_path} -o map.txt' and name it as 'landmarks: map.txt' "
                       f"{where}, or pass it as --landmark-vertices (auto_pose.landmark_vertices)")
 
@@ -168,6 +170,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     spec, kf, lm, frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame,
                                                      skip_points, rigid_points, masks, base_dir)
     r = load_rig(rig_path, cache_dir=cache_dir)
+    if landmark_vertices is None and spec.landmarks is None and lm.n_points == 68:
+        landmark_vertices = cached_landmark_map(rig_path, r, spec, out)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
     fixed = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
@@ -189,11 +193,12 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_fra
     ids, masks. Returns the rig spec, the keys, the landmarks, the sorted key frames and the mask files."""
 
     spec = read_rig(rig_path)
-    if landmark_vertices is None and spec.landmarks is None:
-        raise no_landmark_map_error(spec, rig_path)
     kf, lm = read_keys(keys), load_landmarks(landmarks)
+    if landmark_vertices is None and spec.landmarks is None and lm.n_points != 68:
+        raise no_landmark_map_error(spec, rig_path)  # the map is found automatically for 68 points only
     inputs = [keys, landmarks, rig_path, *spec.files()] + ([landmark_vertices] if landmark_vertices else [])
-    for name in ("targets.yaml", "sliders.csv") + ((NEUTRAL_OBJ,) if spec.neutral is None else ()):
+    found_map = ("landmark_map.txt", "landmark_map.png") if landmark_vertices is None and spec.landmarks is None else ()
+    for name in ("targets.yaml", "sliders.csv", *found_map) + ((NEUTRAL_OBJ,) if spec.neutral is None else ()):
         check_not_input(out / name, inputs)
     frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
     bad = [f for f in frames if f >= lm.n_frames]

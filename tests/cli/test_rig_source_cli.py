@@ -15,7 +15,7 @@ from retarget_cli.io.atomic import savez
 from retarget_cli.io.editfiles import read_animation
 from retarget_cli.io.exports import rig_shapes
 from retarget_cli.io.gltf import write_glb
-from retarget_cli.io.landmarks import Landmarks, save_landmarks
+from retarget_cli.io.landmarks import Landmarks, load_landmarks, save_landmarks
 from retarget_cli.io.obj import format_obj, read_obj
 from retarget_cli.io.rig import load as rigload
 from retarget_cli.io.rig import load_rig
@@ -106,9 +106,16 @@ def test_edit_and_pose_keys_take_the_glb(take):
 @pytest.mark.parametrize("rig, where", [("char.glb", "in a rig.yaml with 'source: char.glb'"),
                                         ("nomap.yaml", "in it")])
 def test_auto_pose_without_a_landmark_map_names_map_landmarks(take, monkeypatch, rig, where):
+    """With 68 points the map is found automatically (tests/cli/test_map_landmarks_cli.py); with another layout
+    there is nothing to find it with: one line naming map-landmarks, before the rig is read."""
     (take / "nomap.yaml").write_text("source: char.glb\n")
+    lm = load_landmarks(take / "lm.npz")
+    pts = lm.points[:, :60]
+    save_landmarks(take / "lm60.npz", Landmarks(pts, np.ones(pts.shape[:2]), lm.head, pts))
+    write_keys(take / "keys60.json", take / "lm60.npz",
+               {"face": {"points": list(range(60)), "method": "test", "frames": [0, 5], "error": 0.0}})
     monkeypatch.setattr(rigload, "read_gltf_rig", lambda *a, **k: pytest.fail("the rig was read before the error"))
-    res = run("auto-pose", take / "keys.json", take / "lm.npz", take / rig, "-o", take / "t")
+    res = run("auto-pose", take / "keys60.json", take / "lm60.npz", take / rig, "-o", take / "t")
     assert res.exit_code == 1, res.output
     line = res.output.strip()
     assert "\n" not in line and "Traceback" not in line
