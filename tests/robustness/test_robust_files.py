@@ -154,3 +154,43 @@ def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(take, delay):
     assert "Traceback" not in err, err
     assert proc.returncode == 130, (proc.returncode, err)
     assert err.strip().splitlines()[-1] == "error: interrupted", err
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs /proc to see when the CLI starts importing")
+@pytest.mark.parametrize("sig, name", [(signal.SIGTERM, "SIGTERM"), (signal.SIGHUP, "SIGHUP")])
+@pytest.mark.parametrize("delay", [0.0, 0.5])
+def test_sigterm_and_sighup_unwind_like_ctrl_c(take, sig, name, delay):
+    """A farm's kill (SIGTERM) or a closed terminal (SIGHUP): one line, exit 128 + signal, no temporary file left."""
+    proc = subprocess.Popen([*_retarget(), "run", str(take / "config.yaml"), "--force"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    assert _wait_for_numpy(proc), "the command never imported numpy"
+    time.sleep(delay)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    if proc.returncode == 0:
+        pytest.skip("the run finished before the signal")
+    assert "Traceback" not in err, err
+    assert proc.returncode == 128 + sig, (proc.returncode, err)
+    assert err.strip().splitlines()[-1] == f"error: terminated ({name})", err
+    assert not [p for p in take.rglob("*") if ".part" in p.name], "a temporary file was left behind"
+
+
+def test_a_reader_that_stops_early_is_not_a_failure(take):
+    """`retarget run ... | head -c1`: the run finishes, exits 0 and says nothing about the closed pipe."""
+    proc = subprocess.Popen([*_retarget(), "run", str(take / "config.yaml"), "--force"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    assert proc.stdout.read(1)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 0, err
+    assert "error" not in err and "Traceback" not in err and "Exception ignored" not in err, err
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_a_full_stdout_is_one_warning_and_the_run_completes(take):
+    with open("/dev/full", "w") as full:
+        res = subprocess.run([*_retarget(), "run", str(take / "config.yaml"), "--force"], stdout=full,
+                             stderr=subprocess.PIPE, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "warning: stdout: No space left on device" in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert "Exception ignored" not in res.stderr
