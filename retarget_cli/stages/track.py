@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 from pathlib import Path
 
 import numpy as np
 
+from .._validate import check_name
 from ..config import Command, Flag, Param, check_indices, check_size, check_strings, output_flag, validate_params
 from ..errors import FaceLostError, InputError, ParameterError, TruncatedInputError
 from ..io.annotations import read_annotations, read_csv_landmarks
-from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file
+from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file, tracked_outputs
 from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import FrameSource, is_sequence, sequence_files
 from ..io.landmarks import Landmarks, save_landmarks
@@ -182,7 +184,7 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
         files = source.files()
     if need_auto and "detector" in spec.needs:
-        write_pts_once(init_out, points[0])
+        write_auto_init(init_out, points[0])
     points, raw, fmeta = apply_filter(points, conf, fps=source.fps, settings=fset, where=str(video),
                                       anchors=[i for i in index if i < len(points)])
     head, stab = estimate_head(points, conf, rigid_points=rigid_points)
@@ -261,14 +263,49 @@ def _warn_unused(spec, method, settings: dict, model) -> None:
 
 
 def _check_track_outputs(source, given, output, overlay, start, need_auto):
-    """Refuse outputs that are inputs; the path of the automatic annotation (or None)."""
+    """Refuse outputs that are inputs; the path of the automatic annotation (or None).
+
+    The outputs are checked against one another without being protected as inputs: a rerun writes
+    over its own landmarks file (``check_not_input`` would add it to the run's write guard).
+    """
 
     check_not_input(output, source.files() + given)
     if overlay:
         check_not_input(overlay, source.files() + given)
     init_out = init_pts_path(output, start) if need_auto else None
     if init_out is not None:
-        check_not_input(init_out, source.files() + given + [output] + ([overlay] if overlay else []))
+        check_not_input(init_out, source.files() + given)
+        same = [p for p in (output, overlay) if p is not None and Path(p).resolve() == init_out.resolve()]
+        if same:
+            raise InputError(f"{same[0]}: is also where the automatic annotation goes ({init_out}); "
+                             "choose another output path")
+    return init_out
+
+
+def _init_owner(init_out: Path) -> str:
+    """The owner name of the output manifest that lists the automatic annotations of one landmarks file."""
+    stem = init_out.name.split(".init_")[0]
+    try:
+        return check_name(f"track-{stem}", "owner")
+    except InputError:
+        return "track-" + hashlib.sha256(stem.encode()).hexdigest()[:12]
+
+
+def write_auto_init(init_out: Path, points) -> Path:
+    """Write the automatic annotation *init_out*, recorded in its folder's output manifest.
+
+    The annotation is an output of this run, not an input: a file an earlier
+    ``track`` wrote there and that nobody changed since is replaced when the
+    tracking settings give other points (a rerun with ``--force`` or another
+    setting); one changed by hand is not (:func:`~.annotate.write_pts_once`).
+    Annotations of other start frames written earlier for the same landmarks
+    file, unchanged since, are removed.
+    """
+
+    init_out = Path(init_out)
+    with tracked_outputs(init_out.parent, _init_owner(init_out)) as ledger:
+        write_pts_once(init_out, points, own=ledger.before.get(init_out.name))
+        ledger.add(init_out)
     return init_out
 
 
@@ -278,7 +315,7 @@ def _auto_annotate(it, source, start, detector, init_out, ann, src):
     frame = next(it)  # an undecodable video raises TruncatedInputError (an InputError) here
     ann[start] = detect_frame(frame, detector=detector, where=f"{source.path}: frame {start}")
     src[start] = init_out
-    write_pts_once(init_out, ann[start])
+    write_auto_init(init_out, ann[start])
     log.info("%s: frame %d annotated by the detector; wrote %s", source.path, start, init_out)
     return frame
 

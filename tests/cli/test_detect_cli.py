@@ -133,6 +133,26 @@ def test_config_without_init_annotates_automatically(real_clip, tmp_path):
     assert [s for _, s, _ in run_pipeline(cfg)] == ["skipped"]
 
 
+@needs_dlib
+def test_rerun_with_init_auto_tracks_again_in_place(real_clip, tmp_path):
+    """Issue 27 item 6: --force and a changed tracking setting rerun track over its own landmarks and annotation."""
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(f"output_dir: out\ntrack: {{video: {real_clip / 'd3.avi'}, init: auto, method: detect, end: 8}}\n")
+    out, pts = tmp_path / "out" / "landmarks.npz", tmp_path / "out" / "landmarks.init_00000.pts"
+    assert run("run", cfg).exit_code == 0
+    first = pts.read_text()
+    r = run("run", cfg, "--force")
+    assert r.exit_code == 0 and "track: ran" in r.output, r.output
+    r = run("run", cfg, "--set", "track.fuse=false")  # another setting: frame 0's points, so the .pts, change
+    assert r.exit_code == 0 and "track: ran" in r.output, r.output
+    assert pts.read_text() != first
+    lm = load_landmarks(out)
+    assert np.allclose(read_pts(pts), lm.points[0] if lm.points_raw is None else lm.points_raw[0], atol=1e-3)
+    pts.write_text(pts.read_text() + "\n")  # corrected by hand: now the user's, never overwritten
+    r = run("-q", "run", cfg, "--force")
+    assert r.exit_code == 1 and "refusing to overwrite" in r.output and str(pts) in r.output, r.output
+
+
 def test_init_auto_in_a_config_names_no_file(tmp_path):
     cfg_path = tmp_path / "config.yaml"
     cfg_path.write_text("track: {video: v.mp4, init: auto}\n")
