@@ -24,7 +24,7 @@ def code_fingerprint() -> str:
     import hashlib
 
     h = hashlib.sha256(__version__.encode())
-    root = Path(__file__).parent
+    root = Path(__file__).parents[1]  # the package (this module is in its run/ folder)
     for f in sorted(root.rglob("*.py")):
         h.update(f.relative_to(root).as_posix().encode())
         h.update(f.read_bytes())
