@@ -153,6 +153,41 @@ def test_rerun_with_init_auto_tracks_again_in_place(real_clip, tmp_path):
     assert r.exit_code == 1 and "refusing to overwrite" in r.output and str(pts) in r.output, r.output
 
 
+@needs_dlib
+def test_a_calibration_image_is_the_neutral_of_a_take_that_starts_elsewhere(real_clip, tmp_path):
+    """Issue 27 item 2: track.neutral, a separate image of the actor at rest, tracked like the take."""
+    from retarget_cli.methods.neutral import face_openings
+
+    cap = cv2.VideoCapture(str(real_clip / "d3.avi"))
+    ok, frame = cap.read()  # frame 0: at rest (the take below starts at frame 20)
+    cap.release()
+    assert ok and cv2.imwrite(str(tmp_path / "calm.png"), frame)
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(f"output_dir: out\ntrack: {{video: {real_clip / 'd3.avi'}, start: 20, method: detect, "
+                   "neutral: calm.png}\nselect: {k: 6, regions: {brows-eyes: null, mouth: null}}\n"
+                   "decompose: {formulation: delta}\n")
+    r = run("run", cfg)
+    assert r.exit_code == 0, r.output
+    lm = load_landmarks(tmp_path / "out" / "landmarks.npz")
+    assert lm.neutral.shape == (68, 2) and lm.meta["neutral"]["file"] == "calm.png"
+    assert lm.meta["neutral"]["frames"] == 1
+    keys = json.loads((tmp_path / "out" / "keys.json").read_text())
+    assert keys["neutral"]["source"] == "calibration" and "calm.png" in keys["neutral"]["reason"]
+    np.testing.assert_allclose(keys["neutral"]["shape"], lm.neutral, atol=1e-3)
+    man = json.loads((tmp_path / "out" / ".retarget" / "decompose.json").read_text())
+    assert man["results"]["neutral"]["source"] == "calibration"
+    man = json.loads((tmp_path / "out" / ".retarget" / "track.json").read_text())
+    assert any(p.endswith("calm.png") for p in man["inputs"])  # an input: a new calibration reruns track
+    # the calibration's lips and lids, in the take's coordinates, are frame 0's
+    full = tmp_path / "full.npz"
+    assert run("track", real_clip / "d3.avi", "--method", "detect", "--end", 2, "-o", full).exit_code == 0
+    want, got = face_openings(load_landmarks(full).stabilized[:1]), face_openings(lm.neutral[None])
+    for k in want:
+        assert abs(got[k][0] - want[k][0]) < 0.02, (k, got[k], want[k])
+    iod = np.linalg.norm(lm.stabilized[:, 36] - lm.stabilized[:, 45], axis=1).mean()
+    assert abs(np.linalg.norm(lm.neutral[36] - lm.neutral[45]) / iod - 1) < 0.05  # the take's scale
+
+
 def test_init_auto_in_a_config_names_no_file(tmp_path):
     cfg_path = tmp_path / "config.yaml"
     cfg_path.write_text("track: {video: v.mp4, init: auto}\n")
