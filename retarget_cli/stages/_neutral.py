@@ -86,7 +86,7 @@ def _found(lm, landmarks, candidates=None) -> Neutral:
     except ValueError as exc:
         raise InputError(f"{landmarks}: neutral_frame auto: {exc}") from None
     n = len(choice.members)
-    reason = choice.reason + (f"; the neutral key's landmarks are the median of the {n} calm frames nearest the "
+    reason = choice.reason + (f"; the neutral key's landmarks are the mean of the {n} calm frames nearest the "
                               "rest shape" if n > 1 else "")
     if not choice.at_rest:
         log.warning("%s: neutral_frame auto: %s", landmarks, reason)

@@ -16,8 +16,10 @@ from scipy.spatial.transform import Rotation
 
 from retarget_cli.cli.commands import main
 from retarget_cli.io.landmarks import Landmarks, save_landmarks
-from retarget_cli.io.obj import format_obj
+from retarget_cli.io.obj import format_obj, read_obj
 from retarget_cli.io.rig import load_rig
+from retarget_cli.run.runfiles import locate_run
+from retarget_cli.see.preview import RunData
 from retarget_cli.synth.take import EXPRESSIONS, expression_curves, landmark_rig
 
 T = 150
@@ -65,12 +67,19 @@ def curves_of(out):
     return data["curves"][:, [names.index(n) for n in EXPRESSIONS]]
 
 
-def test_neutral_frame_auto_finds_the_rest_frame_after_a_smiling_start(take):
+@pytest.fixture(scope="module")
+def ran(take):
+    """The take run once with the config as it is (neutral_frame auto; apply writes curves only)."""
     d, truth = take
-    at_rest = truth.max(axis=1) < 0.02
-    assert not at_rest[:30].any()
     res = run("run", d / "config.yaml")
     assert res.exit_code == 0, res.output
+    return d, truth
+
+
+def test_neutral_frame_auto_finds_the_rest_frame_after_a_smiling_start(ran):
+    d, truth = ran
+    at_rest = truth.max(axis=1) < 0.02
+    assert not at_rest[:30].any()
     keys = json.loads((d / "out" / "keys.json").read_text())
     rec = keys["neutral"]
     assert rec["source"] == "take" and rec["at_rest"] and at_rest[rec["frame"]], rec
@@ -99,3 +108,42 @@ def test_assuming_frame_0_carries_the_smile_into_every_rest_frame(take):
     got = curves_of(d / "out0")
     assert got[at_rest].max(axis=1).mean() > 0.3  # a permanent expression where the actor rests
     assert got[:25, SMILE].max() < 0.05  # and no smile where the actor smiles
+
+
+def frames_of(video):
+    import cv2
+
+    cap, out = cv2.VideoCapture(str(video)), []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        out.append(frame)
+    cap.release()
+    return np.stack(out)
+
+
+def test_preview_and_report_show_a_curves_only_run(ran, tmp_path):
+    """Issue 27 item 5: no frames/frame_*.obj, so the character is the rig posed at curves.npz."""
+    d, truth = ran
+    assert not list((d / "out" / "frames").glob("frame_*.obj"))
+    res = run("preview", d / "config.yaml", "--frames", "0:3", "--size", "96", "-o", tmp_path / "curves.mp4")
+    assert res.exit_code == 0, res.output
+    a = frames_of(tmp_path / "curves.mp4")
+    panel = a[:, :, 96:192].astype(float)  # source (no video: 96 px of blank), character, weights
+    assert a.shape[:2] == (3, 96) and panel.std() > 10  # a character, not the "no frames" text
+    # the character is what apply's OBJ frames would be: the rig posed at the curves
+    res = run("run", d / "config.yaml", "--set", "output_dir=out_obj", "--set", "apply.formats=[curves, obj]")
+    assert res.exit_code == 0, res.output
+    data = RunData(locate_run(d / "out"))
+    assert not data.frame_files and data.n_character_frames == T
+    for t in (0, 60, T - 1):
+        np.testing.assert_allclose(data.frame_vertices(t),
+                                   read_obj(d / "out_obj" / "frames" / f"frame_{t:05d}.obj").vertices, atol=1e-5)
+    pytest.importorskip("matplotlib")
+    res = run("report", d / "out", "-o", tmp_path / "report.html")
+    assert res.exit_code == 0, res.output
+    text = (tmp_path / "report.html").read_text()
+    frame = json.loads((d / "out" / "keys.json").read_text())["neutral"]["frame"]
+    assert 'id="rest"' in text and f"Neutral frame <b>{frame}</b>" in text and "closed lips and open eyes" in text
+    assert "posed at" in text and "curves.npz" in text and f"Neutral frame {frame}: the source frame and the character there" in text
