@@ -147,3 +147,36 @@ def test_preview_and_report_show_a_curves_only_run(ran, tmp_path):
     frame = json.loads((d / "out" / "keys.json").read_text())["neutral"]["frame"]
     assert 'id="rest"' in text and f"Neutral frame <b>{frame}</b>" in text and "closed lips and open eyes" in text
     assert "posed at" in text and "curves.npz" in text and f"Neutral frame {frame}: the source frame and the character there" in text
+
+
+def test_a_take_without_a_rest_frame_degrades_to_its_least_expressive_frame_and_warns(take, tmp_path, caplog):
+    """Every frame with the mouth open: the neutral is the least open frame, the report and log say so, and the
+    character's mouth is closed there (no permanent expression), opening as the actor's opens further."""
+    d, _ = take
+    rig = load_rig(d / "rig.yaml")
+    n = 90
+    truth = np.zeros((n, len(EXPRESSIONS)))
+    jaw = EXPRESSIONS.index("jaw_open")
+    truth[:, jaw] = 0.55 + 0.4 * np.sin(np.arange(n) / 9.0) ** 2
+    truth[40:50, EXPRESSIONS.index("brow_raise")] = 0.8
+    R = Rotation.from_euler("xyz", [180 - 5, 8, 3], degrees=True).as_matrix()
+    lv = rig.landmarks[1]
+    pts = np.stack([140 * (rig.evaluate(c)[lv] @ R.T)[:, :2] + [150, 160] for c in truth])
+    pts += 0.3 * np.random.default_rng(1).standard_normal(pts.shape)
+    lm = tmp_path / "open.npz"
+    save_landmarks(lm, Landmarks(pts, np.ones((n, 68)), np.tile(np.eye(2, 3), (n, 1, 1)), pts, 30.0,
+                                 np.array([320, 320])))
+    cfg = yaml.safe_load((d / "config.yaml").read_text())
+    for stage in ("select", "decompose", "auto_pose"):
+        cfg[stage]["landmarks"] = str(lm)
+    cfg["auto_pose"]["rig"] = str(d / "rig.yaml")
+    cfg["output_dir"] = str(tmp_path / "out")
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg))
+    res = run("run", tmp_path / "config.yaml")
+    assert res.exit_code == 0, res.output
+    assert "no frame of the take has the lips closed" in res.output  # the warning
+    rec = json.loads((tmp_path / "out" / "keys.json").read_text())["neutral"]
+    assert rec["at_rest"] is False and truth[rec["frame"], jaw] < truth[:, jaw].min() + 0.02
+    got = curves_of(tmp_path / "out")
+    assert got[rec["frame"]].max() < 0.05  # the character rests where the actor is least expressive
+    assert np.corrcoef(got[:, jaw], truth[:, jaw])[0, 1] > 0.9  # and opens the mouth as the actor opens it further
