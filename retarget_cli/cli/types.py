@@ -135,8 +135,10 @@ class NumberOrWord(click.ParamType):
             return value.strip().lower()
         try:
             return self.number.convert(value, param, ctx)
-        except click.BadParameter as exc:
-            self.fail(f"{exc.message} (or {' or '.join(self.words)})", param, ctx)
+        except click.BadParameter:
+            describe = getattr(self.number, "_describe_range", None)  # click's IntRange/FloatRange: "x>=0"
+            what = f"a number ({describe()})" if describe else "a number"
+            self.fail(f"expected {' or '.join(self.words)} or {what}, got {value!r}", param, ctx)
 
 
 class Vector3(click.ParamType):
