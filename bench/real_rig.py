@@ -60,7 +60,7 @@ from realrig.measures import MEASURES, MEDIAPIPE, MULTIPIE68, face_measures, fro
 DATA = ROOT.parent / "shared" / "realdata"
 BUILD = ROOT / "build" / "real_rig"
 RIG_YAML = ROOT / "sample_data" / "ict" / "rig.yaml"
-RETARGET = [sys.executable, "-m", "retarget_cli.cli.commands"]
+RETARGET = [sys.executable, "-m", "retarget_cli"]
 #: Settings of the documented path's decompose (configs/sample.yaml).
 DECOMPOSE_ARGS = ["--solver", "sparse", "--formulation", "delta", "--alpha", "0.05", "--neutral-frame", "0"]
 TARGETS = {"mouth": 0.8, "eye_l": 0.7, "eye_r": 0.7}

@@ -24,7 +24,7 @@ from ..errors import INTERRUPTED_EXIT_STATUS, RetargetError, UsageError
 from ..io.atomic import guard_writes, remove_stale_parts
 from ..run import pipeline
 from ..see import commands as see_commands
-from ..stages import annotate, apply, auto_pose, decompose, edit, pose, select, solve_rig, track
+from ..stages import annotate, apply, auto_pose, decompose, edit, map_landmarks, pose, select, solve_rig, track
 from ..synth import take
 from .types import VALUE_TYPES, NumberOrWord
 
@@ -33,7 +33,7 @@ log = logging.getLogger("retarget_cli")
 #: Every command, by the module that declares it (``retarget --help`` lists them by name).
 DECLARED: list[Command] = [
     *track.COMMANDS, annotate.COMMAND, select.COMMAND, decompose.COMMAND, pose.COMMAND, apply.COMMAND,
-    edit.COMMAND, auto_pose.COMMAND, solve_rig.COMMAND, pipeline.COMMAND, batch_command.COMMAND,
+    edit.COMMAND, auto_pose.COMMAND, map_landmarks.COMMAND, solve_rig.COMMAND, pipeline.COMMAND, batch_command.COMMAND,
     *see_commands.COMMANDS, take.COMMAND,
 ]
 

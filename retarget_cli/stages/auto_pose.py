@@ -40,7 +40,8 @@ from ..methods.rigpose import (
 )
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
 from ._neutral import neutral_from_keys
-from .pose import _pose_files
+from .map_landmarks import cached_landmark_map
+from .pose import NEUTRAL_OBJ, _pose_files, targets_neutral
 
 log = logging.getLogger(__name__)
 
@@ -48,10 +49,11 @@ log = logging.getLogger(__name__)
 PARAMS = [
     Param("keys", "input", str, help="keys.json.", link="select.output"),
     Param("landmarks", "input", str, help="landmarks.npz.", link="track.output"),
-    Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs (and 'landmarks:')."),
+    Param("rig", "input", str, help="rig.yaml (a neutral OBJ plus named shape OBJs, or 'source:' a character "
+          "file; and 'landmarks:'), or a .glb/.gltf/.vrm character with morph targets."),
     Param("landmark_vertices", "input", str, None,
           "Rig vertex of each landmark (one id per line, or 'landmark vertex' pairs); default the "
-          "rig.yaml's 'landmarks:' list.", nullable=True),
+          "rig.yaml's 'landmarks:' list, else found automatically (landmark_map.txt in the output).", nullable=True),
     Param("output", "output", str, "targets",
           "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml."),
     Param("fit", "setting", str, "delta",
@@ -94,12 +96,20 @@ CONTOUR_68 = (0, 1, 2, 3, 4, 5, 11, 12, 13, 14, 15, 16)
 RIGID_68 = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)
 
 
+def no_landmark_map_error(spec, rig_path) -> InputError:
+    """The rig has no landmark map: one line naming ``retarget map-landmarks`` and the ``landmarks:`` key."""
+    where = ("in a rig.yaml with 'source: " + Path(rig_path).name + "'") if spec.path == spec.source else "in it"
+    return InputError(f"{rig_path}: the rig has no landmark map (the rig vertex of each tracked landmark; found "
+                      f"automatically for the 68-point layout only); make one "
+                      f"with 'retarget map-landmarks {rig_path} -o map.txt' and name it as 'landmarks: map.txt' "
+                      f"{where}, or pass it as --landmark-vertices (auto_pose.landmark_vertices)")
+
+
 def _rig_landmark_vertices(spec, landmark_vertices, n_points: int, n_vertices: int, rig_path):
     """(landmark ids, vertex ids) from --landmark-vertices, else from rig.yaml's ``landmarks:``."""
     source = landmark_vertices if landmark_vertices is not None else spec.landmarks
     if source is None:
-        raise InputError(f"{rig_path}: the rig does not say which vertex is each landmark; add "
-                         "'landmarks: [vertex ids]' to it or pass --landmark-vertices")
+        raise no_landmark_map_error(spec, rig_path)
     if isinstance(source, (str, os.PathLike)):
         return read_vertex_map(source, n_points, n_vertices)
     vx = np.asarray(source, dtype=np.int64)
@@ -164,6 +174,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
                                                      skip_points, rigid_points, masks, base_dir)
     neutral = neutral_from_keys(neutral_frame, kf, lm, landmarks=landmarks) if fit == "delta" else None
     r = load_rig(rig_path, cache_dir=cache_dir)
+    if landmark_vertices is None and spec.landmarks is None and lm.n_points == 68:
+        landmark_vertices = cached_landmark_map(rig_path, r, spec, out)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
     fixed = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
@@ -189,9 +201,12 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, skip_points
 
     spec = read_rig(rig_path)
     kf, lm = read_keys(keys), load_landmarks(landmarks)
+    if landmark_vertices is None and spec.landmarks is None and lm.n_points != 68:
+        raise no_landmark_map_error(spec, rig_path)  # the map is found automatically for 68 points only
     inputs = [keys, landmarks, rig_path, *spec.files()] + ([landmark_vertices] if landmark_vertices else [])
-    check_not_input(out / "targets.yaml", inputs)
-    check_not_input(out / "sliders.csv", inputs)
+    found_map = ("landmark_map.txt", "landmark_map.png") if landmark_vertices is None and spec.landmarks is None else ()
+    for name in ("targets.yaml", "sliders.csv", *found_map) + ((NEUTRAL_OBJ,) if spec.neutral is None else ()):
+        check_not_input(out / name, inputs)
     frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
     bad = [f for f in frames if f >= lm.n_frames]
     if bad:
@@ -277,6 +292,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
     planned = [out / f"{name}/key_{f:05d}.obj" for name in names for f in kf.regions[name]["frames"]]
     planned += [out / f"masks/{name}.txt" for name in names] + [out / "sliders.csv", out / "targets.yaml"]
+    planned += [out / NEUTRAL_OBJ] if spec.neutral is None else []
     regions = {}
     # a failure part-way removes the files written so far; a rerun with other keys removes the old keys' OBJs
     with tracked_outputs(out, "auto-pose", planned=planned) as ledger:
@@ -299,7 +315,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
         write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames,
                         meta={"fit": fit, "neutral_frame": neutral_frame})
         written.append(out / "sliders.csv")
-        nrel = os.path.relpath(spec.neutral.resolve(), out.resolve())
+        nrel = targets_neutral(out, r, ledger.add)
         rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
         where = "" if neutral_frame is None else f", neutral frame {neutral_frame}"
         write_targets(out / "targets.yaml", regions, neutral=nrel, rig=rrel, sliders="sliders.csv",
@@ -308,7 +324,8 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
     return written
 
 
-__all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "run_auto_pose"]
+__all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "no_landmark_map_error",
+           "run_auto_pose"]
 
 
 #: The pipeline stage (:mod:`retarget_cli.run.pipeline`).

@@ -1,0 +1,120 @@
+"""The landmark map found automatically (methods/landmark_map): the ICT neutral, the sliders' fallback, corrections."""
+
+import numpy as np
+import pytest
+import yaml
+
+from retarget_cli.io.obj import read_obj
+from retarget_cli.methods import landmark_map as lm
+from retarget_cli.methods.tracking.detect import detector_installed
+
+
+def sphere_head(n_lat=36, n_lon=48):
+    """A smooth sphere (radius 1, facing +z) with blink, jaw-open and smile targets and no face to detect.
+
+    Returns vertices (N, 3), quads (F, 4), deltas (4, N, 3), names and the centres of the features.
+    """
+    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat)
+    lon = np.linspace(-np.pi, np.pi, n_lon, endpoint=False)
+    la, lo = np.meshgrid(lat, lon, indexing="ij")
+    V = np.stack([np.cos(la) * np.sin(lo), np.sin(la), np.cos(la) * np.cos(lo)], -1).reshape(-1, 3)
+    idx = np.arange(n_lat * n_lon).reshape(n_lat, n_lon)
+    nxt = np.roll(idx, -1, axis=1)
+    quads = np.stack([idx[:-1], nxt[:-1], nxt[1:], idx[1:]], -1).reshape(-1, 4)
+
+    def bump(cx, cy, s):
+        return np.exp(-((V[:, 0] - cx) ** 2 + (V[:, 1] - cy) ** 2) / s ** 2) * (V[:, 2] > 0)
+
+    eyes = {"right": (-0.35, 0.25), "left": (0.35, 0.25)}  # image right / left: +x is the image's right
+    D = np.zeros((4, len(V), 3))
+    D[0, :, 1] = -0.12 * bump(0.35, 0.30, 0.09)   # blink_L: the upper lid of the image-right eye comes down
+    D[1, :, 1] = -0.12 * bump(-0.35, 0.30, 0.09)  # blink_R
+    D[2, :, 1] = -0.3 * np.clip(-0.3 - V[:, 1], 0, None) * (V[:, 2] > 0)  # jawOpen: the lower face drops
+    D[3, :, 0] = 0.05 * (bump(0.25, -0.45, 0.07) - bump(-0.25, -0.45, 0.07))  # smile: corners out
+    D[3, :, 1] = 0.05 * (bump(0.25, -0.45, 0.07) + bump(-0.25, -0.45, 0.07))
+    return V, quads, D, ["blink_L", "blink_R", "jawOpen", "mouthSmile"], eyes
+
+
+class NoFace:
+    """A detector that finds nothing."""
+
+    def detect(self, gray):
+        return np.zeros((0, 4))
+
+
+def test_fallback_on_a_stylised_head_places_lids_chin_and_corners_from_the_sliders():
+    V, quads, D, names, _ = sphere_head()
+    m = lm.find_landmark_map(V, quads, D, names, detector=NoFace())
+    assert m.found_by == "sliders" and m.tried == [s.name for s in lm.STYLES]
+    assert abs(m.render.yaw) < 5  # the motion faces +z
+    assert all(m.source[i] == "sliders:blink" for i in range(36, 48))
+    assert m.source[8] == "sliders:jaw" and m.source[48] == m.source[54] == "sliders:smile"
+    P = V[m.vertices]
+    # points 36-41 on the image-left eye (x < 0), 42-47 on the image-right one; upper lids where the blink moves most
+    assert (P[36:42, 0] < 0).all() and (P[42:48, 0] > 0).all()
+    blink_l = np.linalg.norm(D[0], axis=1)
+    assert blink_l[m.vertices[43]] > 0.8 * blink_l.max() and blink_l[m.vertices[44]] > 0.8 * blink_l.max()
+    assert P[37, 1] > P[41, 1] and P[44, 1] > P[46, 1]  # lower lid below the upper
+    assert P[8, 1] < -0.6 and abs(P[8, 0]) < 0.15  # the chin: low, in the middle
+    assert P[48, 0] < -0.15 and P[54, 0] > 0.15 and abs(P[48, 1] + 0.45) < 0.1
+    assert "template" in m.source  # what the sliders do not see comes from the template, and says so
+    q = lm.map_quality(V, m.vertices, source=m.source)
+    assert q["symmetry_mean"] < 0.1
+    assert q["regions"]["eye_left"] == {"sliders:blink": 6}
+
+
+def test_fallback_follows_a_head_that_faces_minus_z():
+    V, quads, D, names, _ = sphere_head()
+    flip = np.array([-1.0, 1.0, -1.0])  # turned 180 degrees about y, as a VRM 0.x avatar
+    m = lm.find_landmark_map(V * flip, quads, D * flip, names, detector=None)
+    assert abs(abs(m.render.yaw) - 180) < 5
+    # the image-left eye is still points 36-41: the subject's right, at model +x once turned
+    assert (V[m.vertices[36:42], 0] < 0).all()
+
+
+def test_corrections_by_vertex_and_by_pixel():
+    V, quads, D, names, _ = sphere_head()
+    m = lm.find_landmark_map(V, quads, D, names, detector=None)
+    target = int(m.vertices[30])
+    px = m.render.xy[target]
+    fixed = lm.correct(m, {0: 5}, {30: tuple(px)})
+    assert fixed.vertices[0] == 5 and fixed.source[0] == "user"
+    assert fixed.vertices[30] == target and fixed.source[30] == "user"
+    assert fixed.vertices[1] == m.vertices[1]
+    sheet_px = (px + 0.5) * lm.SHEET_SCALE - 0.5
+    assert np.allclose(lm.points_from_sheet([sheet_px])[0], px)
+    img = lm.draw_sheet(fixed, "test")
+    assert img.shape == (m.render.image.shape[0] * lm.SHEET_SCALE, m.render.image.shape[1] * lm.SHEET_SCALE, 3)
+
+
+def test_quality_names_shared_vertices_and_asymmetry():
+    V, quads, D, names, _ = sphere_head()
+    m = lm.find_landmark_map(V, quads, D, names, detector=None)
+    vx = m.vertices.copy()
+    vx[0] = vx[1]
+    q = lm.map_quality(V, vx)
+    assert [0, 1] in q["shared"]
+    vx = m.vertices.copy()
+    vx[45] = vx[39]  # an outer eye corner on the inner one: the 36/45 pair is no longer mirrored
+    q2 = lm.map_quality(V, vx)
+    assert q2["symmetry_max"] > lm.map_quality(V, m.vertices)["symmetry_max"]
+
+
+@pytest.mark.skipif(not detector_installed(), reason="the detector (the extra 'detect': dlib) is not installed")
+def test_map_found_on_the_ict_neutral_is_near_the_shipped_map(ict_rig_dir):
+    """The ICT FaceKit (sample_data/ict): neutral, blinks, jaw-open and smiles only (enough for the view)."""
+    from retarget_cli.methods.tracking.detect import Detector
+
+    spec = yaml.safe_load((ict_rig_dir / "rig.yaml").read_text())
+    neutral = read_obj(ict_rig_dir / spec["neutral"])
+    names = ["eyeBlink_L", "eyeBlink_R", "jawOpen", "mouthSmile_L", "mouthSmile_R"]
+    D = np.stack([read_obj(ict_rig_dir / spec["shapes"][n]).vertices - neutral.vertices for n in names])
+    V = neutral.vertices
+    m = lm.find_landmark_map(V, neutral.faces(), D, names, detector=Detector())
+    assert m.found_by != "sliders" and set(m.source) == {"detector"}
+    ref = np.asarray(spec["landmarks"])
+    d = np.linalg.norm(V[m.vertices] - V[ref], axis=1) / np.linalg.norm(V[ref[45]] - V[ref[36]])
+    # bench/landmark_map.py: 0.053 over the 68 points, 0.036 without the jaw line, eyes 0.026/0.032
+    assert d[17:].mean() < 0.06
+    assert d[36:48].mean() < 0.05 and d[48:68].mean() < 0.05
+    assert d.mean() < 0.08
