@@ -46,7 +46,8 @@ class Param:
         ``retarget run``.
     words : tuple of str
         Values of an input that name no file (``track.init: auto``): passed
-        through as they are, neither resolved as paths nor hashed.
+        through as they are, neither resolved as paths nor hashed. A setting's
+        words are accepted besides its type (``neutral_frame: auto``).
     validate : callable, optional
         ``validate(value, where)`` checks the items of a list or mapping
         (e.g. :func:`check_regions`) and raises :class:`ConfigError`.
@@ -81,7 +82,9 @@ class Param:
             return "one of " + ", ".join(map(str, self.options))
         lo = "-inf" if self.min is None else f"{self.min:g}"
         hi = "inf" if self.max is None else f"{self.max:g}"
-        return f"{self.type.__name__} in {'(' if self.min_open else '['}{lo}, {hi}{')' if self.max_open else ']'}"
+        words = "".join(f" or {w}" for w in self.words) if self.kind == "setting" else ""
+        return (f"{self.type.__name__} in {'(' if self.min_open else '['}{lo}, {hi}{')' if self.max_open else ']'}"
+                + words)
 
     def check(self, value: Any, where: str) -> Any:
         """Validate and coerce *value*; *where* names it in errors (``file: stage.key``)."""
@@ -89,6 +92,8 @@ class Param:
             if self.nullable or self.default is None:
                 return None
             raise ConfigError(f"{where}: a value is required ({self.describe_range()})")
+        if self.kind == "setting" and isinstance(value, str) and value in self.words:
+            return value
         coerce = _COERCE.get(self.type)
         if coerce is not None:
             value = coerce(self, value, where)

@@ -28,7 +28,7 @@ from ..run import pipeline
 from ..see import commands as see_commands
 from ..stages import annotate, apply, auto_pose, decompose, edit, map_landmarks, pose, select, solve_rig, track
 from ..synth import take
-from .types import VALUE_TYPES
+from .types import VALUE_TYPES, NumberOrWord
 
 log = logging.getLogger("retarget_cli")
 
@@ -67,10 +67,13 @@ def _click_type(p: Param, f: Flag):
         return click.Path(**_PATHS[f.path])
     if p.options:
         return click.Choice(p.options)
+    number = _TYPES.get(p.type, click.STRING)
     if p.type in (int, float) and (p.min is not None or p.max is not None):
         rng = click.IntRange if p.type is int else click.FloatRange
-        return rng(p.min, p.max, min_open=p.min_open, max_open=p.max_open)
-    return _TYPES.get(p.type, click.STRING)
+        number = rng(p.min, p.max, min_open=p.min_open, max_open=p.max_open)
+    if p.kind == "setting" and p.words and p.type in (int, float):
+        return NumberOrWord(number, p.words)
+    return number
 
 
 def _option(p: Param, f: Flag) -> click.Option:

@@ -125,6 +125,24 @@ class MaskSpec(click.ParamType):
         return region, path
 
 
+class NumberOrWord(click.ParamType):
+    """A number in a range, or one of *words* (``auto``): ``neutral_frame``."""
+
+    def __init__(self, number: click.ParamType, words):
+        self.number, self.words = number, tuple(words)
+        self.name = f"{number.name}|{'|'.join(self.words)}"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and value.strip().lower() in self.words:
+            return value.strip().lower()
+        try:
+            return self.number.convert(value, param, ctx)
+        except click.BadParameter:
+            describe = getattr(self.number, "_describe_range", None)  # click's IntRange/FloatRange: "x>=0"
+            what = f"a number ({describe()})" if describe else "a number"
+            self.fail(f"expected {' or '.join(self.words)} or {what}, got {value!r}", param, ctx)
+
+
 class Vector3(click.ParamType):
     """``X,Y,Z`` to a list of three floats."""
 

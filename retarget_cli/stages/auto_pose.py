@@ -39,6 +39,7 @@ from ..methods.rigpose import (
     slider_owners,
 )
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
+from ._neutral import neutral_from_keys
 from .map_landmarks import cached_landmark_map
 from .pose import NEUTRAL_OBJ, _pose_files, targets_neutral
 
@@ -59,7 +60,9 @@ PARAMS = [
           "delta: the key frame's landmark displacement from neutral_frame (the actor's face shape "
           "stays out of the sliders); absolute: the landmark positions (Lewis & Anjyo eq. 3).",
           choices=("delta", "absolute")),
-    Param("neutral_frame", "setting", int, 0, "The actor's neutral frame (the rig's rest pose).", min=0),
+    Param("neutral_frame", "setting", int, "auto",
+          "The actor's neutral frame (the rig's rest pose): auto takes the one keys.json records (select's "
+          "neutral_frame), else finds the rest frame among the shared keys.", min=0, words=("auto",)),
     Param("sparsity", "setting", float, None,
           "L1 weight keeping unneeded sliders at 0, relative to the sliders' mean landmark energy "
           "(null: 0.01).", min=0, nullable=True),
@@ -131,7 +134,7 @@ def _mask_text(weights: np.ndarray) -> str:
 
 @validate_params(PARAMS)
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
-                  neutral_frame=0, sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
+                  neutral_frame="auto", sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys*; write key OBJs, ``sliders.csv``, masks and ``targets.yaml``.
 
@@ -167,8 +170,9 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
     # Everything that is cheap to check, before the rig's OBJs are read.
-    spec, kf, lm, frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame,
+    spec, kf, lm, frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out,
                                                      skip_points, rigid_points, masks, base_dir)
+    neutral = neutral_from_keys(neutral_frame, kf, lm, landmarks=landmarks) if fit == "delta" else None
     r = load_rig(rig_path, cache_dir=cache_dir)
     if landmark_vertices is None and spec.landmarks is None and lm.n_points == 68:
         landmark_vertices = cached_landmark_map(rig_path, r, spec, out)
@@ -178,18 +182,21 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     Y = lm.stabilized[:, lm_ids].astype(np.float64)
     Cf = lm.confidence[:, lm_ids].astype(np.float64)
     if fit == "delta":
-        poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed,
+        Y0 = neutral.landmarks(lm.stabilized)[lm_ids].astype(np.float64)
+        C0 = neutral.weights(lm.confidence)[lm_ids].astype(np.float64)
+        if neutral.shape is not None:  # a calibration's shape stands in for its frame's landmarks
+            Y[neutral.frame], Cf[neutral.frame] = Y0, C0
+        poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, frames, (Y0, C0), region_rows, fixed,
                                                     rigid, sparsity, ridge)
     else:
         poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, frames, list(kf.regions), region_rows, fixed,
                                                        alpha, mu)
     return _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit,
-                       neutral_frame)
+                       None if neutral is None else neutral.frame)
 
 
-def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame, skip_points, rigid_points, masks,
-                  base_dir):
-    """Checks that need no OBJ: outputs that are not inputs, key and neutral frames inside the take, landmark
+def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, skip_points, rigid_points, masks, base_dir):
+    """Checks that need no OBJ: outputs that are not inputs, key frames inside the take, landmark
     ids, masks. Returns the rig spec, the keys, the landmarks, the sorted key frames and the mask files."""
 
     spec = read_rig(rig_path)
@@ -204,8 +211,6 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_fra
     bad = [f for f in frames if f >= lm.n_frames]
     if bad:
         raise InputError(f"{keys}: key frame {bad[0]} is outside {landmarks} ({lm.n_frames} frames)")
-    if not 0 <= neutral_frame < lm.n_frames:
-        raise InputError(f"neutral_frame: {neutral_frame} is outside {landmarks} ({lm.n_frames} frames)")
     L = lm.n_points
     for label, pts in (("skip_points", skip_points), ("rigid_points", rigid_points)):
         if pts is not None and any(not isinstance(i, int) or not 0 <= i < L for i in pts):
@@ -236,8 +241,11 @@ def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
     return region_rows, rigid
 
 
-def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, rigid, sparsity, ridge):
-    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`): poses by frame, slider owners, sliders by region."""
+def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, sparsity, ridge):
+    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`): poses by frame, slider owners, sliders by region.
+
+    *neutral* is the neutral key's (landmarks (M, 2), confidence (M,)) among the mapped landmarks.
+    """
 
     exclusive = spec.exclusive
     if exclusive is None:
@@ -245,7 +253,7 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, 
         _, DL = rig_landmarks(r, vx)
         exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
         log.info("auto-pose: inferred exclusive pairs %s", exclusive)
-    res = delta_pose(r, vx, Y[neutral_frame], Y[frames], weights=Cf[frames], neutral_weights=Cf[neutral_frame],
+    res = delta_pose(r, vx, neutral[0], Y[frames], weights=Cf[frames], neutral_weights=neutral[1],
                      regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,
                      sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
                      ridge=DEFAULT_RIDGE if ridge is None else ridge)
@@ -309,8 +317,9 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
         written.append(out / "sliders.csv")
         nrel = targets_neutral(out, r, ledger.add)
         rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
+        where = "" if neutral_frame is None else f", neutral frame {neutral_frame}"
         write_targets(out / "targets.yaml", regions, neutral=nrel, rig=rrel, sliders="sliders.csv",
-                      comment=f"Written by retarget auto-pose ({fit} fit, neutral frame {neutral_frame}).")
+                      comment=f"Written by retarget auto-pose ({fit} fit{where}).")
         written.append(out / "targets.yaml")
     return written
 
