@@ -17,7 +17,7 @@ from pathlib import Path
 from .. import stages
 from ..config import REQUIRED, Command, Config, Flag, Param, load_config
 from ..errors import ConfigError, InputError, RetargetError
-from ..io.atomic import guard_writes, remove_stale_parts
+from ..io.atomic import folder_lock, guard_writes, remove_stale_parts
 from ..stages._common import Stage, collect_results
 from .manifest import manifest_matches, write_manifest
 
@@ -220,7 +220,8 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
                 pass
     inputs = check_outputs(cfg, everything)
     report = []
-    with guard_writes(roots=[cfg.output_dir], inputs=inputs, label=f"output_dir of {cfg.path}"):
+    with folder_lock(cfg.output_dir, "output_dir"), \
+            guard_writes(roots=[cfg.output_dir], inputs=inputs, label=f"output_dir of {cfg.path}"):
         remove_stale_parts(cfg.output_dir)
         for n in names:
             kw = resolved[n]
