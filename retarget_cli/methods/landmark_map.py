@@ -102,6 +102,9 @@ class RenderStyle:
         Fraction of the image the face region's bounding sphere covers.
     shading : {"gouraud", "flat"}
     color, background : (3,) BGR
+    inside : float
+        Brightness (a factor on *color*) of the mesh's inside where it shows through an opening: vertices
+        whose normal faces away from the camera (:func:`render_face`).
     """
 
     name: str
@@ -110,6 +113,7 @@ class RenderStyle:
     shading: str = "gouraud"
     color: tuple = (150, 170, 215)
     background: tuple = (40, 36, 32)
+    inside: float = 0.15
 
 
 #: Render styles tried in order until the detector finds a face (measured by ``bench/landmark_map.py``).
@@ -144,6 +148,10 @@ class FaceRender:
         The camera (:meth:`~retarget_cli.methods.render.View.project` places other poses).
     vertices : ndarray (N, 3)
         The mesh rendered.
+    normals : ndarray (N, 3), float64
+        Camera-space unit vertex normals (area-weighted).
+    region : ndarray (N,), bool
+        The face: the vertices the sliders move (:func:`face_region`), on which the camera is framed.
     """
 
     image: np.ndarray
@@ -155,6 +163,8 @@ class FaceRender:
     style: RenderStyle
     view: View
     vertices: np.ndarray
+    normals: np.ndarray
+    region: np.ndarray
 
 
 @dataclass
@@ -236,6 +246,15 @@ def face_region(vertices, motion, *, share: float = 0.05) -> np.ndarray:
 def render_face(vertices, tris, region, yaw: float, style: RenderStyle = STYLES[0]) -> FaceRender:
     """Render *vertices* face-on at *yaw*, framed on the *region* vertices (the face).
 
+    The skin is one colour, lit (the style's shading); where the inside of the
+    mesh shows through an opening (vertices whose normal faces away from the
+    camera: the back of the head seen through eye holes when the rig has no
+    eyeballs, the inner side of a lid or a lip) it is drawn at
+    :attr:`RenderStyle.inside` of that colour, dark, as a real eye's or mouth's
+    opening looks to the detector. Lit from the front, the inside would read as
+    skin and the eye as a bump (measured on the VALID head: symmetry of the map
+    0.089 mean inter-ocular distances lit, 0.049 dark; ``bench/landmark_map.py``).
+
     Parameters
     ----------
     vertices : ndarray (N, 3)
@@ -251,14 +270,17 @@ def render_face(vertices, tris, region, yaw: float, style: RenderStyle = STYLES[
     size = (style.size, style.size)
     ren = MeshRenderer(tris, V, camera=cam, size=size, shading=style.shading, color=style.color,
                        background=style.background, frame=V[region])
-    image = ren.render(V)
     cam_pos, xy, depth = ren.view.project(V)
+    normals = vertex_normals(cam_pos, ren.tris)
+    inside = _view_cosine(cam_pos, normals, cam.fov == 0) < 0
+    image = ren.render(V, vertex_colors=np.where(inside[:, None], style.inside, 1.0) * np.asarray(style.color, float))
     tri_id, bary = rasterize(xy, depth, ren.tris, size)
-    visible = _visible_vertices(cam_pos, xy, ren.tris, tri_id, bary, 0.01 * ren.view.radius, cam.fov == 0)
-    return FaceRender(image, xy, cam_pos, tri_id, visible, float(yaw), style, ren.view, V)
+    visible = _visible_vertices(cam_pos, xy, ren.tris, tri_id, bary, 0.01 * ren.view.radius, cam.fov == 0, normals)
+    return FaceRender(image, xy, cam_pos, tri_id, visible, float(yaw), style, ren.view, V, normals,
+                      np.asarray(region, bool))
 
 
-def _visible_vertices(cam, xy, tris, tri_id, bary, tol: float, ortho: bool) -> np.ndarray:
+def _visible_vertices(cam, xy, tris, tri_id, bary, tol: float, ortho: bool, normals) -> np.ndarray:
     """Vertices not hidden: of a triangle that covers a pixel, facing the camera, not behind the surface at their pixel.
 
     Facing: the vertex normal (area-weighted) has a cosine above -0.1 with the
@@ -283,10 +305,13 @@ def _visible_vertices(cam, xy, tris, tri_id, bary, tol: float, ortho: bool) -> n
     surface = (cam[tris[t[has]], 2] * bary[p[has, 1], p[has, 0]]).sum(1)
     visible = drawn.copy()
     visible[has] &= cam[has, 2] >= surface - tol
-    n = vertex_normals(cam, tris)
+    return visible & (_view_cosine(cam, normals, ortho) > -0.1)
+
+
+def _view_cosine(cam, normals, ortho: bool) -> np.ndarray:
+    """Cosine between each vertex normal and the direction to the camera; (N,)."""
     to_camera = np.array([0.0, 0.0, 1.0]) if ortho else -cam
-    cos = (n * to_camera).sum(1) / np.maximum(np.linalg.norm(to_camera, axis=-1), 1e-300)
-    return visible & (cos > -0.1)
+    return (normals * to_camera).sum(1) / np.maximum(np.linalg.norm(to_camera, axis=-1), 1e-300)
 
 
 def mesh_pieces(vertices, tris, *, weld: bool = True) -> np.ndarray:
@@ -369,20 +394,30 @@ WELD_BELOW = 0.25
 
 #: Jaw-line points (on the face's outline face-on).
 CONTOUR_68 = tuple(range(17))
-#: Radius (inter-ocular distances, in the image) around a jaw-line point in which its vertex is the front-most.
+#: Jaw-line points on the cheeks' outline face-on (the fallback's :func:`_outline` moves these too); 5-11 are
+#: on the chin, which faces the camera.
+CHEEK_68 = (0, 1, 2, 3, 4, 12, 13, 14, 15, 16)
+#: Radius (inter-ocular distances, in the image) around a jaw-line point in which its vertex is chosen.
 CONTOUR_RADIUS = 0.02
 
 
 def lift_landmarks(points, render: FaceRender, skin) -> np.ndarray:
-    """The 68 points lifted to vertices: :func:`lift`, and on the jaw line the front-most nearby vertex.
+    """The 68 points lifted to vertices: :func:`lift`, and on the jaw line by the surface's depth.
 
-    A jaw-line point sits on the outline, where the surface turns away from
-    the camera and vertices at very different depths project within a pixel
-    of each other (under the chin, the neck behind the jaw). Of the visible
-    skin vertices within :data:`CONTOUR_RADIUS` inter-ocular distances of the
-    point the one nearest the camera is taken: the occluding jaw rather than
-    the neck or the side of the head behind it. Measured on the ICT FaceKit
-    (``bench/landmark_map.py``).
+    A jaw-line point sits on or near the outline, where the surface turns
+    away from the camera and vertices at very different depths project
+    within a pixel of each other. Of the visible skin vertices within
+    :data:`CONTOUR_RADIUS` inter-ocular distances of the point:
+
+    - on the cheeks (:data:`CHEEK_68`) the vertex of the occluding contour,
+      the one whose normal is most nearly perpendicular to the view (the
+      contour generator: the outline seen face-on is made of it), among the
+      face's vertices (:attr:`FaceRender.region`, what the sliders move: not
+      an ear or the back of the head that project there too);
+    - on the chin (5-11), which faces the camera, and where no face vertex is
+      near, the one nearest the camera (the jaw, not the neck under it).
+
+    Measured on the ICT FaceKit (``bench/landmark_map.py``).
 
     Parameters
     ----------
@@ -399,9 +434,15 @@ def lift_landmarks(points, render: FaceRender, skin) -> np.ndarray:
     vx = lift(P, render, skin)
     iod = np.linalg.norm(P[45] - P[36])
     ids = np.flatnonzero(skin)
+    grazing = np.abs(_view_cosine(render.cam, render.normals, render.view.camera.fov == 0))
     for i in CONTOUR_68:
         near = ids[np.linalg.norm(render.xy[ids] - P[i], axis=1) < CONTOUR_RADIUS * iod]
-        if len(near):
+        if not len(near):
+            continue
+        face = near[render.region[near]]
+        if i in CHEEK_68 and len(face):
+            vx[i] = face[np.argmin(grazing[face])]
+        else:
             vx[i] = near[np.argmax(render.cam[near, 2])]
     return vx
 
