@@ -58,8 +58,8 @@ DATA = peer.DATA
 BUILD = ROOT / "build" / "rigs"
 CONFIG = ROOT / "configs" / "real.yaml"
 ICT_YAML = ROOT / "sample_data" / "ict" / "rig.yaml"
-RIGS = {"valid": DATA / "rigs" / "valid-glb" / "White_F_2_Busi.glb",
-        "godette": DATA / "rigs" / "godette-vrm" / "Godette_vrm_v4.vrm"}
+#: The two characters, under the realdata folder's rigs/.
+RIGS = {"valid": Path("valid-glb") / "White_F_2_Busi.glb", "godette": Path("godette-vrm") / "Godette_vrm_v4.vrm"}
 TITLES = {"ict": "ICT FaceKit (GLB written by retarget, map found)", "valid": "VALID avatar (GLB)",
           "godette": "Godette (VRM 0.x)"}
 #: Camera yaw that shows each character's face (a VRM 0.x avatar faces -z).
@@ -262,12 +262,13 @@ def part_b(clips, refs, args) -> dict:
     for name in args.only:
         if name == "ict":
             continue
-        rig = load_rig(RIGS[name])
+        path = args.data / "rigs" / RIGS[name]
+        rig = load_rig(path)
         ctx = SimpleNamespace(rig=rig, names=rig.names)
         out["rigs"][name] = rig
         for clip in clips:
             frames = np.arange(len(refs[clip]["mediapipe"]["found"]))
-            run = run_documented(clip, name, RIGS[name], ctx, args)
+            run = run_documented(clip, name, path, ctx, args)
             C = run["curves"]  # in the rig's slider order (peer's reader)
             mine = character_measures(rig, name, C)
             ref = refs[clip]["mediapipe"]
@@ -373,12 +374,13 @@ def cv2_resize(img, size: int):
     return cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
 
 
-def rig_picture(name: str, rig, run: dict, clip: str, ref: dict, size: int):
+def rig_picture(name: str, rig, run: dict, video: Path, ref: dict, size: int):
     """One row: per picked frame, the video frame (cropped square on the face) and the character."""
     import cv2
 
+    clip = video.stem
     ren, colors = renderer_for(rig, name, size)
-    cap = cv2.VideoCapture(str(DATA / "videos" / f"{clip}.mp4"))
+    cap = cv2.VideoCapture(str(video))
     panels = []
     for label, f in picks(ref, run["frames"]).items():
         cap.set(cv2.CAP_PROP_POS_FRAMES, int(f))
@@ -394,7 +396,7 @@ def rig_picture(name: str, rig, run: dict, clip: str, ref: dict, size: int):
     return np.concatenate([band, row], axis=0)
 
 
-def write_pngs(outdir: Path, a: dict | None, b: dict | None, refs: dict, clip: str = "d3") -> list:
+def write_pngs(outdir: Path, a: dict | None, b: dict | None, refs: dict, data: Path, clip: str = "d3") -> list:
     import cv2
 
     outdir.mkdir(parents=True, exist_ok=True)
@@ -408,11 +410,12 @@ def write_pngs(outdir: Path, a: dict | None, b: dict | None, refs: dict, clip: s
             todo.append((name, rig, b["runs"][name][clip]))
     written, small = [], []
     for name, rig, run in todo:
-        big = rig_picture(name, rig, run, clip, refs[clip]["mediapipe"], 256)
+        video = data / "videos" / f"{clip}.mp4"
+        big = rig_picture(name, rig, run, video, refs[clip]["mediapipe"], 256)
         p = outdir / f"{'ict-glb' if name == 'ict' else name}.png"
         cv2.imwrite(str(p), big)
         written.append(p)
-        small.append(rig_picture(name, rig, run, clip, refs[clip]["mediapipe"], 128))
+        small.append(rig_picture(name, rig, run, video, refs[clip]["mediapipe"], 128))
     if small:
         p = outdir / "rigs.png"
         # 6 bits a channel: the README's picture stays under 300 KB (video frames compress poorly in PNG)
@@ -444,7 +447,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     clips = [c for c in args.videos.split(",") if c]
     why = peer.unavailable(args, clips)
-    missing = [p for n, p in RIGS.items() if n in args.only and not p.is_file()]
+    missing = [args.data / "rigs" / p for n, p in RIGS.items() if n in args.only and not (args.data / "rigs" / p).is_file()]
     if why or missing:
         print(f"SKIP bench/rigs.py: {why or f'{missing[0]} not found (needs ../shared/realdata)'}")
         return 0
@@ -468,7 +471,7 @@ def main(argv=None) -> int:
         print()
         print("\n".join(verdict_b(b)))
     if args.png:
-        for p in write_pngs(args.png, a, b, refs):
+        for p in write_pngs(args.png, a, b, refs, args.data):
             log(f"wrote {p}")
     return 0
 
