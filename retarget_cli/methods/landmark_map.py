@@ -682,9 +682,10 @@ def slider_landmarks(render: FaceRender, skin, vertices, deltas, names):
     return pts, vx, source
 
 
-#: Upper and lower lip points of the 68-point layout (outer 49-53 / 55-59, inner 61-63 / 65-67).
+#: Upper and lower lip points of the 68-point layout (outer 49-53 / 55-59, inner 61-63 / 65-67), inner corners.
 UPPER_LIP_68 = (49, 50, 51, 52, 53, 61, 62, 63)
 LOWER_LIP_68 = (55, 56, 57, 58, 59, 65, 66, 67)
+INNER_CORNERS_68 = (60, 64)
 
 
 def _opened(render: FaceRender, vertices, deltas, jaw) -> np.ndarray | None:
@@ -732,8 +733,8 @@ def _lips(pts, vx, source, cues: _Cues) -> None:
     template's lip points land on the skin around it, where neither jaw-open
     nor smile moves anything, and the fit would not see the mouth open. Such a
     point goes to the nearest vertex (in the picture) of its lip
-    (:func:`_lip_pools`). Points already on a vertex a mouth slider moves (the
-    ICT FaceKit's) are kept.
+    (:func:`_lip_pools`; the inner corners 60 and 64 of either lip). Points
+    already on a vertex a mouth slider moves (the ICT FaceKit's) are kept.
     """
     jaw, smile = cues.motion["jaw"], cues.motion["smile"]
     if jaw is None or cues.opened is None or source[48] != "sliders:smile" or source[54] != "sliders:smile":
@@ -742,7 +743,7 @@ def _lips(pts, vx, source, cues: _Cues) -> None:
     if pools is None:
         return
     moving = jaw + (smile if smile is not None else 0.0)
-    for ids, pool in zip((UPPER_LIP_68, LOWER_LIP_68), pools):
+    for ids, pool in zip((UPPER_LIP_68, LOWER_LIP_68, INNER_CORNERS_68), (*pools, np.concatenate(pools))):
         for i in ids:
             if len(pool) and source[i] == "template" and moving[vx[i]] <= 0:
                 k = _nearest(pool, cues.xy, pts[i])

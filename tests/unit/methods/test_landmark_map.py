@@ -201,6 +201,7 @@ def test_fallback_puts_the_lips_on_a_mouth_laid_on_a_static_skin():
     D[3, [t0, b0], 0], D[3, [t0 + 10, b0 + 10], 0] = -0.04, 0.04  # smile: the strip's ends out
     m = lm.find_landmark_map(V, quads, D, names, detector=None)
     assert m.source[48] == m.source[54] == "sliders:smile"
-    assert all(m.source[i] == "sliders:jaw" for i in (*lm.UPPER_LIP_68, *lm.LOWER_LIP_68))
+    assert all(m.source[i] == "sliders:jaw" for i in (*lm.UPPER_LIP_68, *lm.LOWER_LIP_68, *lm.INNER_CORNERS_68))
+    assert all(m.vertices[i] >= t0 for i in lm.INNER_CORNERS_68)
     assert all(t0 <= m.vertices[i] < b0 for i in lm.UPPER_LIP_68)
     assert all(m.vertices[i] >= b0 for i in lm.LOWER_LIP_68)
