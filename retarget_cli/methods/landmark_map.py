@@ -102,6 +102,9 @@ class RenderStyle:
         Fraction of the image the face region's bounding sphere covers.
     shading : {"gouraud", "flat"}
     color, background : (3,) BGR
+    inside : float
+        Brightness (a factor on *color*) of the mesh's inside where it shows through an opening: vertices
+        whose normal faces away from the camera (:func:`render_face`).
     """
 
     name: str
@@ -110,6 +113,7 @@ class RenderStyle:
     shading: str = "gouraud"
     color: tuple = (150, 170, 215)
     background: tuple = (40, 36, 32)
+    inside: float = 0.15
 
 
 #: Render styles tried in order until the detector finds a face (measured by ``bench/landmark_map.py``).
@@ -144,6 +148,10 @@ class FaceRender:
         The camera (:meth:`~retarget_cli.methods.render.View.project` places other poses).
     vertices : ndarray (N, 3)
         The mesh rendered.
+    normals : ndarray (N, 3), float64
+        Camera-space unit vertex normals (area-weighted).
+    region : ndarray (N,), bool
+        The face: the vertices the sliders move (:func:`face_region`), on which the camera is framed.
     """
 
     image: np.ndarray
@@ -155,6 +163,8 @@ class FaceRender:
     style: RenderStyle
     view: View
     vertices: np.ndarray
+    normals: np.ndarray
+    region: np.ndarray
 
 
 @dataclass
@@ -236,6 +246,15 @@ def face_region(vertices, motion, *, share: float = 0.05) -> np.ndarray:
 def render_face(vertices, tris, region, yaw: float, style: RenderStyle = STYLES[0]) -> FaceRender:
     """Render *vertices* face-on at *yaw*, framed on the *region* vertices (the face).
 
+    The skin is one colour, lit (the style's shading); where the inside of the
+    mesh shows through an opening (vertices whose normal faces away from the
+    camera: the back of the head seen through eye holes when the rig has no
+    eyeballs, the inner side of a lid or a lip) it is drawn at
+    :attr:`RenderStyle.inside` of that colour, dark, as a real eye's or mouth's
+    opening looks to the detector. Lit from the front, the inside would read as
+    skin and the eye as a bump (measured on the VALID head: symmetry of the map
+    0.089 mean inter-ocular distances lit, 0.049 dark; ``bench/landmark_map.py``).
+
     Parameters
     ----------
     vertices : ndarray (N, 3)
@@ -251,14 +270,17 @@ def render_face(vertices, tris, region, yaw: float, style: RenderStyle = STYLES[
     size = (style.size, style.size)
     ren = MeshRenderer(tris, V, camera=cam, size=size, shading=style.shading, color=style.color,
                        background=style.background, frame=V[region])
-    image = ren.render(V)
     cam_pos, xy, depth = ren.view.project(V)
+    normals = vertex_normals(cam_pos, ren.tris)
+    inside = _view_cosine(cam_pos, normals, cam.fov == 0) < 0
+    image = ren.render(V, vertex_colors=np.where(inside[:, None], style.inside, 1.0) * np.asarray(style.color, float))
     tri_id, bary = rasterize(xy, depth, ren.tris, size)
-    visible = _visible_vertices(cam_pos, xy, ren.tris, tri_id, bary, 0.01 * ren.view.radius, cam.fov == 0)
-    return FaceRender(image, xy, cam_pos, tri_id, visible, float(yaw), style, ren.view, V)
+    visible = _visible_vertices(cam_pos, xy, ren.tris, tri_id, bary, 0.01 * ren.view.radius, cam.fov == 0, normals)
+    return FaceRender(image, xy, cam_pos, tri_id, visible, float(yaw), style, ren.view, V, normals,
+                      np.asarray(region, bool))
 
 
-def _visible_vertices(cam, xy, tris, tri_id, bary, tol: float, ortho: bool) -> np.ndarray:
+def _visible_vertices(cam, xy, tris, tri_id, bary, tol: float, ortho: bool, normals) -> np.ndarray:
     """Vertices not hidden: of a triangle that covers a pixel, facing the camera, not behind the surface at their pixel.
 
     Facing: the vertex normal (area-weighted) has a cosine above -0.1 with the
@@ -283,10 +305,13 @@ def _visible_vertices(cam, xy, tris, tri_id, bary, tol: float, ortho: bool) -> n
     surface = (cam[tris[t[has]], 2] * bary[p[has, 1], p[has, 0]]).sum(1)
     visible = drawn.copy()
     visible[has] &= cam[has, 2] >= surface - tol
-    n = vertex_normals(cam, tris)
+    return visible & (_view_cosine(cam, normals, ortho) > -0.1)
+
+
+def _view_cosine(cam, normals, ortho: bool) -> np.ndarray:
+    """Cosine between each vertex normal and the direction to the camera; (N,)."""
     to_camera = np.array([0.0, 0.0, 1.0]) if ortho else -cam
-    cos = (n * to_camera).sum(1) / np.maximum(np.linalg.norm(to_camera, axis=-1), 1e-300)
-    return visible & (cos > -0.1)
+    return (normals * to_camera).sum(1) / np.maximum(np.linalg.norm(to_camera, axis=-1), 1e-300)
 
 
 def mesh_pieces(vertices, tris, *, weld: bool = True) -> np.ndarray:
@@ -369,20 +394,30 @@ WELD_BELOW = 0.25
 
 #: Jaw-line points (on the face's outline face-on).
 CONTOUR_68 = tuple(range(17))
-#: Radius (inter-ocular distances, in the image) around a jaw-line point in which its vertex is the front-most.
+#: Jaw-line points on the cheeks' outline face-on (the fallback's :func:`_outline` moves these too); 5-11 are
+#: on the chin, which faces the camera.
+CHEEK_68 = (0, 1, 2, 3, 4, 12, 13, 14, 15, 16)
+#: Radius (inter-ocular distances, in the image) around a jaw-line point in which its vertex is chosen.
 CONTOUR_RADIUS = 0.02
 
 
 def lift_landmarks(points, render: FaceRender, skin) -> np.ndarray:
-    """The 68 points lifted to vertices: :func:`lift`, and on the jaw line the front-most nearby vertex.
+    """The 68 points lifted to vertices: :func:`lift`, and on the jaw line by the surface's depth.
 
-    A jaw-line point sits on the outline, where the surface turns away from
-    the camera and vertices at very different depths project within a pixel
-    of each other (under the chin, the neck behind the jaw). Of the visible
-    skin vertices within :data:`CONTOUR_RADIUS` inter-ocular distances of the
-    point the one nearest the camera is taken: the occluding jaw rather than
-    the neck or the side of the head behind it. Measured on the ICT FaceKit
-    (``bench/landmark_map.py``).
+    A jaw-line point sits on or near the outline, where the surface turns
+    away from the camera and vertices at very different depths project
+    within a pixel of each other. Of the visible skin vertices within
+    :data:`CONTOUR_RADIUS` inter-ocular distances of the point:
+
+    - on the cheeks (:data:`CHEEK_68`) the vertex of the occluding contour,
+      the one whose normal is most nearly perpendicular to the view (the
+      contour generator: the outline seen face-on is made of it), among the
+      face's vertices (:attr:`FaceRender.region`, what the sliders move: not
+      an ear or the back of the head that project there too);
+    - on the chin (5-11), which faces the camera, and where no face vertex is
+      near, the one nearest the camera (the jaw, not the neck under it).
+
+    Measured on the ICT FaceKit (``bench/landmark_map.py``).
 
     Parameters
     ----------
@@ -399,9 +434,15 @@ def lift_landmarks(points, render: FaceRender, skin) -> np.ndarray:
     vx = lift(P, render, skin)
     iod = np.linalg.norm(P[45] - P[36])
     ids = np.flatnonzero(skin)
+    grazing = np.abs(_view_cosine(render.cam, render.normals, render.view.camera.fov == 0))
     for i in CONTOUR_68:
         near = ids[np.linalg.norm(render.xy[ids] - P[i], axis=1) < CONTOUR_RADIUS * iod]
-        if len(near):
+        if not len(near):
+            continue
+        face = near[render.region[near]]
+        if i in CHEEK_68 and len(face):
+            vx[i] = face[np.argmin(grazing[face])]
+        else:
             vx[i] = near[np.argmax(render.cam[near, 2])]
     return vx
 
@@ -476,8 +517,8 @@ def find_landmark_map(vertices, faces, deltas, names, *, detector=None, yaw: flo
             if pts is not None:
                 log.info("landmark map: the detector found the face on the %r render (yaw %.0f)", style.name, yaw)
                 skin = skin_vertices(render, tris, pts)
-                return LandmarkMap(lift_landmarks(pts, render, skin), pts, ["detector"] * N_POINTS, render, skin, style.name,
-                                   tried)
+                vx = part_closed_lips(lift_landmarks(pts, render, skin), pts, render, skin, V, D, names)
+                return LandmarkMap(vx, pts, ["detector"] * N_POINTS, render, skin, style.name, tried)
         log.info("landmark map: no face found on the %s renders; placing the points from the sliders",
                  ", ".join(tried))
     render = render_face(V, tris, region, yaw, styles[0])
@@ -535,6 +576,7 @@ class _Cues:
             strongest = np.argmax((d ** 2).sum(2), axis=0)
             moved = np.asarray(vertices, np.float64) + d[strongest, np.arange(D.shape[1])]
             self.closed = render.view.project(moved)[1]
+        self.opened = _opened(render, vertices, D, groups["jaw"])
         moved_any = self.cand & (motion_weights(D) > 0)
         self.mid = float(np.median(self.xy[moved_any if moved_any.any() else self.cand, 0]))
 
@@ -602,7 +644,8 @@ def slider_landmarks(render: FaceRender, skin, vertices, deltas, names):
     (:data:`TEMPLATE_68`) is fitted to the anchors (2D affine, least squares)
     and gives every other point, lifted to the *skin*; template jaw points
     0-4 and 12-16 move along their row to the outline; brow points move to
-    where the brow shapes move most in their column.
+    where the brow shapes move most in their column; lip points that landed on
+    a vertex no mouth slider moves go onto the lips jaw-open parts (:func:`_lips`).
 
     Parameters
     ----------
@@ -635,7 +678,136 @@ def slider_landmarks(render: FaceRender, skin, vertices, deltas, names):
     for i, (k, src) in anchors.items():
         vx[i], pts[i], source[i] = k, render.xy[k], src
     _outline(pts, vx, source, render.xy, skin)
+    _lips(pts, vx, source, cues)
     return pts, vx, source
+
+
+#: Upper and lower lip points of the 68-point layout (outer 49-53 / 55-59, inner 61-63 / 65-67), inner corners.
+UPPER_LIP_68 = (49, 50, 51, 52, 53, 61, 62, 63)
+LOWER_LIP_68 = (55, 56, 57, 58, 59, 65, 66, 67)
+INNER_CORNERS_68 = (60, 64)
+
+
+def _opened(render: FaceRender, vertices, deltas, jaw) -> np.ndarray | None:
+    """Every vertex in the picture moved by the jaw-open slider (of *jaw*, indices) that moves it most; (N, 2).
+
+    The lips part: the upper one goes up the picture or less down than the lower one. None without jaw-open.
+    """
+    if not jaw:
+        return None
+    d = np.asarray(deltas, np.float64)[np.asarray(jaw)]
+    strongest = np.argmax((d ** 2).sum(2), axis=0)
+    moved = np.asarray(vertices, np.float64) + d[strongest, np.arange(d.shape[1])]
+    return render.view.project(moved)[1]
+
+
+def _lip_pools(xy, cand, jaw, opened, a, b):
+    """The lips the jaw-open parts between mouth corners *a* and *b* (pixels): (upper ids, lower ids) or None.
+
+    The lips are the candidate vertices within the mouth's box (the corners'
+    span and 10 % beyond, half its width above and below) that jaw-open moves
+    at least :data:`EYE_SHARE` as much as its most moved one there; the upper
+    lip those it moves up the picture or least down (at or above the midpoint
+    of their vertical motions), the lower lip the others.
+    """
+    width = max(np.linalg.norm(b - a), 1.0)
+    box = cand & (xy[:, 0] > min(a[0], b[0]) - 0.1 * width) & (xy[:, 0] < max(a[0], b[0]) + 0.1 * width) \
+        & (np.abs(xy[:, 1] - (a[1] + b[1]) / 2) < 0.5 * width)
+    if not box.any() or jaw[box].max() <= 0:
+        return None
+    lips = np.flatnonzero(box & (jaw >= EYE_SHARE * jaw[box].max()))
+    dy = opened[lips, 1] - xy[lips, 1]  # down the picture when the mouth opens
+    split = (dy.min() + dy.max()) / 2
+    return lips[dy <= split], lips[dy > split]
+
+
+def _nearest(pool, xy, p) -> int:
+    return int(pool[np.argmin(np.linalg.norm(xy[pool] - p, axis=1))])
+
+
+def _lips(pts, vx, source, cues: _Cues) -> None:
+    """Template lip points lifted onto a vertex no mouth slider moves, moved onto the lips the jaw-open opens.
+
+    A stylised mouth is often a piece of its own laid on a static skin (the
+    Godette VRM's: its closed lips one line of vertices that ``a`` parts): the
+    template's lip points land on the skin around it, where neither jaw-open
+    nor smile moves anything, and the fit would not see the mouth open. Such a
+    point goes to the nearest vertex (in the picture) of its lip
+    (:func:`_lip_pools`; the inner corners 60 and 64 of either lip). Points
+    already on a vertex a mouth slider moves (the ICT FaceKit's) are kept.
+    """
+    jaw, smile = cues.motion["jaw"], cues.motion["smile"]
+    if jaw is None or cues.opened is None or source[48] != "sliders:smile" or source[54] != "sliders:smile":
+        return
+    pools = _lip_pools(cues.xy, cues.cand, jaw, cues.opened, cues.xy[vx[48]], cues.xy[vx[54]])
+    if pools is None:
+        return
+    moving = jaw + (smile if smile is not None else 0.0)
+    for ids, pool in zip((UPPER_LIP_68, LOWER_LIP_68, INNER_CORNERS_68), (*pools, np.concatenate(pools))):
+        for i in ids:
+            if len(pool) and source[i] == "template" and moving[vx[i]] <= 0:
+                k = _nearest(pool, cues.xy, pts[i])
+                vx[i], pts[i], source[i] = k, cues.xy[k], "sliders:jaw"
+
+
+#: Inner-lip pairs of the 68-point layout (upper, lower).
+INNER_LIP_PAIRS_68 = ((61, 67), (62, 66), (63, 65))
+
+
+def part_closed_lips(vx, points, render: FaceRender, skin, vertices, deltas, names) -> np.ndarray:
+    """Inner-lip points of a closed mouth lifted apart: the upper one onto the upper lip, the lower onto the lower.
+
+    On a closed mouth the detector puts each upper inner-lip point and its
+    lower partner (61/67, 62/66, 63/65) on the lips' one line, and the nearest
+    vertex is one lip's for both: the fit then cannot see the mouth open there
+    (the VALID head: 62 and 66 on one upper-lip vertex; the ICT FaceKit as a
+    GLB: 61/67 and 62/66 on lower-lip vertices). For such a pair the visible
+    skin vertices within :data:`LIP_RADIUS` inter-ocular distances of the two
+    points are split by how far the jaw-open sliders (by name,
+    :data:`SLIDER_PATTERNS`; each vertex by the one that moves it most) move
+    them down the picture, at the midpoint of that motion's range: the upper
+    point goes to the nearest vertex (in the picture) of those that move less
+    (the upper lip), the lower point to the nearest of the others. Pairs on two
+    vertices, and rigs without a jaw-open slider, are kept.
+
+    Parameters
+    ----------
+    vx : ndarray (68,), int
+        The lifted map; a copy is returned.
+    points : ndarray (68, 2)
+        The detected points (pixels of *render*).
+    render : FaceRender
+    skin : ndarray (N,), bool
+    vertices : ndarray (N, 3)
+    deltas : ndarray (n, N, 3)
+    names : sequence of str
+
+    Returns
+    -------
+    ndarray (68,), int64
+    """
+    vx = np.array(vx, np.int64)
+    shared = [(u, lo) for u, lo in INNER_LIP_PAIRS_68 if vx[u] == vx[lo]]
+    opened = _opened(render, vertices, deltas, slider_groups(names)["jaw"]) if shared else None
+    if opened is None:
+        return vx
+    P = np.asarray(points, np.float64)
+    iod = np.linalg.norm(P[45] - P[36])
+    ids = np.flatnonzero(skin)
+    for u, lo in shared:
+        near = ids[np.linalg.norm(render.xy[ids] - (P[u] + P[lo]) / 2, axis=1) < LIP_RADIUS * iod]
+        if len(near) < 2:
+            continue
+        dy = opened[near, 1] - render.xy[near, 1]  # down the picture when the mouth opens
+        if dy.max() - dy.min() < 1.0:  # the jaw-open does not part them here (a pixel)
+            continue
+        split = (dy.min() + dy.max()) / 2
+        vx[u], vx[lo] = _nearest(near[dy <= split], render.xy, P[u]), _nearest(near[dy > split], render.xy, P[lo])
+    return vx
+
+
+#: Radius (inter-ocular distances, in the picture) around a closed inner-lip pair in which its lips are looked for.
+LIP_RADIUS = 0.05
 
 
 def _check_chin(anchors, xy) -> None:
@@ -830,4 +1002,5 @@ def map_distance(vertices, vx, reference) -> tuple[float, float]:
 
 __all__ = ["MIRROR_68", "N_POINTS", "REGIONS_68", "STYLES", "TEMPLATE_68", "FaceRender", "LandmarkMap",
            "RenderStyle", "SHEET_SCALE", "correct", "detect_face", "draw_sheet", "points_from_sheet", "face_region", "find_landmark_map", "front_yaw", "lift",
+           "lift_landmarks", "part_closed_lips",
            "map_distance", "map_quality", "motion_weights", "render_face", "skin_vertices", "slider_landmarks"]
