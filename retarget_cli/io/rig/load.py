@@ -1,5 +1,5 @@
 """Load a blendshape rig (:class:`~retarget_cli.methods.rig.BlendshapeRig`) from its ``rig.yaml`` and meshes,
-or from a character file with morph targets or blend shapes (``source: char.glb``, or the glTF/GLB/VRM or USD
+or from a character file with morph targets or blend shapes (``source: char.glb``, or the glTF/GLB/VRM, USD or FBX
 file itself)."""
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def load_rig(path: str | os.PathLike, *, storage: str = "auto", cache_dir=None) 
 
     A ``source:`` rig (or a character file given as the rig) is read by the
     reader of its suffix (:func:`~retarget_cli.io.rig.readers.read_character`:
-    glTF/GLB/VRM, USD): ``f0`` is the
+    glTF/GLB/VRM, USD, FBX): ``f0`` is the
     base mesh of the chosen meshes (every morph weight 0) and each slider's
     delta is the weighted sum of its targets' deltas, ``d_s = sum_k w_sk t_k``
     (a VRM expression, or the targets that share the slider's name across
@@ -42,7 +42,7 @@ def load_rig(path: str | os.PathLike, *, storage: str = "auto", cache_dir=None) 
     Parameters
     ----------
     path : path-like
-        The ``rig.yaml``, or a ``.glb``/``.gltf``/``.vrm`` or USD file.
+        The ``rig.yaml``, or a ``.glb``/``.gltf``/``.vrm``, USD or ``.fbx`` file.
     storage : {"auto", "dense", "sparse"}
         See :class:`BlendshapeRig`.
     cache_dir : path-like, optional

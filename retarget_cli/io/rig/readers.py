@@ -1,9 +1,9 @@
-"""The rig readers by file suffix: glTF/GLB/VRM (:mod:`.gltf`), USD (:mod:`.usd`).
+"""The rig readers by file suffix: glTF/GLB/VRM (:mod:`.gltf`), USD (:mod:`.usd`), FBX (:mod:`.fbx`).
 
 Each reader returns a :class:`~retarget_cli.io.rig.gltf.GltfRig` (neutral, triangles, mesh ranges, target names,
 world-space deltas, slider groups) and has an outline (:class:`~retarget_cli.io.rig.gltf.GltfOutline`: the same
-names, counts and groups) that ``rig.yaml``'s checks read first. glTF's outline comes from its JSON alone; USD has
-none cheaper than a read, so their outline reads the file once and keeps that result for the
+names, counts and groups) that ``rig.yaml``'s checks read first. glTF's outline comes from its JSON alone; USD and
+FBX have none cheaper than a read, so their outline reads the file once and keeps that result for the
 :func:`read_character` that follows (same file, size, modification time and filters).
 """
 
@@ -14,13 +14,15 @@ from pathlib import Path
 
 from ...errors import InputError
 from . import _scene
+from .fbx import FBX_EXTS, read_fbx_rig
 from .gltf import GltfOutline, GltfRig, read_gltf_outline, read_gltf_rig
 from .usd import USD_EXTS, read_usd_rig
 
 #: glTF-family suffixes (outline from the JSON alone; ``apply --format same`` writes these back).
 GLTF_EXTS = (".glb", ".gltf", ".vrm")
 #: Suffix -> reader ``f(path, *, meshes=None, targets=None) -> GltfRig``.
-READERS = {**{e: read_gltf_rig for e in GLTF_EXTS}, **{e: read_usd_rig for e in USD_EXTS}}
+READERS = {**{e: read_gltf_rig for e in GLTF_EXTS}, **{e: read_usd_rig for e in USD_EXTS},
+           **{e: read_fbx_rig for e in FBX_EXTS}}
 #: Every suffix read as a rig.
 RIG_FILE_EXTS = tuple(READERS)
 

@@ -1,9 +1,9 @@
 """``rig.yaml``: a blendshape rig described as a neutral OBJ, one OBJ per slider and their settings, or as a
-character file with morph targets (``source: char.glb``; a glTF/GLB/VRM or USD path is such a rig too).
+character file with morph targets (``source: char.glb``; a glTF/GLB/VRM, USD or FBX path is such a rig too).
 
 :func:`read_rig` parses and checks the file (every path absolute, every name known; for a ``source:`` the
 character's outline is read for its meshes, targets and sliders: a glTF's JSON alone, no geometry decoded;
-a USD file is read once, and that read kept for :func:`~retarget_cli.io.rig.load_rig`);
+a USD or FBX file is read once, and that read kept for :func:`~retarget_cli.io.rig.load_rig`);
 :func:`retarget_cli.io.rig.load_rig` reads the meshes it names.
 """
 
@@ -27,7 +27,7 @@ from .vertexmap import check_landmark_list
 log = logging.getLogger(__name__)
 
 #: Mesh and scene formats that are not rigs this version reads: given as a rig, a one-line error.
-_OTHER_MESH_EXTS = (".fbx", ".obj", ".blend", ".dae", ".abc", ".ply", ".stl",
+_OTHER_MESH_EXTS = (".obj", ".blend", ".dae", ".abc", ".ply", ".stl",
                     ".3ds", ".ma", ".mb", ".max", ".x3d", ".bvh", ".vrma")
 
 
@@ -71,7 +71,7 @@ class Rig:
     #: ``names:``: ARKit column to the slider names it averages, for the Live Link Face CSV
     #: (:mod:`retarget_cli.io.livelink`); empty when the rig does not say.
     names: dict = field(default_factory=dict)
-    #: ``source:``, the glTF/GLB/VRM or USD character the rig is read from (also the file itself when
+    #: ``source:``, the glTF/GLB/VRM, USD or FBX character the rig is read from (also the file itself when
     #: given as the rig), or None for a rig of OBJs (issue 29; read by ``apply --format same``). A source rig
     #: has ``neutral`` None and every slider of ``shapes`` names this file.
     source: Path | None = None
@@ -206,7 +206,7 @@ def _rig_exclusive(path: Path, data: dict, shapes: dict) -> list | None:
 
 
 def read_rig(path: str | os.PathLike) -> Rig:
-    """Read ``rig.yaml``, or a character file (glTF/GLB/VRM, USD) given as the rig itself.
+    """Read ``rig.yaml``, or a character file (glTF/GLB/VRM, USD, FBX) given as the rig itself.
 
     Keys: ``neutral``, ``shapes: {name: obj}``, optional ``shapes_are``
     (``absolute`` or ``delta``), ``range`` (``t`` or ``[lo, hi]``, every
@@ -216,7 +216,7 @@ def read_rig(path: str | os.PathLike) -> Rig:
     the Live Link Face CSV).
 
     Or, instead of ``neutral``/``shapes``: ``source: char.glb`` (a ``.glb``,
-    ``.gltf``, ``.vrm``, or ``.usd``/``.usda``/``.usdc``/``.usdz`` beside or below ``rig.yaml``), optional ``meshes``
+    ``.gltf``, ``.vrm``, ``.usd``/``.usda``/``.usdc``/``.usdz`` or ``.fbx`` beside or below ``rig.yaml``), optional ``meshes``
     and ``targets`` (glob patterns, a string or a list) and ``sliders``
     (``groups``, the default: VRM expressions or targets merged by name;
     ``targets``: one slider per morph target; ``{slider: {target: weight}}``;
