@@ -9,7 +9,8 @@ chooses meshes and targets with the same ``meshes=``/``targets=`` glob rules as
 Sliders (``groups``) are the targets grouped by name across meshes (each at weight 1), with the two rules of
 the glTF reader: a prefix ``node.`` shared by every target of a mesh is dropped before comparing (the
 blend-shape deformer's name FBX tools prepend: ``Squish.TopH`` -> ``TopH``), and a target ``t_X`` joins the
-slider ``X`` of another mesh when its own mesh has no ``X``.
+slider ``X`` of another mesh when its own mesh has no ``X``; and before them, a name ``X.X`` (a deformer with one
+channel of its own name, as Blender and Assimp's FBX exporter write them) is compared as ``X``.
 """
 
 from __future__ import annotations
@@ -110,11 +111,15 @@ def _filter(name: str, chosen, table, unique, targets) -> list[int]:
 
 
 def _slider_keys(name: str, chosen: list[SceneMesh], table: list) -> list[str]:
-    """The name each kept target is grouped under: rule (1) common ``prefix.`` dropped, rule (2) ``t_X``."""
+    """The name each kept target is grouped under: ``X.X`` as ``X``, rule (1) common ``prefix.`` dropped, rule (2) ``t_X``."""
     per_mesh: dict[int, list[int]] = {}
     for j, (i, _) in enumerate(table):
         per_mesh.setdefault(i, []).append(j)
     keys = [chosen[i].labels[k] for i, k in table]
+    for j, key in enumerate(keys):  # rule (0): a channel named as its own deformer (Blender, Assimp's exporter)
+        head, dot, tail = key.partition(".")
+        if dot and head == tail:
+            keys[j] = head
     for i, rows in per_mesh.items():
         labels = [keys[j] for j in rows]
         heads = {lab.split(".", 1)[0] for lab in labels if "." in lab}

@@ -134,8 +134,10 @@ def test_corners_are_welded_back_to_vertices(tmp_path):
     grid = [(x, y, 0) for y in range(3) for x in range(3)]
     polys = [(r * 3 + c, r * 3 + c + 1, r * 3 + c + 4, r * 3 + c + 3) for r in range(2) for c in range(2)]
     p = tmp_path / "grid.fbx"
-    p.write_text(fbx_ascii([dict(name="Grid", points=grid, polys=polys, channels=[("up", [(100, [4], [(0, 0, 1)])])])]))
+    p.write_text(fbx_ascii([dict(name="Grid", points=grid, polys=polys,
+                                 channels=[("up.up", [(100, [4], [(0, 0, 1)])])])]))
     g = fbxmod.read_fbx_rig(p)
+    assert g.groups == {"up": [(0, 1.0)]}  # a deformer with one channel of its name (Blender's way): 'up.up' is 'up'
     assert len(g.neutral) == 9 and len(g.faces) == 8  # 16 corners in the file, 9 control points
     assert sorted(map(tuple, g.neutral.tolist())) == sorted(map(tuple, np.array(grid, float).tolist()))
     centre = int(np.flatnonzero((g.neutral == [1, 1, 0]).all(axis=1))[0])
