@@ -114,11 +114,11 @@ def _load(impasse, path: Path):
         raise InputError(f"{path.name}: Assimp cannot import it as FBX (corrupt, truncated or not FBX)") from None
 
 
-def _floats(ffi, ptr, n: int) -> np.ndarray:
-    """``n`` aiVector3D at *ptr* as (n, 3) float64 (a copy)."""
+def _vectors(ffi, ptr, n: int) -> np.ndarray:
+    """``n`` aiVector3D at *ptr* as (n, 3) float32, a view of Assimp's memory (copy it before the scene goes)."""
     if n == 0 or ptr == ffi.NULL:
-        return np.zeros((n, 3))
-    return np.frombuffer(ffi.buffer(ptr, 12 * n), dtype=np.float32).reshape(n, 3).astype(np.float64)
+        return np.zeros((n, 3), dtype=np.float32)
+    return np.frombuffer(ffi.buffer(ptr, 12 * n), dtype=np.float32).reshape(n, 3)
 
 
 def _name(ffi, s) -> str:
@@ -138,44 +138,45 @@ def _faces(ffi, m, n: int, where: str) -> np.ndarray:
     return faces
 
 
-def _shapes(ffi, m, base: np.ndarray, where: str, file: str):
-    """(labels, deltas (K, n, 3)): the last anim mesh of each run of one name (in-betweens dropped)."""
+def _shapes(ffi, m, n: int, where: str, file: str):
+    """(labels, anim meshes): the last anim mesh of each run of one name (in-betweens dropped)."""
     runs: list = []
     for i in range(int(m.mNumAnimMeshes)):
         a = m.mAnimMeshes[i]
         label = _name(ffi, a.mName) or f"#{i}"
-        if int(a.mNumVertices) != len(base) or a.mVertices == ffi.NULL:
-            raise InputError(f"{where}: blend shape '{label}' has {int(a.mNumVertices)} vertices, the mesh "
-                             f"{len(base)}")
+        if int(a.mNumVertices) != n or a.mVertices == ffi.NULL:
+            raise InputError(f"{file}: {where}: blend shape '{label}' has {int(a.mNumVertices)} vertices, the mesh "
+                             f"{n}")
         if runs and runs[-1][0] == label:
             runs[-1][1] += 1
             runs[-1][2] = a
         else:
             runs.append([label, 1, a])
-    dropped = [f"{label} ({n - 1})" for label, n, _ in runs if n > 1]
+    dropped = [f"{label} ({k - 1})" for label, k, _ in runs if k > 1]
     if dropped:
         log.info("%s: %s: in-between shapes dropped, the last (full-weight) shape of each channel read: %s",
                  file, where, ", ".join(dropped))
-    deltas = np.stack([_floats(ffi, a.mVertices, len(base)) - base for _, _, a in runs]) if runs else \
-        np.zeros((0, len(base), 3))
-    return [label for label, _, _ in runs], deltas
+    return [label for label, _, _ in runs], [a for _, _, a in runs]
 
 
-def _weld(points: np.ndarray, faces: np.ndarray, deltas: np.ndarray):
-    """Merge vertices equal in position and in every delta; keep first-use order. Returns points, faces, deltas."""
-    n = len(points)
+def _weld(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (n, m) float32 equal bit for bit merged: (kept rows (u,) in first-use order, index into them (n,)).
+
+    Grouped by the first 3 columns (the position) first, then the rows that differ from their position's first
+    row elsewhere (a shape splits them) by whole rows: no sort of the long rows in the usual case.
+    """
+    n = len(rows)
     if n == 0:
-        return points, faces, deltas
-    rows = np.concatenate([points.astype(np.float32), deltas.transpose(1, 0, 2).reshape(n, -1).astype(np.float32)],
-                          axis=1)
-    rows = np.ascontiguousarray(rows)
-    key = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    order = np.argsort(first, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    keep = first[order]
-    return points[keep], rank[inverse.ravel()][faces], deltas[:, keep]
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    void = lambda a: np.ascontiguousarray(a).view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).ravel()
+    _, first, inv = np.unique(void(rows[:, :3]), return_index=True, return_inverse=True)
+    rep = first[inv.ravel()]
+    differs = np.flatnonzero(np.any(rows.view(np.uint32) != rows.view(np.uint32)[rep], axis=1))
+    if differs.size:
+        _, sub_first, sub_inv = np.unique(void(rows[differs]), return_index=True, return_inverse=True)
+        rep[differs] = differs[sub_first[sub_inv.ravel()]]
+    keep, index = np.unique(rep, return_inverse=True)
+    return keep, index.ravel()
 
 
 def _meshes(impasse, scene, file: str) -> list[SceneMesh]:
@@ -211,14 +212,19 @@ def _mesh(ffi, m, world: np.ndarray, node: str, file: str, seen: dict) -> SceneM
     unique = name if seen[name] == 1 else f"{name}~{seen[name]}"
     where = f"mesh '{unique}'"
     n = int(m.mNumVertices)
-    base = _floats(ffi, m.mVertices, n)
     faces = _faces(ffi, m, n, f"{file}: {where}")
-    labels, deltas = _shapes(ffi, m, base, where, file)
-    points, faces, deltas = _weld(base, faces, deltas)
+    labels, anims = _shapes(ffi, m, n, where, file)
+    rows = np.empty((n, 3 + 3 * len(anims)), dtype=np.float32)  # the corner, then where each shape puts it
+    rows[:, :3] = _vectors(ffi, m.mVertices, n)
+    for k, a in enumerate(anims):
+        rows[:, 3 + 3 * k:6 + 3 * k] = _vectors(ffi, a.mVertices, n)
+    keep, index = _weld(rows)  # corners of one control point: equal position, equal in every shape
+    faces = index[faces] if faces.size else faces
+    base = rows[keep, :3].astype(np.float64)
     lin, shift = world[:3, :3], world[:3, 3]
     with np.errstate(over="ignore", invalid="ignore"):
-        points = points @ lin.T + shift
-        deltas = deltas @ lin.T
+        points = base @ lin.T + shift
+        deltas = [(rows[keep, 3 + 3 * k:6 + 3 * k].astype(np.float64) - base) @ lin.T for k in range(len(anims))]
     return SceneMesh(name=unique, points=points, faces=faces, labels=labels,
                      deltas=[(lambda d=d: d) for d in deltas], aliases=(node, name))
 
