@@ -99,7 +99,7 @@ def scene(tmp_path):
 
 @needs_fbx
 def test_meshes_transforms_inbetween_and_one_slider_across_meshes(scene, caplog):
-    with caplog.at_level(logging.INFO):
+    with caplog.at_level(logging.INFO, logger="retarget_cli.io.rig.fbx"):
         g = fbxmod.read_fbx_rig(scene)
     assert g.kind == "fbx" and g.mesh_ranges == [("Head", 0, 4), ("Teeth", 4, 7)]  # the eye has no blend shapes
     np.testing.assert_allclose(g.neutral[:4], np.array(QUAD) * 2 + [10, 0, 0])

@@ -135,7 +135,7 @@ def _two_meshes(path, **stage_meta):
 
 def test_meshes_transforms_units_and_one_slider_across_meshes(tmp_path, caplog):
     _two_meshes(tmp_path / "two.usda")
-    with caplog.at_level(logging.INFO):
+    with caplog.at_level(logging.INFO, logger="retarget_cli.io.rig.usd"):
         g = read_usd_rig(tmp_path / "two.usda")
     assert g.mesh_ranges == [("Head", 0, 4), ("Teeth", 4, 7)]  # the eye has no blend shapes
     np.testing.assert_allclose(g.neutral[:4], TRI * 2 + [10, 0, 0])
@@ -265,7 +265,7 @@ def test_a_file_that_crashes_usd_core_is_one_line(tmp_path, caplog):
 
 def test_child_log_records_come_back(tmp_path, caplog):
     _two_meshes(tmp_path / "two.usda")
-    with caplog.at_level(logging.INFO, logger="retarget_cli"):
+    with caplog.at_level(logging.INFO, logger="retarget_cli.io.rig.usd"):
         read_usd_rig(tmp_path / "two.usda")
     assert [r.name for r in caplog.records if "in-between" in r.getMessage()] == ["retarget_cli.io.rig.usd"]
 
