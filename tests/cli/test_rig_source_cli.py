@@ -114,7 +114,7 @@ def test_auto_pose_without_a_landmark_map_names_map_landmarks(take, monkeypatch,
     save_landmarks(take / "lm60.npz", Landmarks(pts, np.ones(pts.shape[:2]), lm.head, pts))
     write_keys(take / "keys60.json", take / "lm60.npz",
                {"face": {"points": list(range(60)), "method": "test", "frames": [0, 5], "error": 0.0}})
-    monkeypatch.setattr(rigload, "read_gltf_rig", lambda *a, **k: pytest.fail("the rig was read before the error"))
+    monkeypatch.setattr(rigload, "read_character", lambda *a, **k: pytest.fail("the rig was read before the error"))
     res = run("auto-pose", take / "keys60.json", take / "lm60.npz", take / rig, "-o", take / "t")
     assert res.exit_code == 1, res.output
     line = res.output.strip()

@@ -1,5 +1,6 @@
 """Load a blendshape rig (:class:`~retarget_cli.methods.rig.BlendshapeRig`) from its ``rig.yaml`` and meshes,
-or from a character file with morph targets (``source: char.glb``, or the ``.glb``/``.gltf``/``.vrm`` itself)."""
+or from a character file with morph targets or blend shapes (``source: char.glb``, or the glTF/GLB/VRM, USD or FBX
+file itself)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from ...errors import InputError, ParameterError
 from ...methods.rig import BlendshapeRig
 from ..obj import obj_from_arrays
 from .cache import cached_arrays, load_rig_meshes
-from .gltf import read_gltf_rig
+from .readers import read_character
 from .spec import read_rig
 from .vertexmap import check_landmark_list, read_vertex_map
 
@@ -29,8 +30,9 @@ def load_rig(path: str | os.PathLike, *, storage: str = "auto", cache_dir=None) 
     is checked against the neutral's before any OBJ is parsed, and so are
     the ``landmarks:`` vertex ids.
 
-    A ``source:`` rig (or a ``.glb``/``.gltf``/``.vrm`` given as the rig) is
-    read by :func:`~retarget_cli.io.rig.gltf.read_gltf_rig`: ``f0`` is the
+    A ``source:`` rig (or a character file given as the rig) is read by the
+    reader of its suffix (:func:`~retarget_cli.io.rig.readers.read_character`:
+    glTF/GLB/VRM, USD, FBX): ``f0`` is the
     base mesh of the chosen meshes (every morph weight 0) and each slider's
     delta is the weighted sum of its targets' deltas, ``d_s = sum_k w_sk t_k``
     (a VRM expression, or the targets that share the slider's name across
@@ -40,7 +42,7 @@ def load_rig(path: str | os.PathLike, *, storage: str = "auto", cache_dir=None) 
     Parameters
     ----------
     path : path-like
-        The ``rig.yaml``, or a ``.glb``/``.gltf``/``.vrm`` file.
+        The ``rig.yaml``, or a ``.glb``/``.gltf``/``.vrm``, USD or ``.fbx`` file.
     storage : {"auto", "dense", "sparse"}
         See :class:`BlendshapeRig`.
     cache_dir : path-like, optional
@@ -96,7 +98,7 @@ def _source_arrays(spec) -> dict:
     The slider deltas are kept as the moving rows only (``rows`` (nnz,), ``values`` (nnz, 3), ``offsets``
     (S + 1,)): a face's sliders move a small part of a whole-body mesh.
     """
-    g = read_gltf_rig(spec.source, meshes=spec.meshes, targets=spec.targets)
+    g = read_character(spec.source, meshes=spec.meshes, targets=spec.targets)
     if g.target_names != spec.outline.target_names or len(g.neutral) != spec.outline.n_vertices:
         raise InputError(f"{spec.source}: changed while it was read (its targets or vertex count differ)")
     index = {name: k for k, name in enumerate(g.target_names)}

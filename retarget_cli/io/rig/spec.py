@@ -1,8 +1,9 @@
 """``rig.yaml``: a blendshape rig described as a neutral OBJ, one OBJ per slider and their settings, or as a
-character file with morph targets (``source: char.glb``; a ``.glb``/``.gltf``/``.vrm`` path is such a rig too).
+character file with morph targets (``source: char.glb``; a glTF/GLB/VRM, USD or FBX path is such a rig too).
 
 :func:`read_rig` parses and checks the file (every path absolute, every name known; for a ``source:`` the
-character's JSON is read for its meshes, targets and sliders, no geometry decoded);
+character's outline is read for its meshes, targets and sliders: a glTF's JSON alone, no geometry decoded;
+a USD or FBX file is read once, and that read kept for :func:`~retarget_cli.io.rig.load_rig`);
 :func:`retarget_cli.io.rig.load_rig` reads the meshes it names.
 """
 
@@ -20,15 +21,13 @@ from ...errors import InputError
 from ..livelink import check_names_mapping
 from ..obj import count_vertices
 from ..text import read_yaml_file
-from .gltf import read_gltf_outline
+from .readers import RIG_FILE_EXTS, read_character_outline
 from .vertexmap import check_landmark_list
 
 log = logging.getLogger(__name__)
 
-#: Character files read as a rig (:mod:`retarget_cli.io.rig.gltf`): given directly, or as ``source:``.
-RIG_FILE_EXTS = (".glb", ".gltf", ".vrm")
 #: Mesh and scene formats that are not rigs this version reads: given as a rig, a one-line error.
-_OTHER_MESH_EXTS = (".fbx", ".usd", ".usda", ".usdc", ".usdz", ".obj", ".blend", ".dae", ".abc", ".ply", ".stl",
+_OTHER_MESH_EXTS = (".obj", ".blend", ".dae", ".abc", ".ply", ".stl",
                     ".3ds", ".ma", ".mb", ".max", ".x3d", ".bvh", ".vrma")
 
 
@@ -72,7 +71,7 @@ class Rig:
     #: ``names:``: ARKit column to the slider names it averages, for the Live Link Face CSV
     #: (:mod:`retarget_cli.io.livelink`); empty when the rig does not say.
     names: dict = field(default_factory=dict)
-    #: ``source:``, the ``.glb``/``.gltf``/``.vrm`` character the rig is read from (also the file itself when
+    #: ``source:``, the glTF/GLB/VRM, USD or FBX character the rig is read from (also the file itself when
     #: given as the rig), or None for a rig of OBJs (issue 29; read by ``apply --format same``). A source rig
     #: has ``neutral`` None and every slider of ``shapes`` names this file.
     source: Path | None = None
@@ -83,7 +82,8 @@ class Rig:
     #: A source rig's sliders from ``sliders:``: slider name to ``[(target name, weight), ...]``.
     sliders: dict = field(default_factory=dict)
     #: A source rig's :class:`~retarget_cli.io.rig.gltf.GltfOutline` (vertex count, meshes, target names,
-    #: external buffers), read from the file's JSON; None for an OBJ rig.
+    #: external buffers or layers), from :func:`~retarget_cli.io.rig.readers.read_character_outline`; None for
+    #: an OBJ rig.
     outline: object = None
 
     def files(self) -> list[Path]:
@@ -206,7 +206,7 @@ def _rig_exclusive(path: Path, data: dict, shapes: dict) -> list | None:
 
 
 def read_rig(path: str | os.PathLike) -> Rig:
-    """Read ``rig.yaml``, or a ``.glb``/``.gltf``/``.vrm`` character given as the rig itself.
+    """Read ``rig.yaml``, or a character file (glTF/GLB/VRM, USD, FBX) given as the rig itself.
 
     Keys: ``neutral``, ``shapes: {name: obj}``, optional ``shapes_are``
     (``absolute`` or ``delta``), ``range`` (``t`` or ``[lo, hi]``, every
@@ -216,14 +216,14 @@ def read_rig(path: str | os.PathLike) -> Rig:
     the Live Link Face CSV).
 
     Or, instead of ``neutral``/``shapes``: ``source: char.glb`` (a ``.glb``,
-    ``.gltf`` or ``.vrm`` beside or below ``rig.yaml``), optional ``meshes``
+    ``.gltf``, ``.vrm``, ``.usd``/``.usda``/``.usdc``/``.usdz`` or ``.fbx`` beside or below ``rig.yaml``), optional ``meshes``
     and ``targets`` (glob patterns, a string or a list) and ``sliders``
     (``groups``, the default: VRM expressions or targets merged by name;
     ``targets``: one slider per morph target; ``{slider: {target: weight}}``;
     or a list of these), with ``range``, ``ranges``, ``library``,
     ``landmarks``, ``exclusive`` and ``names`` as above. A character file
     given directly is the rig ``source: <it>`` with every default. Only the
-    character's JSON is read here (:func:`~retarget_cli.io.rig.gltf.read_gltf_outline`);
+    character's outline is read here (:func:`~retarget_cli.io.rig.readers.read_character_outline`);
     ``landmarks:`` vertex ids are checked against its declared vertex count.
 
     Raises
@@ -238,7 +238,7 @@ def read_rig(path: str | os.PathLike) -> Rig:
         return _read_source_rig(path, {"source": path.name}, path)
     if suffix in _OTHER_MESH_EXTS:
         raise InputError(f"{path}: a {suffix} file is not a rig this version reads; a rig is a rig.yaml "
-                         f"(OBJs, or 'source:' a {', '.join(RIG_FILE_EXTS)} file) or a {', '.join(RIG_FILE_EXTS)} file")
+                         f"(OBJs, or 'source:' a {', '.join(RIG_FILE_EXTS)} file) or such a file itself")
     data = read_yaml_file(path, "rig")
     if isinstance(data, dict) and "source" in data:
         return _read_source_rig(path, data, None)
@@ -258,7 +258,7 @@ def read_rig(path: str | os.PathLike) -> Rig:
 
 # ---------------------------------------------------------------------- source: a character file
 def _source_path(path: Path, data: dict) -> Path:
-    """``source:`` made absolute: a ``.glb``/``.gltf``/``.vrm`` file that exists."""
+    """``source:`` made absolute: a character file (:data:`RIG_FILE_EXTS`) that exists."""
     value = data["source"]
     if not isinstance(value, str) or not value:
         raise InputError(f"{path}: source: expected the path of a {', '.join(RIG_FILE_EXTS)} file, got {value!r}")
@@ -285,7 +285,7 @@ def _patterns(path: Path, data: dict, key: str) -> list | None:
 def _outline(path: Path, source: Path, meshes, targets):
     """The source's outline; its errors name ``rig.yaml`` too when the rig is one."""
     try:
-        return read_gltf_outline(source, meshes=meshes, targets=targets)
+        return read_character_outline(source, meshes=meshes, targets=targets)
     except InputError as exc:
         if path == source:
             raise

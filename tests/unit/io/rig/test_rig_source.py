@@ -161,7 +161,7 @@ def test_cache_hit_reads_no_glb(tmp_path, glb, monkeypatch):
     cold = load_rig(p)
     first = load_rig(p, cache_dir=cache)
     assert len(list(cache.glob("rig-*.npz"))) == 1
-    monkeypatch.setattr(rigload, "read_gltf_rig", lambda *a, **k: pytest.fail("the glb was decoded on a cache hit"))
+    monkeypatch.setattr(rigload, "read_character", lambda *a, **k: pytest.fail("the glb was decoded on a cache hit"))
     hit = load_rig(p, cache_dir=cache)
     for r in (first, hit):
         assert r.names == cold.names and r.neutral.tobytes() == cold.neutral.tobytes()
@@ -193,7 +193,7 @@ def test_unusable_cache_is_rebuilt(tmp_path, glb, caplog):
 # ---------------------------------------------------------------------- errors: one line, before any decoding
 @pytest.fixture
 def no_decode(monkeypatch):
-    monkeypatch.setattr(rigload, "read_gltf_rig", lambda *a, **k: pytest.fail("decoded before the error"))
+    monkeypatch.setattr(rigload, "read_character", lambda *a, **k: pytest.fail("decoded before the error"))
 
 
 def _error(path, match):
@@ -204,15 +204,15 @@ def _error(path, match):
     return msg
 
 
-@pytest.mark.parametrize("name", ["char.fbx", "char.usdz", "neutral.obj"])
+@pytest.mark.parametrize("name", ["char.blend", "char.dae", "neutral.obj"])
 def test_error_unsupported_extension_given_directly(tmp_path, no_decode, name):
     (tmp_path / name).write_bytes(b"\0" * 16)
     _error(tmp_path / name, f"a {Path(name).suffix} file is not a rig this version reads")
 
 
 def test_error_unsupported_source_extension(tmp_path, no_decode):
-    (tmp_path / "char.fbx").write_bytes(b"\0" * 16)
-    _error(_yaml(tmp_path, "source: char.fbx\n"), r"source: char.fbx: unsupported rig file extension '.fbx'")
+    (tmp_path / "char.blend").write_bytes(b"\0" * 16)
+    _error(_yaml(tmp_path, "source: char.blend\n"), r"source: char.blend: unsupported rig file extension '.blend'")
     _error(_yaml(tmp_path, "source: missing.glb\n"), "source: missing.glb not found")
 
 
