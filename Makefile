@@ -10,7 +10,7 @@ ICT    := build/ict-facekit/rig.yaml
 # Reinstall only when the package metadata changes.
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,report,detect,usd,batch,rigs]'
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[dev,report,detect,usd,batch,rigs,fbx]'
 	@touch $@
 
 demo: $(STAMP) $(ICT)

@@ -264,11 +264,13 @@ def choose_starts(ref: dict, n_video: int, frames: int | None, wanted) -> dict:
 # --------------------------------------------------------------------------- the two systems
 
 
-def run_ours(video: Path, start: int, end: int, ctx, work: Path, args) -> dict:
+def run_ours(video: Path, start: int, end: int, ctx, work: Path, args, neutral: int | None = None) -> dict:
     """The documented path on frames [start, end): ``retarget run`` of ``--config`` with video/start/end/init swapped.
 
-    Returns ``curves`` (T, E) in the rig's slider order, ``frames`` (T,) video frames, ``points`` (T, 68, 2)
-    the tracked landmarks, ``seconds`` (wall time of ``retarget run``).
+    *neutral*: a video frame set as ``select.neutral_frame`` (``--neutral reference``; decompose and auto_pose
+    follow keys.json), else the config's. Returns ``curves`` (T, E) in the rig's slider order, ``frames`` (T,)
+    video frames, ``points`` (T, 68, 2) the tracked landmarks, ``neutral`` the video frame the run used as
+    neutral (-1 when keys.json records none), ``seconds`` (wall time of ``retarget run``).
     """
     import yaml
     from real_rig import _absolutize
@@ -285,6 +287,11 @@ def run_ours(video: Path, start: int, end: int, ctx, work: Path, args) -> dict:
     cfg.setdefault("track", {}).update(video=str(video), init="auto", start=int(start), end=int(end))
     if isinstance(cfg.get("auto_pose"), dict):
         cfg["auto_pose"]["rig"] = str(args.rig_yaml)
+    if neutral is not None:
+        cfg.setdefault("select", {})["neutral_frame"] = int(neutral - start)
+        for stage in ("decompose", "auto_pose"):
+            if isinstance(cfg.get(stage), dict):
+                cfg[stage]["neutral_frame"] = "auto"
     (work / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     cmd = [sys.executable, "-m", "retarget_cli", "-q", "run", str(work / "config.yaml")]
     t = time.perf_counter()
@@ -307,6 +314,8 @@ def _read_run(run: Path, ctx, start: int, end: int) -> dict:
     with np.load(run / "landmarks.npz") as d:
         frames = np.asarray(d["frames"], np.int64) if "frames" in d.files else start + np.arange(len(d["points"]))
         points = np.asarray(d["points"], np.float64)
+    rec = json.loads((run / "keys.json").read_text()).get("neutral") if (run / "keys.json").is_file() else None
+    neutral = start + int(rec["frame"]) if isinstance(rec, dict) else -1
     if len(C) != len(frames) or not np.array_equal(frames, np.arange(start, end)):
         raise RuntimeError(f"{run}: {len(C)} curve rows for tracked frames {frames[0]}-{frames[-1]} "
                            f"({len(frames)}), expected {start}-{end - 1}")
@@ -315,7 +324,7 @@ def _read_run(run: Path, ctx, start: int, end: int) -> dict:
         if n not in ctx.rig.index:
             raise RuntimeError(f"{found[0]}: slider {n!r} is not in the rig")
         out[:, ctx.rig.index[n]] = C[:, j]
-    return {"curves": out, "frames": frames, "points": points}
+    return {"curves": out, "frames": frames, "points": points, "neutral": np.int64(neutral)}
 
 
 def run_peer(video: Path, start: int, end: int, path: Path, args) -> dict:
@@ -458,12 +467,16 @@ def run_clip(clip: str, ctx, rig: dict, args) -> dict:
         end = n if args.frames is None else min(n, start + args.frames)
         frames = np.arange(start, end)
         d = base / f"s{start}-e{end}"
-        ours = run_ours(video, start, end, ctx, d / f"ours-{cfg_key}-{code_tag(bench=False)}", args)
+        rest = rest_like_frame(refs["mediapipe"], frames)
+        forced = rest if args.neutral == "reference" else None
+        tag = f"ours-{cfg_key}-{code_tag(bench=False)}" + ("" if forced is None else f"-n{forced}")
+        ours = run_ours(video, start, end, ctx, d / tag, args, neutral=forced)
         peer = run_peer(video, start, end, d / f"peer-{peer_key}.npz", args)
         mapping, unmapped = peer_mapping(ctx, args.rig_yaml, peer["names"])
         curves = {"ours": ours["curves"], "peer": peer_curves(peer, mapping, len(ctx.names))}
         fps = {"ours": len(frames) / float(ours["seconds"]), "peer": float(peer["fps_wall"])}
-        common = {"clip": clip, "start": label, "frame": start, "T": len(frames)}
+        common = {"clip": clip, "start": label, "frame": start, "T": len(frames), "neutral": int(ours["neutral"]),
+                  "rest": rest}
         for system in SYSTEMS:
             L = ctx.landmarks_2d(curves[system])
             sat = float(np.mean(curves[system].max(axis=1) >= SATURATED))
@@ -471,10 +484,10 @@ def run_clip(clip: str, ctx, rig: dict, args) -> dict:
                                 "refs": score(L, MULTIPIE68, refs, frames, rig)})
         out["rows"].append({**common, "system": "tracker", "jitter": float("nan"), "fps": float("nan"), "sat": None,
                             "refs": score(ours["points"], MULTIPIE68, refs, frames, None)})
-        out["runs"].append({"start": label, "frame": start, "frames": frames, "curves": curves,
-                            "rest": rest_like_frame(refs["mediapipe"], frames)})
+        out["runs"].append({"start": label, "frame": start, "frames": frames, "curves": curves, "rest": rest})
         lost = int((~peer["found"]).sum())
-        log(f"{clip} {label} (frames {start}-{end - 1}): ours {fps['ours']:.1f} fps, peer {fps['peer']:.1f} fps"
+        log(f"{clip} {label} (frames {start}-{end - 1}): ours {fps['ours']:.1f} fps (neutral frame "
+            f"{int(ours['neutral'])}; the reference's rest frame {rest}), peer {fps['peer']:.1f} fps"
             + (f", peer lost the face on {lost} frames" if lost else "")
             + (f"; peer names mapped to no slider: {', '.join(unmapped)}" if unmapped else ""))
     return out
@@ -648,6 +661,9 @@ def parse_args(argv):
     ap.add_argument("--config", type=Path, default=ROOT / "configs" / "real.yaml", help="The documented path's config.")
     ap.add_argument("--model", type=Path, default=None, help="The peer's bundle (default DATA/peers/face_landmarker.task).")
     ap.add_argument("--fresh", action="store_true", help="Rerun both systems (not the references).")
+    ap.add_argument("--neutral", choices=("config", "reference"), default="config",
+                    help="Our neutral frame: the config's (default), or, standing in for one chosen by hand, the "
+                         "run's frame nearest rest by the MediaPipe reference (rest_like_frame).")
     ap.add_argument("--png", type=Path, default=None, metavar="DIR", help="Write one picture per clip here.")
     ap.add_argument("--json", type=Path, default=None, help="Also write the rows as JSON.")
     args = ap.parse_args(argv)
@@ -700,7 +716,10 @@ def main(argv=None) -> int:
     rows = [r for res in results for r in res["rows"]]
     print(f"retarget (documented path, {args.config.name}, track.init auto) against the peer (MediaPipe Face "
           f"Landmarker blendshapes by name) on the ICT rig; frames {'all' if args.frames is None else args.frames} "
-          f"per start.\n")
+          f"per start; our neutral frame {'from the config' if args.neutral == 'config' else 'the reference rest frame'}."
+          "\n")
+    print("Neutral frames (ours; the reference's rest frame): " + "; ".join(
+        f"{r['clip']} {r['start']} {r['neutral']} ({r['rest']})" for r in rows if r["system"] == "ours") + "\n")
     log(f"scored in {time.perf_counter() - t:.0f} s (cached runs reused unless --fresh)")
     for ref, title in (("mediapipe", "MediaPipe Face Mesh 0.10.14"), ("dlib", "raw per-frame dlib 68 points")):
         print(f"Against {title}:\n")

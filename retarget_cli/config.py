@@ -46,7 +46,8 @@ class Param:
         ``retarget run``.
     words : tuple of str
         Values of an input that name no file (``track.init: auto``): passed
-        through as they are, neither resolved as paths nor hashed.
+        through as they are, neither resolved as paths nor hashed. A setting's
+        words are accepted besides its type (``neutral_frame: auto``).
     validate : callable, optional
         ``validate(value, where)`` checks the items of a list or mapping
         (e.g. :func:`check_regions`) and raises :class:`ConfigError`.
@@ -81,7 +82,9 @@ class Param:
             return "one of " + ", ".join(map(str, self.options))
         lo = "-inf" if self.min is None else f"{self.min:g}"
         hi = "inf" if self.max is None else f"{self.max:g}"
-        return f"{self.type.__name__} in {'(' if self.min_open else '['}{lo}, {hi}{')' if self.max_open else ']'}"
+        words = "".join(f" or {w}" for w in self.words) if self.kind == "setting" else ""
+        return (f"{self.type.__name__} in {'(' if self.min_open else '['}{lo}, {hi}{')' if self.max_open else ']'}"
+                + words)
 
     def check(self, value: Any, where: str) -> Any:
         """Validate and coerce *value*; *where* names it in errors (``file: stage.key``)."""
@@ -89,6 +92,8 @@ class Param:
             if self.nullable or self.default is None:
                 return None
             raise ConfigError(f"{where}: a value is required ({self.describe_range()})")
+        if self.kind == "setting" and isinstance(value, str) and value in self.words:
+            return value
         coerce = _COERCE.get(self.type)
         if coerce is not None:
             value = coerce(self, value, where)
@@ -338,12 +343,14 @@ YAML_MAX_BYTES = 64 << 20
 def load_yaml(text, where: str, error=ConfigError, with_line: bool = False):
     """``yaml.safe_load`` with limits: at most :data:`YAML_MAX_ALIASES` aliases and
     :data:`YAML_MAX_NODES` nodes once aliases are expanded (a "billion laughs" document
-    is refused before it is built); *text* may be bytes (UTF-8 required).
+    is refused before it is built), and no key given twice in one mapping (YAML says
+    keys are unique; PyYAML would keep the last silently); *text* may be bytes (UTF-8 required).
 
     Raises
     ------
     error
-        One line naming *where*, for invalid UTF-8, invalid YAML or a document over the limits.
+        One line naming *where*, for invalid UTF-8, invalid YAML, a repeated key (with both lines) or a
+        document over the limits.
     """
     import yaml
 
@@ -375,6 +382,7 @@ def load_yaml(text, where: str, error=ConfigError, with_line: bool = False):
             if isinstance(n, yaml.SequenceNode):
                 total += sum(size(c) for c in n.value)
             elif isinstance(n, yaml.MappingNode):
+                _no_duplicate_keys(n, where, error)
                 total += sum(size(k) + size(v) for k, v in n.value)
             memo[key] = total
             if total > YAML_MAX_NODES:
@@ -393,6 +401,19 @@ def load_yaml(text, where: str, error=ConfigError, with_line: bool = False):
     finally:
         if loader is not None:
             loader.dispose()
+
+
+def _no_duplicate_keys(node, where: str, error) -> None:
+    """A YAML mapping node whose scalar keys are all different (merge keys ``<<`` aside), else *error*."""
+    seen: dict = {}
+    for k, _ in node.value:
+        if not hasattr(k, "value") or not isinstance(k.value, str) or k.tag == "tag:yaml.org,2002:merge":
+            continue
+        ident = (k.tag, k.value)
+        if ident in seen:
+            raise error(f"{where}:{k.start_mark.line + 1}: key {k.value!r} given twice in one mapping (first at line "
+                        f"{seen[ident] + 1}); YAML keys are unique: remove or merge one")
+        seen[ident] = k.start_mark.line
 
 
 def yaml_problem(exc) -> str:

@@ -13,8 +13,11 @@ import sys
 
 def _fail(exc: BaseException) -> int:
     if isinstance(exc, KeyboardInterrupt) or type(exc).__name__ == "Abort":
-        print("error: interrupted", file=sys.stderr)
-        return 130
+        from .errors import stop_message
+
+        msg, code = stop_message(exc)
+        print(f"error: {msg}", file=sys.stderr)
+        return code
     if "-vv" in sys.argv[1:3] or sys.argv[1:3].count("-v") >= 2 or "--verbose" in sys.argv[1:2]:
         import traceback
 
@@ -29,8 +32,24 @@ def _fail(exc: BaseException) -> int:
     return 1
 
 
+def _on_signal(signum, frame):
+    from .errors import Terminated
+
+    raise Terminated(signum)
+
+
+def _stop_on_signals() -> None:
+    """SIGTERM and SIGHUP unwind the run like Ctrl-C: temporary files are removed, one line, exit 128 + signal."""
+    import signal
+
+    for name in ("SIGTERM", "SIGHUP"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), _on_signal)
+
+
 def main(argv=None) -> None:
-    """Run the CLI; exit with its status (130 on Ctrl-C, 1 on an error)."""
+    """Run the CLI; exit with its status (130 on Ctrl-C, 143/129 on SIGTERM/SIGHUP, 1 or 2 on an error)."""
+    _stop_on_signals()
     try:
         import click
 

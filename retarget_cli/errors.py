@@ -79,6 +79,31 @@ class FaceLostError(InputError):
         self.frame, self.points, self.confidence = frame, points, confidence
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP: the run unwinds as on Ctrl-C (temporary files removed) and exits with 128 + the signal."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = int(signum)
+
+    @property
+    def exit_status(self) -> int:
+        return 128 + self.signum
+
+    @property
+    def message(self) -> str:
+        import signal
+
+        return f"terminated ({signal.Signals(self.signum).name})"
+
+
+def stop_message(exc: BaseException) -> tuple[str, int]:
+    """The one line and exit status of a stop: Ctrl-C (``interrupted``, 130) or :class:`Terminated`."""
+    if isinstance(exc, Terminated):
+        return exc.message, exc.exit_status
+    return "interrupted", INTERRUPTED_EXIT_STATUS
+
+
 class MissingExtraError(RetargetError):
     """An optional extra (``pip install 'retarget[NAME]'``) is needed and not installed."""
 

@@ -34,9 +34,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .._validate import closest
-from ..config import TOP_LEVEL, load_config, unknown_key_error, yaml_problem
+from ..config import TOP_LEVEL, load_config, load_yaml, unknown_key_error, yaml_problem
 from ..errors import ConfigError, InputError
 from ..io.frames import is_sequence, sequence_files
+from ..io.text import read_text
 from ..run.pipeline import ORDER, STAGES, check_up_to_date, resolve, select_stages, stage_params
 
 #: Keys of a shot entry (besides ``STAGE.KEY`` columns of a CSV).
@@ -130,14 +131,7 @@ def _read_entries(path: Path) -> tuple[dict, list]:
         return {}, _read_csv(path)
     if path.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"{path}: expected a shot list .yaml, .yml or .csv")
-    import yaml
-
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML ({yaml_problem(exc)})") from exc
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from exc
+    raw = load_yaml(read_text(path, "shot list"), str(path))
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping with 'shots:' at the top level")
     for key in raw:

@@ -10,8 +10,10 @@ into one line and an exit status.
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -20,20 +22,20 @@ import click
 from .. import __version__
 from ..batch import command as batch_command
 from ..config import UNSET, Command, Flag, Param, show_paths
-from ..errors import INTERRUPTED_EXIT_STATUS, RetargetError, UsageError
+from ..errors import RetargetError, UsageError, stop_message
 from ..io.atomic import guard_writes, remove_stale_parts
 from ..run import pipeline
 from ..see import commands as see_commands
-from ..stages import annotate, apply, auto_pose, decompose, edit, pose, select, solve_rig, track
+from ..stages import annotate, apply, auto_pose, decompose, edit, map_landmarks, pose, select, solve_rig, track
 from ..synth import take
-from .types import VALUE_TYPES
+from .types import VALUE_TYPES, NumberOrWord
 
 log = logging.getLogger("retarget_cli")
 
 #: Every command, by the module that declares it (``retarget --help`` lists them by name).
 DECLARED: list[Command] = [
     *track.COMMANDS, annotate.COMMAND, select.COMMAND, decompose.COMMAND, pose.COMMAND, apply.COMMAND,
-    edit.COMMAND, auto_pose.COMMAND, solve_rig.COMMAND, pipeline.COMMAND, batch_command.COMMAND,
+    edit.COMMAND, auto_pose.COMMAND, map_landmarks.COMMAND, solve_rig.COMMAND, pipeline.COMMAND, batch_command.COMMAND,
     *see_commands.COMMANDS, take.COMMAND,
 ]
 
@@ -65,10 +67,13 @@ def _click_type(p: Param, f: Flag):
         return click.Path(**_PATHS[f.path])
     if p.options:
         return click.Choice(p.options)
+    number = _TYPES.get(p.type, click.STRING)
     if p.type in (int, float) and (p.min is not None or p.max is not None):
         rng = click.IntRange if p.type is int else click.FloatRange
-        return rng(p.min, p.max, min_open=p.min_open, max_open=p.max_open)
-    return _TYPES.get(p.type, click.STRING)
+        number = rng(p.min, p.max, min_open=p.min_open, max_open=p.max_open)
+    if p.kind == "setting" and p.words and p.type in (int, float):
+        return NumberOrWord(number, p.words)
+    return number
 
 
 def _option(p: Param, f: Flag) -> click.Option:
@@ -117,18 +122,40 @@ def progress(length, label):
         yield bar
 
 
+def _drop_stdout() -> None:
+    """Point stdout at the null device, so that what is buffered and the exit's flush do not fail again."""
+    try:
+        fd = sys.stdout.fileno()
+    except (OSError, ValueError, AttributeError):
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, fd)
+    os.close(null)
+
+
 class Console:
     """What a command's runner prints through (:class:`~retarget_cli.config.Command`'s *out*)."""
 
     progress = staticmethod(progress)
 
     def __init__(self):
+        self.stdout_lost = False
         self.quiet = log.getEffectiveLevel() > logging.WARNING
         self.debug = log.isEnabledFor(logging.DEBUG)
 
-    @staticmethod
-    def echo(text) -> None:
-        click.echo(text)
+    def echo(self, text) -> None:
+        """*text* on stdout; once stdout failed (a closed pipe, a full disk) the rest is dropped and the work goes on."""
+        if self.stdout_lost:
+            return
+        try:
+            click.echo(text)
+        except OSError as exc:
+            if exc.errno not in (errno.EPIPE, errno.ENOSPC, errno.EIO):
+                raise
+            self.stdout_lost = True
+            _drop_stdout()
+            if exc.errno != errno.EPIPE:  # a reader that went away asked for nothing more; anything else is said
+                click.echo(f"warning: stdout: {exc.strerror}; the rest of the output is not printed", err=True)
 
     def say(self, text) -> None:
         if not self.quiet:
@@ -231,7 +258,8 @@ class DeclaredCommand(click.Command):
 class RetargetGroup(click.Group):
     """Turns every error into a one-line message and a non-zero exit (``-vv`` adds the traceback).
 
-    Errors: their own exit status (1, or 2 for usage and config errors); Ctrl-C: exit status 130.
+    Errors: their own exit status (1, or 2 for usage and config errors); Ctrl-C: exit status 130; SIGTERM and
+    SIGHUP (:class:`~retarget_cli.errors.Terminated`): 128 + the signal.
     """
 
     def invoke(self, ctx):
@@ -239,10 +267,11 @@ class RetargetGroup(click.Group):
             return super().invoke(ctx)
         except (click.exceptions.Exit, click.ClickException, click.exceptions.Abort):
             raise
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             log.debug("interrupted", exc_info=True)
-            click.echo("error: interrupted", err=True)
-            ctx.exit(INTERRUPTED_EXIT_STATUS)
+            msg, code = stop_message(exc)
+            click.echo(f"error: {msg}", err=True)
+            ctx.exit(code)
         except Exception as exc:
             log.debug("traceback of the error below", exc_info=True)
             click.echo(f"error: {one_line(exc)}", err=True)

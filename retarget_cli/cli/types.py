@@ -31,6 +31,15 @@ class Size(click.ParamType):
         return tuple(parts)
 
 
+def index_ranges(text: str) -> list[int]:
+    """``27-31,33`` (inclusive ranges, comma-separated) to a list of ints; ValueError on anything else."""
+    out = []
+    for part in text.replace(" ", "").split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
 class IndexList(click.ParamType):
     """``27-31,33,35`` (inclusive ranges) to a list of landmark indices."""
 
@@ -39,14 +48,10 @@ class IndexList(click.ParamType):
     def convert(self, value, param, ctx):
         if isinstance(value, list):
             return value
-        out = []
         try:
-            for part in str(value).replace(" ", "").split(","):
-                lo, _, hi = part.partition("-")
-                out += list(range(int(lo), int(hi or lo) + 1))
+            return index_ranges(str(value))
         except ValueError:
             self.fail(f"expected indices such as 27-31,36,39, got {value!r}", param, ctx)
-        return out
 
 
 class FrameList(click.ParamType):
@@ -100,10 +105,7 @@ class RegionSpec(click.ParamType):
             elif body == "all":
                 pts = "all"
             else:
-                pts = []
-                for part in body.split(","):
-                    lo, _, hi = part.partition("-")
-                    pts += list(range(int(lo), int(hi or lo) + 1))
+                pts = index_ranges(body)
         except ValueError:
             self.fail(f"expected NAME, NAME=all or NAME=a-b,c,... optionally followed by :K, got {spec!r}", param, ctx)
         return name, (pts if k is None else {"points": pts, "k": k})
@@ -121,6 +123,24 @@ class MaskSpec(click.ParamType):
         if not sep or not region or not path:
             self.fail(f"expected REGION=FILE, got {value!r}", param, ctx)
         return region, path
+
+
+class NumberOrWord(click.ParamType):
+    """A number in a range, or one of *words* (``auto``): ``neutral_frame``."""
+
+    def __init__(self, number: click.ParamType, words):
+        self.number, self.words = number, tuple(words)
+        self.name = f"{number.name}|{'|'.join(self.words)}"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and value.strip().lower() in self.words:
+            return value.strip().lower()
+        try:
+            return self.number.convert(value, param, ctx)
+        except click.BadParameter:
+            describe = getattr(self.number, "_describe_range", None)  # click's IntRange/FloatRange: "x>=0"
+            what = f"a number ({describe()})" if describe else "a number"
+            self.fail(f"expected {' or '.join(self.words)} or {what}, got {value!r}", param, ctx)
 
 
 class Vector3(click.ParamType):

@@ -26,6 +26,7 @@ import logging
 import os
 import re
 import secrets
+import sys
 import zipfile
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -56,7 +57,8 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     The destination passes :func:`check_write` first. The temporary file is
     named before it is created, inside the ``try``, so an exception (Ctrl-C
     included) at any moment removes it; a SIGKILL leaves a ``.part`` file that
-    :func:`remove_stale_parts` removes at the start of the next run.
+    :func:`remove_stale_parts` removes at the start of the next run, because
+    its name was written to this process's journal first (:func:`part_name`).
 
     Parameters
     ----------
@@ -79,7 +81,7 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     tmp = None
     try:
         while True:
-            tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.part"
+            tmp = part_name(path)
             try:
                 fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o644)
                 break
@@ -302,6 +304,31 @@ class WriteGuard:
     input_ids: set = field(default_factory=set)
     #: Shown in errors: what the roots are (``output_dir of config.yaml``).
     label: str = "the output folder"
+    #: Open journals of this guard's temporary files, by root (:func:`part_name`).
+    journals: dict = field(default_factory=dict)
+
+    def journal(self, tmp: Path) -> None:
+        """Note *tmp* (a temporary file about to be created) in the journal of the root that holds it."""
+        tmp = _resolve(tmp)
+        root = max((r for r in self.roots if tmp.is_relative_to(r)), key=lambda r: len(r.parts), default=None)
+        if root is None:
+            return
+        fh = self.journals.get(root)
+        if fh is None:
+            root.mkdir(parents=True, exist_ok=True)
+            name = root / f"{JOURNAL_PREFIX}{os.getpid()}-{secrets.token_hex(4)}.txt"
+            fh = self.journals[root] = open(name, "w", encoding="utf-8", newline="\n")  # noqa: SIM115
+            fh.write(f"{os.getpid()} {_start_time(os.getpid())}\n")
+        fh.write(tmp.relative_to(root).as_posix() + "\n")
+        fh.flush()
+
+    def close_journals(self) -> None:
+        """Remove this guard's journals and any temporary file they list that is still there (none after a
+        clean exit: each was renamed or removed)."""
+        for root, fh in self.journals.items():
+            fh.close()
+            _clear_journal(Path(fh.name), root)
+        self.journals.clear()
 
     def protect(self, paths) -> None:
         """Add *paths* to the inputs no write may touch."""
@@ -349,6 +376,99 @@ def guard_writes(*, roots=(), files=(), inputs=(), label: str = "the output fold
         yield guard
     finally:
         _GUARD.reset(token)
+        guard.close_journals()
+
+
+@contextlib.contextmanager
+def folder_lock(folder, what: str = "folder") -> Iterator[None]:
+    """Hold an advisory lock on *folder* (``folder/.retarget/lock``) so that one run at a time writes into it.
+
+    A second run into the same folder fails at once with one line naming the folder and the process that
+    holds it. The lock is released when the block ends or the process dies (``flock``); where ``fcntl`` is
+    missing (Windows) there is no lock.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    folder = Path(folder)
+    lock = folder / ".retarget" / "lock"
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 1000).decode("utf-8", "replace").strip() or "another process"
+            raise InputError(f"{folder}: another retarget run is writing into this {what} ({holder}); wait for it "
+                             f"to finish or choose another {what}") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}: {' '.join(os.path.basename(a) if i == 0 else a for i, a in enumerate(sys.argv))}"
+                 .encode()[:900])
+        yield
+    finally:
+        os.close(fd)
+
+
+#: Name start of a journal of temporary files: ``.retarget-parts-<pid>-<8 hex>.txt`` in a guarded root.
+JOURNAL_PREFIX = ".retarget-parts-"
+
+
+def part_name(path, suffix: str = "") -> Path:
+    """A temporary name beside *path* (``.<name>.<8 hex>.part<suffix>``), noted in the active guard's journal
+    before the file is created, so that only what this tool created is ever cleaned up after a SIGKILL."""
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(4)}.part{suffix}"
+    guard = _GUARD.get()
+    if guard is not None:
+        guard.journal(tmp)
+    return tmp
+
+
+def _start_time(pid: int) -> str:
+    """When process *pid* started (clock ticks since boot, from /proc), or '?' where that cannot be read."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return stat.rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return "?"
+
+
+def _journal_owner_alive(first_line: str) -> bool:
+    """Whether the process that wrote a journal (its first line: ``pid start``) still runs."""
+    try:
+        pid_text, start = first_line.split()
+        pid = int(pid_text)
+    except ValueError:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return start == "?" or _start_time(pid) in ("?", start)
+
+
+def _clear_journal(journal: Path, root: Path) -> list[Path]:
+    """Remove the temporary files *journal* lists (inside *root*, named like one, still there), then the journal."""
+    removed = []
+    try:
+        names = journal.read_text(encoding="utf-8").splitlines()[1:]
+    except (OSError, UnicodeDecodeError):
+        names = []
+    for rel in dict.fromkeys(names):
+        p = root / rel
+        if ".." in Path(rel).parts or Path(rel).is_absolute() or not PART_RE.match(p.name):
+            continue
+        if p.is_file() and not p.is_symlink():
+            with contextlib.suppress(OSError):
+                os.unlink(p)
+                removed.append(p)
+    with contextlib.suppress(OSError):
+        os.unlink(journal)
+    return removed
 
 
 def check_write(path) -> None:
@@ -366,17 +486,29 @@ def remove_file(path) -> None:
 
 
 def remove_stale_parts(folder, *, recursive: bool = True) -> list[Path]:
-    """Remove the ``.part`` temporary files a killed run left in *folder* (names matching :data:`PART_RE`)."""
+    """Remove the temporary files a killed run of this tool left under *folder*.
+
+    Only files a journal in *folder* lists are removed (:func:`part_name` notes each temporary name before the
+    file exists), and only when the process that wrote the journal is gone: a user's own file named like a
+    temporary file, and the temporary files of another run still writing, are never touched. *recursive* is
+    kept for callers: a journal lists paths at any depth below its folder.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    found = folder.rglob(".*.part*") if recursive else folder.glob(".*.part*")
     removed = []
-    for p in sorted(found):
-        if PART_RE.match(p.name) and p.is_file() and not p.is_symlink():
-            with contextlib.suppress(OSError):
-                remove_file(p)
-                removed.append(p)
+    for journal in sorted(folder.glob(JOURNAL_PREFIX + "*.txt")):
+        if not journal.is_file() or journal.is_symlink():
+            continue
+        try:
+            with open(journal, encoding="utf-8") as fh:
+                first = fh.readline()
+        except (OSError, UnicodeDecodeError):
+            continue
+        if _journal_owner_alive(first):
+            continue
+        check_write(journal)
+        removed += _clear_journal(journal, _resolve(folder))
     if removed:
         log.info("removed %d temporary file(s) left by an interrupted run in %s", len(removed), folder)
     return removed

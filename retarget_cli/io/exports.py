@@ -4,7 +4,9 @@
 and hands them to every exporter the user asked for (``--format``):
 
 1. :meth:`Exporter.check` runs before any mesh is computed (a missing
-   optional package, a format that needs a rig);
+   optional package, a format that needs a rig), and
+   :meth:`Exporter.check_context` once the rig is read, before any frame
+   is computed (a format that needs a certain kind of rig);
 2. :meth:`Exporter.add` receives the frames chunk by chunk, head motion
    applied (only exporters with ``streams = True``);
 3. :meth:`Exporter.finish` writes the files and returns them.
@@ -25,14 +27,16 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from .atomic import write_text
+from .atomic import check_not_input, write_text
 from .editfiles import write_animation
 from .exr import write_vat
 from .gltf import write_glb
+from .gltf_animation import copy_groups, is_vrm, write_animated_copy, write_vrma
 from .landmarks import load_landmarks
 from .livelink import head_rotation_from_similarity, livelink_csv
 from .obj import read_obj, write_obj
 from .objsurface import obj_surface
+from .rig.gltf import read_gltf_rig
 from .rig.inverse import parse_correctives
 from .stagefiles import weights_csv
 from .usd import require_pxr, write_usd_points, write_usd_skel
@@ -123,6 +127,10 @@ class Exporter:
     @classmethod
     def check(cls) -> None:
         """Raise before any work when this format cannot be written here (e.g. a missing package)."""
+
+    @classmethod
+    def check_context(cls, ctx: ExportContext) -> None:
+        """Raise before any frame is computed when this format cannot export *ctx* (e.g. the kind of rig)."""
 
     def add(self, start: int, frames: np.ndarray) -> None:
         """Frames ``start .. start + len(frames)`` (t, N, 3), head motion applied."""
@@ -232,6 +240,62 @@ class UsdExport(Exporter):
                           morph_targets=c.morph_targets if c.rig is not None else None, head=c.head)]
 
 
+class SameExport(Exporter):
+    """The rig's own glTF/GLB/VRM file back, animated (:mod:`retarget_cli.io.gltf_animation`).
+
+    ``<stem>_animated.glb``: a copy of the source with the curves as a morph-weight animation; for a VRM
+    also ``<stem>_animated.vrma``, a VRM Animation of the sliders that are VRM expressions.
+    """
+
+    help = ("<stem>_animated.glb (+ .vrma for VRM): the rig's own glTF/GLB/VRM file with the curves as "
+            "morph-weight animation")
+    needs_rig = True
+    suffixes = (".glb", ".gltf", ".vrm")
+
+    @classmethod
+    def source(cls, ctx) -> Path | None:
+        """The file the rig was read from (``Rig.source`` of its spec), or None."""
+        spec = getattr(ctx.rig, "spec", None)
+        src = getattr(spec, "source", None)
+        if src is None:
+            return None
+        src = Path(src)
+        return src if src.is_absolute() or ctx.rig_file is None else Path(ctx.rig_file).parent / src
+
+    @classmethod
+    def outputs(cls, ctx, source: Path) -> tuple[Path, Path]:
+        return ctx.out / f"{source.stem}_animated.glb", ctx.out / f"{source.stem}_animated.vrma"
+
+    @classmethod
+    def check_context(cls, ctx):
+        src = cls.source(ctx)
+        if src is None or src.suffix.lower() not in cls.suffixes:
+            where = f"{ctx.rig_file}: " if ctx.rig_file is not None else ""
+            raise InputError(f"{where}apply.formats: same needs a rig read from a .glb/.gltf/.vrm file "
+                             "(rig.yaml source:)")
+        for path in cls.outputs(ctx, src):
+            check_not_input(path, [src, ctx.weights, ctx.targets, ctx.landmarks, ctx.rig_file])
+
+    def finish(self):
+        c = self.ctx
+        src = self.source(c)
+        glb, vrma = self.outputs(c, src)
+        names = list(c.rig.names)
+        groups, missing = copy_groups(read_gltf_rig(src), names)
+        if not groups:
+            raise InputError(f"{src}: none of the rig's sliders ({', '.join(names[:6])}, ...) is a slider or morph "
+                             "target of the file; nothing to animate")
+        if missing:
+            log.warning("%s: %d slider(s) are not sliders or morph targets of the file and are not in %s: %s",
+                        src.name, len(missing), glb.name, ", ".join(missing))
+        written = [write_animated_copy(glb, src, c.curves, names, c.fps, groups, lower=c.rig.lower,
+                                       upper=c.rig.upper)]
+        if is_vrm(src):
+            path = write_vrma(vrma, src, c.curves, names, c.fps, lower=c.rig.lower, upper=c.rig.upper)
+            written += [path] if path is not None else []
+        return written
+
+
 #: Export formats by name, in the order ``--format`` lists them.
 EXPORTS: dict[str, type[Exporter]] = {
     "obj": ObjExport,
@@ -241,6 +305,7 @@ EXPORTS: dict[str, type[Exporter]] = {
     "curves": CurvesExport,
     "livelink": LiveLinkExport,
     "usd": UsdExport,
+    "same": SameExport,
 }
 
 

@@ -48,6 +48,12 @@ class Landmarks:
     points_raw : ndarray, shape (T, L, 2), float32, optional
         The tracker's points before the landmark filter (``track.filter``);
         ``points`` are then the filtered ones.
+    neutral : ndarray, shape (L, 2), float32, optional
+        The actor's rest shape from a separate calibration image or clip
+        (``track.neutral``), in this take's stabilized coordinates;
+        ``neutral_frame: auto`` uses it as the neutral key's shape.
+    neutral_confidence : ndarray, shape (L,), float32, optional
+        Its landmarks' confidence (given with *neutral*).
     """
 
     points: np.ndarray
@@ -60,6 +66,8 @@ class Landmarks:
     meta: dict = field(default_factory=dict)
     frames: np.ndarray | None = None
     points_raw: np.ndarray | None = None
+    neutral: np.ndarray | None = None
+    neutral_confidence: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -94,6 +102,13 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
         arrays["points_raw"] = np.asarray(lm.points_raw, dtype=np.float32)
         if arrays["points_raw"].shape != (T, L, 2):
             raise ParameterError(f"points_raw: expected shape {(T, L, 2)}, got {arrays['points_raw'].shape}")
+    if lm.neutral is not None:
+        arrays["neutral"] = np.asarray(lm.neutral, dtype=np.float32)
+        conf = np.ones(L) if lm.neutral_confidence is None else lm.neutral_confidence
+        arrays["neutral_confidence"] = np.asarray(conf, dtype=np.float32)
+        if arrays["neutral"].shape != (L, 2) or arrays["neutral_confidence"].shape != (L,):
+            raise ParameterError(f"neutral: expected shapes {(L, 2)} and {(L,)}, got {arrays['neutral'].shape} "
+                                 f"and {arrays['neutral_confidence'].shape}")
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)
@@ -157,6 +172,20 @@ def _points_raw(data: dict, path, T: int, L: int) -> np.ndarray | None:
         raise InputError(f"{path}: 'points_raw' must be floats of shape {(T, L, 2)} like 'points', got "
                          f"{raw.dtype} of shape {raw.shape}")
     return raw
+
+
+def _neutral(data: dict, path, L: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``neutral`` (L, 2) and ``neutral_confidence`` (L,), both finite, or (None, None) when absent."""
+    if "neutral" not in data:
+        return None, None
+    shape = _numeric(data, "neutral", path)
+    conf = _numeric(data, "neutral_confidence", path) if "neutral_confidence" in data else np.ones(L)
+    if shape.shape != (L, 2) or conf.shape != (L,):
+        raise InputError(f"{path}: 'neutral' and 'neutral_confidence' must have shapes {(L, 2)} and {(L,)}, got "
+                         f"{shape.shape} and {conf.shape}")
+    if not (np.isfinite(shape).all() and np.isfinite(conf).all() and (conf >= 0).all() and (conf <= 1).all()):
+        raise InputError(f"{path}: 'neutral' must be finite and 'neutral_confidence' in [0, 1]")
+    return shape.astype(np.float32), conf.astype(np.float32)
 
 
 def _fps(data: dict, path) -> float:
@@ -260,6 +289,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     frames = _frames(data, path, T)
     names = _names(data, path, L)
     meta = _meta(data, path)
+    neutral, neutral_conf = _neutral(data, path, L)
     return Landmarks(
         points=points,
         confidence=conf.astype(np.float32, copy=False),
@@ -271,4 +301,6 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         frames=frames,
         meta=meta,
         points_raw=None if raw is None else raw.astype(np.float32, copy=False),
+        neutral=neutral,
+        neutral_confidence=neutral_conf,
     )

@@ -824,3 +824,48 @@ def format_obj(vertices: np.ndarray, faces, *, uvs=None, face_uvs=None, header: 
         fmt = "f " + " ".join(["%d"] * n) + "\n"
         parts.append((fmt * len(faces)) % tuple(faces.ravel()))
     return "".join(parts).encode("ascii")
+
+
+def obj_from_arrays(path: str | os.PathLike, vertices: np.ndarray, faces, *, objects=()) -> ObjMesh:
+    """An :class:`ObjMesh` template for a mesh that has no OBJ file (a character read from a GLB).
+
+    The text is ``o <name>`` before each object's vertices, ``v`` lines, then that object's faces; it is
+    parsed as :func:`read_obj` parses a file (so a frame written from it reads back with the same
+    topology), and :attr:`ObjMesh.vertices` are *vertices* themselves, not their printed values.
+
+    Parameters
+    ----------
+    path : path-like
+        What the template is named after (written meshes, the glb export's node name); not read.
+    vertices : ndarray, shape (N, 3), float64
+    faces : ndarray, shape (F, 3), int
+        0-based triangles.
+    objects : sequence of (str, int, int)
+        ``(name, start, stop)`` vertex ranges in order, covering ``0..N`` (a face goes after the
+        object of its last vertex); empty: one unnamed object.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    n = len(vertices)
+    objects = list(objects) or [(None, 0, n)]
+    if objects[0][1] != 0 or objects[-1][2] != n or any(a[2] != b[1] for a, b in zip(objects, objects[1:])):
+        raise ShapeError(f"objects: expected vertex ranges covering 0..{n} in order, got "
+                         f"{[(s, e) for _, s, e in objects]}")
+    if faces.size and (faces.min() < 0 or faces.max() >= n):
+        raise ShapeError(f"faces: vertex ids must lie in [0, {n})")
+    owner = np.searchsorted([stop for _, _, stop in objects], faces.max(axis=1), side="right") if len(faces) else []
+    order = np.argsort(owner, kind="stable")
+    counts = np.bincount(np.asarray(owner, dtype=np.int64), minlength=len(objects))
+    parts, f0 = [], 0
+    for k, (name, start, stop) in enumerate(objects):
+        if name is not None:
+            clean = "".join(c if c.isprintable() else "_" for c in str(name)).strip() or f"object{k}"
+            parts.append(f"o {clean}\n".encode())
+        parts.append(b"v 0 0 0\n" * (stop - start))
+        block = faces[order[f0:f0 + counts[k]]] + 1
+        f0 += counts[k]
+        parts.append((("f %d %d %d\n" * len(block)) % tuple(block.ravel())).encode("ascii"))
+    data = b"".join(parts)
+    mesh = _parse_fast(Path(path), data) or _parse_lines(Path(path), data)
+    mesh.vertices = vertices.copy()
+    return mesh

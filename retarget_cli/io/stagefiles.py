@@ -20,7 +20,8 @@ from .text import read_text, read_yaml_file
 # --------------------------------------------------------------------------- keys.json
 
 
-def write_keys(path: str | os.PathLike, landmarks: str | os.PathLike, regions: dict) -> None:
+def write_keys(path: str | os.PathLike, landmarks: str | os.PathLike, regions: dict,
+               neutral: dict | None = None) -> None:
     """Write ``keys.json``.
 
     Parameters
@@ -30,10 +31,17 @@ def write_keys(path: str | os.PathLike, landmarks: str | os.PathLike, regions: d
         The landmarks file the frames index into; stored relative to *path*.
     regions : dict
         Region name to ``{"points": [...], "method": str, "frames": [...], "error": float}``.
+    neutral : dict, optional
+        The neutral (rest) frame every region keeps: ``{"frame": int, "source": "given" | "take" |
+        "calibration", "reason": str, ...}``; ``decompose`` and ``auto-pose`` with ``neutral_frame: auto``
+        use it. None: no neutral frame (``select --no-neutral``).
     """
     path = Path(path)
     rel = os.path.relpath(Path(landmarks).resolve(), path.resolve().parent)
-    write_json(path, {"landmarks": rel, "regions": regions, "version": __version__})
+    doc = {"landmarks": rel, "regions": regions, "version": __version__}
+    if neutral is not None:
+        doc["neutral"] = neutral
+    write_json(path, doc)
 
 
 @dataclass
@@ -43,6 +51,8 @@ class Keys:
     path: Path
     landmarks: Path | None
     regions: dict = field(default_factory=dict)
+    #: The neutral frame's record (``frame``, ``source``, ``reason``, ...), or None when keys.json has none.
+    neutral: dict | None = None
 
 
 def read_keys(path: str | os.PathLike) -> Keys:
@@ -75,7 +85,25 @@ def read_keys(path: str | os.PathLike) -> Keys:
         regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]),
                          "method": reg.get("method"), "error": reg.get("error")}
     lm = data.get("landmarks")
-    return Keys(path, (path.parent / lm) if isinstance(lm, str) else None, regions)
+    return Keys(path, (path.parent / lm) if isinstance(lm, str) else None, regions, _neutral_record(data, path))
+
+
+#: Where a neutral frame recorded in keys.json came from.
+NEUTRAL_SOURCES = ("given", "take", "calibration")
+
+
+def _neutral_record(data: dict, path: Path) -> dict | None:
+    """keys.json's ``neutral``: a mapping with an integer ``frame`` >= 0 and a known ``source``, or absent."""
+    rec = data.get("neutral")
+    if rec is None:
+        return None
+    frame = rec.get("frame") if isinstance(rec, dict) else None
+    if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame < 1 << 31:
+        raise InputError(f"{path}: 'neutral' must be {{'frame': integer >= 0, 'source': ...}}, got {str(rec)[:60]}")
+    if rec.get("source") not in NEUTRAL_SOURCES:
+        raise InputError(f"{path}: neutral.source must be one of {', '.join(NEUTRAL_SOURCES)}, got "
+                         f"{rec.get('source')!r}")
+    return dict(rec)
 
 
 # --------------------------------------------------------------------------- weights.npz

@@ -6,7 +6,6 @@ import contextlib
 import logging
 import os
 import queue
-import secrets
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,7 +14,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..methods.tracking.base import to_gray
-from .atomic import check_write
+from .atomic import check_write, part_name
 
 log = logging.getLogger(__name__)
 
@@ -210,7 +209,7 @@ def atomic_video_writer(path: str | os.PathLike, fps: float, frame_size: tuple[i
     path = Path(path)
     check_write(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = str(path.parent / f".{path.name}.{secrets.token_hex(4)}.part{path.suffix}")
+    tmp = str(part_name(path, path.suffix))
     writer = None
     try:
         fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() in (".mp4", ".m4v", ".mov") else "MJPG"))

@@ -541,10 +541,13 @@ class MeshRenderer:
         Surface colour at full intensity.
     background : (3,) BGR
     light : Light
+    frame : ndarray (K, 3), optional
+        Points the camera is framed on instead of *reference* (a face inside
+        a whole-body mesh: its centre and bounding radius place the camera).
     """
 
     def __init__(self, faces, reference, *, camera: Camera = Camera(), size=(512, 512), shading: str = "gouraud",
-                 color=(150, 170, 215), background=(40, 36, 32), light: Light = Light()):
+                 color=(150, 170, 215), background=(40, 36, 32), light: Light = Light(), frame=None):
         if shading not in ("gouraud", "flat"):
             raise ParameterError(f"shading: expected 'gouraud' or 'flat', got {shading!r}")
         self.tris = triangulate(faces)
@@ -552,7 +555,7 @@ class MeshRenderer:
         if self.tris.size and self.tris.max() >= len(reference):
             raise ShapeError(f"faces use vertex {int(self.tris.max())} but the mesh has {len(reference)} vertices")
         self.n_vertices = len(reference)
-        self.view = View.fit(reference, camera, size)
+        self.view = View.fit(reference if frame is None else frame, camera, size)
         self.shading = shading
         self.color = np.asarray(color, dtype=np.float64)
         self.background = np.asarray(background, dtype=np.uint8)

@@ -24,7 +24,7 @@ def code_fingerprint() -> str:
     import hashlib
 
     h = hashlib.sha256(__version__.encode())
-    root = Path(__file__).parent
+    root = Path(__file__).parents[1]  # the package (this module is in its run/ folder)
     for f in sorted(root.rglob("*.py")):
         h.update(f.relative_to(root).as_posix().encode())
         h.update(f.read_bytes())
@@ -50,9 +50,14 @@ def matches(path: Path, rec: dict) -> bool:
     return sha256_file(path) == rec.get("sha256")
 
 
-def write_manifest(path: Path, stage: str, *, settings: dict, inputs, outputs, base: Path, seconds: float) -> None:
-    """Write a stage's manifest atomically; paths are recorded relative to *base* (the config's folder)."""
-    write_json(path, {
+def write_manifest(path: Path, stage: str, *, settings: dict, inputs, outputs, base: Path, seconds: float,
+                   results: dict | None = None) -> None:
+    """Write a stage's manifest atomically; paths are recorded relative to *base* (the config's folder).
+
+    *results*: what the stage found that is no setting (e.g. ``neutral``: the frame ``neutral_frame: auto``
+    chose, and why); recorded for reports, not part of the up-to-date check.
+    """
+    doc = {
         "stage": stage,
         "version": __version__,
         "code": code_fingerprint(),
@@ -60,7 +65,10 @@ def write_manifest(path: Path, stage: str, *, settings: dict, inputs, outputs, b
         "inputs": {os.path.relpath(p, base): record(p) for p in inputs},
         "outputs": {os.path.relpath(p, base): record(p) for p in outputs},
         "seconds": seconds,
-    })
+    }
+    if results:
+        doc["results"] = results
+    write_json(path, doc)
 
 
 def manifest_matches(path: Path, *, settings: dict, inputs: Callable, base: Path) -> tuple[bool, str]:

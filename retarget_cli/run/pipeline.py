@@ -17,8 +17,8 @@ from pathlib import Path
 from .. import stages
 from ..config import REQUIRED, Command, Config, Flag, Param, load_config
 from ..errors import ConfigError, InputError, RetargetError
-from ..io.atomic import guard_writes, remove_stale_parts
-from ..stages._common import Stage
+from ..io.atomic import folder_lock, guard_writes, remove_stale_parts
+from ..stages._common import Stage, collect_results
 from .manifest import manifest_matches, write_manifest
 
 log = logging.getLogger(__name__)
@@ -159,7 +159,8 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = Tru
     """Run one stage and write its manifest after its outputs.
 
     The manifest also records the stage's wall-clock run time (``seconds``,
-    for reports; not part of the up-to-date check). Stages that load a rig
+    for reports; not part of the up-to-date check) and what the stage reported
+    finding (``results``, e.g. the neutral frame ``neutral_frame: auto`` chose). Stages that load a rig
     get :func:`cache_dir` unless *cache* is False (the cache is not a setting
     and not an output).
     """
@@ -171,10 +172,11 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = Tru
     if stage.uses_cache:
         call["cache_dir"] = cache_dir(cfg) if cache else None
     t0 = time.perf_counter()
-    outputs = stage.runner(**call)
+    with collect_results() as results:
+        outputs = stage.runner(**call)
     seconds = round(time.perf_counter() - t0, 3)
     write_manifest(manifest_path(cfg, name), name, settings=_settings(stage, kw, cfg), inputs=inputs,
-                   outputs=outputs, base=cfg.base_dir, seconds=seconds)
+                   outputs=outputs, base=cfg.base_dir, seconds=seconds, results=results)
     return outputs
 
 
@@ -218,7 +220,8 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
                 pass
     inputs = check_outputs(cfg, everything)
     report = []
-    with guard_writes(roots=[cfg.output_dir], inputs=inputs, label=f"output_dir of {cfg.path}"):
+    with folder_lock(cfg.output_dir, "output_dir"), \
+            guard_writes(roots=[cfg.output_dir], inputs=inputs, label=f"output_dir of {cfg.path}"):
         remove_stale_parts(cfg.output_dir)
         for n in names:
             kw = resolved[n]

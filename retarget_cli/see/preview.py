@@ -15,8 +15,11 @@ import numpy as np
 
 from ..errors import InputError, ParameterError
 from ..io.atomic import check_not_input, write_bytes
+from ..io.editfiles import read_animation
 from ..io.landmarks import load_landmarks
 from ..io.obj import read_obj, read_vertices_like
+from ..io.rig import load_rig
+from ..io.stagefiles import read_targets
 from ..io.video import VideoReader, atomic_video_writer
 from ..methods.render import Camera, MeshRenderer
 from ..run.runfiles import RunFiles, read_run_weights
@@ -194,8 +197,56 @@ def _blank(size, color=(70, 70, 70)) -> np.ndarray:
     return img
 
 
+#: The slider curves ``apply`` writes (``formats: curves``), looked for in its output folder, in this order.
+CURVE_FILES = ("curves.npz", "curves.csv")
+
+
+def curves_character(run: RunFiles):
+    """The rig and its slider curves of a run whose ``apply`` wrote curves and no OBJ frames, or None.
+
+    The curves are ``curves.npz`` (else ``curves.csv``) in the run's ``frames`` folder; the rig is the one
+    its ``targets.yaml`` names (``rig:``, as auto-pose writes it). Head motion (``apply.head_motion``) is
+    not in the curves, so the character is shown without it.
+
+    Returns
+    -------
+    (rig, curves, path, rig_path) or None
+        The :class:`~retarget_cli.methods.rig.BlendshapeRig`, the curves (T, E) in the rig's slider order
+        (sliders the file does not name at 0), the curves file and the ``rig.yaml``.
+
+    Raises
+    ------
+    InputError
+        A curves file that names a slider the rig does not have.
+    """
+    if run.frames is None:
+        return None
+    path = next((run.frames / n for n in CURVE_FILES if (run.frames / n).is_file()), None)
+    if path is None:
+        return None
+    targets = read_targets(run.targets) if run.targets is not None else None
+    if targets is None or targets.rig is None:
+        log.warning("%s: no targets.yaml naming the rig (rig:), so the curves cannot be shown on the character",
+                    path)
+        return None
+    rig = load_rig(targets.rig)
+    names, W, _, _ = read_animation(path)
+    index = {n: j for j, n in enumerate(rig.names)}
+    unknown = [n for n in names if n not in index]
+    if unknown:
+        raise InputError(f"{path}: slider {unknown[0]!r} is not a shape of the rig {targets.rig}")
+    curves = np.zeros((len(W), len(rig.names)))
+    curves[:, [index[n] for n in names]] = W
+    log.info("%s: the character is the rig %s posed at these curves (%d frames)", path, targets.rig, len(W))
+    return rig, curves, path, targets.rig
+
+
 class RunData:
-    """Arrays of a run loaded once for preview and report (whatever exists)."""
+    """Arrays of a run loaded once for preview and report (whatever exists).
+
+    The character's frames are ``apply``'s OBJ frames, or, when it wrote none, its rig posed at its slider
+    curves (:func:`curves_character`).
+    """
 
     def __init__(self, run: RunFiles):
         self.run = run
@@ -204,13 +255,14 @@ class RunData:
         if run.weights:
             self.regions, self.extras, self.other = read_run_weights(run.weights)
         self.frame_files = run.frame_files()
+        self.character = None if self.frame_files else curves_character(run)
         lengths = []
         if self.lm is not None:
             lengths.append(self.lm.n_frames)
         if self.regions:
             lengths.append(next(iter(self.regions.values()))[0].shape[0])
-        if self.frame_files:
-            lengths.append(len(self.frame_files))
+        if self.n_character_frames:
+            lengths.append(self.n_character_frames)
         if len(set(lengths)) > 1:
             log.warning("%s: landmarks, weights and frames have different lengths %s; using the shortest",
                         run.root, lengths)
@@ -228,16 +280,38 @@ class RunData:
             return int(hi[0] * 1.1) + 1, int(hi[1] * 1.1) + 1
         return 320, 320
 
+    @property
+    def n_character_frames(self) -> int:
+        """Frames of the character: OBJ frames, else rows of the curves (0 without either)."""
+        if self.frame_files:
+            return len(self.frame_files)
+        return 0 if self.character is None else len(self.character[1])
+
+    @property
+    def character_source(self) -> str:
+        """What the character's frames are, for captions."""
+        if self.frame_files:
+            return f"{len(self.frame_files)} OBJ in {self.run.frames}"
+        if self.character is not None:
+            return f"the rig {self.character[3]} posed at {self.character[2]}"
+        return ""
+
     def mesh(self):
-        """The first frame's OBJ (topology and framing), or ``None``."""
+        """The first frame's OBJ, or the curves' rig template (topology and framing), or ``None``."""
 
         if self._mesh is None and self.frame_files:
             self._mesh = read_obj(self.frame_files[0])
+        if self._mesh is None and self.character is not None:
+            self._mesh = self.character[0].template
         return self._mesh
 
     def frame_vertices(self, t: int) -> np.ndarray:
-        """Frame *t*'s vertex positions; a pose of the first frame's mesh has only its ``v`` lines parsed."""
+        """Frame *t*'s vertex positions; a pose of the first frame's mesh has only its ``v`` lines parsed (or the
+        rig evaluated at the curves' row *t*)."""
 
+        if not self.frame_files:
+            rig, curves = self.character[:2]
+            return rig.evaluate(curves[t])
         v = read_vertices_like(self.frame_files[t], self.mesh())
         if len(v) != self.mesh().n_vertices:
             raise InputError(f"{self.frame_files[t]}: {len(v)} vertices, but "
@@ -297,10 +371,11 @@ def preview_frames(data: RunData, frames: range, *, height: int = 360, camera=No
                 put_text(left, f"confidence {float(np.mean(data.lm.confidence[t])):.2f}", (8, height - 10), 0.42)
             put_text(left, f"frame {t}  {t / data.fps:6.2f}s", (8, 18), 0.5)
             out[:height, :left_w] = left
-            if renderer is not None and t < len(data.frame_files):
+            if renderer is not None and t < data.n_character_frames:
                 out[:height, left_w:left_w + mesh_w] = renderer.render(data.frame_vertices(t))
             else:
-                put_text(out, "no frames/frame_*.obj (run apply)", (left_w + 8, height // 2), 0.42, MUTED)
+                put_text(out, "no frames/frame_*.obj or curves (run apply)", (left_w + 8, height // 2), 0.42,
+                         MUTED)
             if bars_w:
                 out[:height, left_w + mesh_w:left_w + mesh_w + bars_w] = draw_weight_bars(
                     (bars_w, height), data.weights_at(t), vmax, current_frame=t)

@@ -6,6 +6,8 @@ opened offline. Each section appears only when the run has its data:
 
 - run summary: take, inputs, settings and stage timings (from the stage manifests);
 - tracking confidence over time (``landmarks.npz``);
+- the rest pose: the neutral frame ``keys.json`` and the stage manifests record, why it was chosen
+  (``neutral_frame: auto``), the source frame and the character there;
 - key shapes: the source key frames next to renders of the target keys
   (``keys.json``, the source video, ``targets.yaml``);
 - E against k (eq. 5 of Chuang & Bregler 2002) from ``select``'s evaluation
@@ -349,6 +351,9 @@ def _summary_rows(data: RunData, run: RunFiles, keys: dict) -> list:
         rows += _solver_rows(data.other["meta"])
     if data.frame_files:
         rows.append(("target frames", f"{len(data.frame_files)} OBJ in {_show(run.frames)}"))
+    elif data.character is not None:
+        rows.append(("target frames", f"{data.n_character_frames} frames: the rig {_show(data.character[3])} posed "
+                                      f"at {_show(data.character[2])} (no OBJ frames)"))
     return rows
 
 
@@ -690,7 +695,7 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
             else:
                 cells.append("")
             thumbs = [_img_tag(_png_img(source_thumb(data, frames, f, size=96)), f"source frame {f}")]
-            if mesh_renderer is not None and f < len(data.frame_files):
+            if mesh_renderer is not None and f < data.n_character_frames:
                 thumbs.append(_img_tag(_png_img(mesh_renderer.render(data.frame_vertices(f))), f"target frame {f}"))
             cells.append(_Raw(f'<span class="thumb">{"".join(thumbs)}</span>'))
             rows.append(cells)
@@ -731,11 +736,11 @@ def find_truth(run: RunFiles, truth=None) -> tuple[Path | None, np.ndarray | Non
 def _truth_mesh_rows(data: RunData, run: RunFiles, target: np.ndarray, notes: list):
     """The mesh row of the truth section and the per-frame error (or ``None`` with a note why not)."""
 
-    if not data.frame_files:
+    if not data.n_character_frames:
         notes.append("The run has no frames (apply) to compare with the true animation.")
         return [], None
     head = (run.manifests.get("apply", {}).get("settings") or {}).get("head_motion", "none")
-    if head not in (None, "none"):
+    if data.frame_files and head not in (None, "none"):
         notes.append(f"Meshes not compared: apply put head motion on them (head_motion {head}); the true "
                      "animation is in the character's own frame.")
         return [], None
@@ -743,9 +748,10 @@ def _truth_mesh_rows(data: RunData, run: RunFiles, target: np.ndarray, notes: li
     if n_v != target.shape[1]:
         notes.append(f"Meshes not compared: the frames have {n_v} vertices, the true animation {target.shape[1]}.")
         return [], None
-    T = min(len(data.frame_files), len(target))
-    if T < len(data.frame_files) or T < len(target):
-        notes.append(f"Compared over the first {T} frames (frames {len(data.frame_files)}, truth {len(target)}).")
+    n = data.n_character_frames
+    T = min(n, len(target))
+    if T < n or T < len(target):
+        notes.append(f"Compared over the first {T} frames (frames {n}, truth {len(target)}).")
     m = mesh_against_truth(np.stack([data.frame_vertices(t) for t in range(T)]), target[:T])
     row = ("target mesh (apply's frames)", f"{m['error_mean']:.4g} ({m['error_pct']:.1f} % of the mean true "
            "displacement)", f"{m['jitter']:.3g}", f"{m['jitter_truth']:.3g}", f"{m['jitter_ratio']:.2f}×")
@@ -856,6 +862,60 @@ def _rig(data: RunData, run: RunFiles) -> str | None:
 # --------------------------------------------------------------------------- assembly
 
 
+def read_neutral(run: RunFiles) -> tuple[dict | None, dict]:
+    """The neutral keys.json records (or None), and each stage's (``results.neutral`` of its manifest)."""
+    record = None
+    if run.keys is not None:
+        try:
+            rec = json.loads(Path(run.keys).read_text(encoding="utf-8")).get("neutral")
+            record = rec if isinstance(rec, dict) and isinstance(rec.get("frame"), int) else None
+        except (OSError, ValueError, AttributeError):
+            record = None
+    stages = {}
+    for stage, man in run.manifests.items():
+        rec = (man.get("results") or {}).get("neutral") if isinstance(man.get("results"), dict) else None
+        if isinstance(rec, dict) and isinstance(rec.get("frame"), int):
+            stages[stage] = rec
+    return record, stages
+
+
+def _neutral_frame(run: RunFiles) -> int | None:
+    record, stages = read_neutral(run)
+    rec = record or next(iter(stages.values()), None)
+    return None if rec is None else int(rec["frame"])
+
+
+def _rest_pose(data: RunData, run: RunFiles, frames: dict, mesh_renderer) -> str | None:
+    """Section: the neutral (rest) frame, as keys.json and the stage manifests record it, and why."""
+    record, stages = read_neutral(run)
+    rec = record or next(iter(stages.values()), None)
+    if rec is None:
+        return None
+    f = int(rec["frame"])
+    body = f"<p>Neutral frame <b>{f}</b> ({html.escape(str(rec.get('source', '')))}): " \
+           f"{html.escape(str(rec.get('reason', '')))}.</p>"
+    if rec.get("at_rest") is False:
+        body += ('<p><b>No frame of the take is at rest</b>: the least expressive one is the neutral, so the '
+                 "character's rest is the actor's expression there. Film a calibration of the actor at rest "
+                 "(track.neutral) or choose the frame (neutral_frame).</p>")
+    rows = [(stage, r["frame"], r.get("source", ""), "" if r.get("reason") == rec.get("reason") else r.get("reason", ""))
+            for stage, r in stages.items()]
+    if rows:
+        body += _table(("stage", "neutral frame", "source", "why (when not as above)"), rows, num_cols=(1,))
+        if len({r["frame"] for r in stages.values()}) > 1:
+            body += "<p><b>The stages used different neutral frames.</b></p>"
+    import cv2
+
+    tiles = [_label(source_thumb(data, frames, f), f"source {f}")]
+    what = "the source frame"
+    if mesh_renderer is not None and f < data.n_character_frames:
+        img = cv2.resize(mesh_renderer.render(data.frame_vertices(f)), (THUMB, THUMB), interpolation=cv2.INTER_AREA)
+        tiles.append(_label(img, f"character {f}"))
+        what += " and the character there (at rest when the neutral is)"
+    body += _figure_html(_png_img(np.hstack(tiles)), f"Neutral frame {f}: {what}.")
+    return _section("rest", "Rest pose", body)
+
+
 def _read_keys_lenient(path: Path | None) -> dict:
     if path is None:
         return {}
@@ -869,7 +929,7 @@ def _read_keys_lenient(path: Path | None) -> dict:
 
 
 SECTION_TITLES = {
-    "summary": "Run summary", "tracking": "Tracking confidence", "keys": "Key shapes",
+    "summary": "Run summary", "tracking": "Tracking confidence", "rest": "Rest pose", "keys": "Key shapes",
     "curve": "Reconstruction error against k", "weights": "Weight curves",
     "residuals": "Residual and jitter per frame", "rig": "Cardinality and objective",
     "truth": "Against the truth",
@@ -904,6 +964,9 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
     if not keys:
         for _, fr in data.regions.values():
             need |= {int(f) for f in fr[:MAX_SHEET_KEYS]}
+    neutral = _neutral_frame(run)
+    if neutral is not None:
+        need.add(neutral)
     mesh_renderer = None
     mesh = data.mesh()
     if mesh is not None:
@@ -918,7 +981,7 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
                                          or np.shape(data.extras[n]["jitter"]) != (T,)
                                          else np.asarray(data.extras[n]["jitter"], dtype=np.float64)
                                          for n, (W, _) in data.regions.items()], axis=0), worst))
-    steps = ["frames", "summary", "tracking", "keys", "curve", "weights", "residuals", "rig", "truth"]
+    steps = ["frames", "summary", "tracking", "rest", "keys", "curve", "weights", "residuals", "rig", "truth"]
     bar_cm = progress(len(steps), "report") if progress else nullcontext(None)
     sections = []
     with bar_cm as bar:
@@ -932,6 +995,7 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
         sections.append(summary)
         done()
         for fn in (lambda: _tracking(data),
+                   lambda: _rest_pose(data, run, frames, mesh_renderer),
                    lambda: _keys_sheet(data, run, keys, frames, camera, shading),
                    lambda: _curve(run, keys),
                    lambda: _weights(data),

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
+import contextvars
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,3 +71,32 @@ def command_cache_dir(output, no_cache: bool, *, folder: bool = False) -> Path |
     if no_cache:
         return None
     return (Path(output) if folder else Path(output).parent) / ".retarget-cache"
+
+
+# --------------------------------------------------------------------------- what a stage found
+
+
+_RESULTS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("retarget_stage_results", default=None)
+
+
+@contextlib.contextmanager
+def collect_results() -> Iterator[dict]:
+    """Collect what the stage run inside the block reports (:func:`report_result`) into the dict yielded.
+
+    ``retarget run`` records it in the stage's manifest (``results``): facts a
+    stage found that are no setting, such as the neutral frame ``auto`` chose.
+    """
+    found: dict = {}
+    token = _RESULTS.set(found)
+    try:
+        yield found
+    finally:
+        _RESULTS.reset(token)
+
+
+def report_result(key: str, value) -> None:
+    """Record *value* (JSON-ready) under *key* for the stage's manifest; nothing happens outside
+    :func:`collect_results`."""
+    found = _RESULTS.get()
+    if found is not None:
+        found[key] = value

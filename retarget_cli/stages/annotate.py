@@ -12,7 +12,7 @@ import numpy as np
 from ..config import Command, Flag, Param, output_flag, validate_params
 from ..errors import InputError
 from ..io.annotations import pts_text, write_pts
-from ..io.atomic import check_not_input
+from ..io.atomic import check_not_input, sha256_file
 from ..io.frames import FrameSource, TruncatedInputError
 from ..methods.tracking.detect import Detector, detect_landmarks
 
@@ -42,17 +42,24 @@ def init_pts_path(output, frame: int) -> Path:
     return output.with_name(f"{output.stem}.init_{int(frame):05d}.pts")
 
 
-def write_pts_once(path, points) -> Path:
+def write_pts_once(path, points, *, own: dict | None = None) -> Path:
     """Write *points* (L, 2; 0-based pixels) as iBUG ``.pts`` to *path*, never replacing another file.
 
     An existing *path* is left alone when it already holds exactly these
     points (a rerun); holding anything else (for example an annotation
-    corrected by hand) it is an error.
+    corrected by hand) it is an error, unless it is still the file this tool
+    wrote there: *own* is that file's record (``{"size", "sha256"}``, from the
+    folder's output manifest, :func:`retarget_cli.io.atomic.read_output_manifest`),
+    and a file that still matches it is replaced.
     """
 
     path = Path(path)
     if path.exists():
         if path.is_file() and path.read_text(encoding="utf-8", errors="replace") == pts_text(points):
+            return path
+        if own is not None and path.is_file() and not path.is_symlink() and \
+                path.stat().st_size == own.get("size") and sha256_file(path) == own.get("sha256"):
+            write_pts(path, points)
             return path
         raise InputError(f"{path}: exists and differs from the detected annotation; refusing to overwrite it "
                          f"(track from it with --init {path}, or move it away)")

@@ -268,6 +268,8 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
                         positions=positions, head=head, regions=regions, weights=weights, targets=targets,
                         landmarks=landmarks, rig=rig, rig_file=tg.rig, curves=curves, morph_targets=glb,
                         settings={"vat": vat}, ledger=ledger)
+    for f in formats:
+        EXPORTS[f].check_context(ctx)
     exporters = [EXPORTS[f](ctx) for f in EXPORTS if f in formats]
     _stream(exporters, ctx, progress)
     for e in exporters:

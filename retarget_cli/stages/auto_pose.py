@@ -44,7 +44,9 @@ from ..methods.rigpose import (
     slider_owners,
 )
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
-from .pose import _pose_files
+from ._neutral import neutral_from_keys
+from .map_landmarks import cached_landmark_map
+from .pose import NEUTRAL_OBJ, _pose_files, targets_neutral
 
 log = logging.getLogger(__name__)
 
@@ -52,17 +54,20 @@ log = logging.getLogger(__name__)
 PARAMS = [
     Param("keys", "input", str, help="keys.json.", link="select.output"),
     Param("landmarks", "input", str, help="landmarks.npz.", link="track.output"),
-    Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs (and 'landmarks:')."),
+    Param("rig", "input", str, help="rig.yaml (a neutral OBJ plus named shape OBJs, or 'source:' a character "
+          "file; and 'landmarks:'), or a .glb/.gltf/.vrm character with morph targets."),
     Param("landmark_vertices", "input", str, None,
           "Rig vertex of each landmark (one id per line, or 'landmark vertex' pairs); default the "
-          "rig.yaml's 'landmarks:' list.", nullable=True),
+          "rig.yaml's 'landmarks:' list, else found automatically (landmark_map.txt in the output).", nullable=True),
     Param("output", "output", str, "targets",
           "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml."),
     Param("fit", "setting", str, "delta",
           "delta: the key frame's landmark displacement from neutral_frame (the actor's face shape "
           "stays out of the sliders); absolute: the landmark positions (Lewis & Anjyo eq. 3).",
           choices=("delta", "absolute")),
-    Param("neutral_frame", "setting", int, 0, "The actor's neutral frame (the rig's rest pose).", min=0),
+    Param("neutral_frame", "setting", int, "auto",
+          "The actor's neutral frame (the rig's rest pose): auto takes the one keys.json records (select's "
+          "neutral_frame), else finds the rest frame among the shared keys.", min=0, words=("auto",)),
     Param("frames", "setting", str, "all",
           "all: pose the rig at every frame (targets/curves.csv, which apply then drives it with); keys: "
           "at the key frames only, and apply interpolates their sliders by the weights (Chuang & Bregler §5).",
@@ -112,12 +117,20 @@ CONTOUR_68 = (0, 1, 2, 3, 4, 5, 11, 12, 13, 14, 15, 16)
 RIGID_68 = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)
 
 
+def no_landmark_map_error(spec, rig_path) -> InputError:
+    """The rig has no landmark map: one line naming ``retarget map-landmarks`` and the ``landmarks:`` key."""
+    where = ("in a rig.yaml with 'source: " + Path(rig_path).name + "'") if spec.path == spec.source else "in it"
+    return InputError(f"{rig_path}: the rig has no landmark map (the rig vertex of each tracked landmark; found "
+                      f"automatically for the 68-point layout only); make one "
+                      f"with 'retarget map-landmarks {rig_path} -o map.txt' and name it as 'landmarks: map.txt' "
+                      f"{where}, or pass it as --landmark-vertices (auto_pose.landmark_vertices)")
+
+
 def _rig_landmark_vertices(spec, landmark_vertices, n_points: int, n_vertices: int, rig_path):
     """(landmark ids, vertex ids) from --landmark-vertices, else from rig.yaml's ``landmarks:``."""
     source = landmark_vertices if landmark_vertices is not None else spec.landmarks
     if source is None:
-        raise InputError(f"{rig_path}: the rig does not say which vertex is each landmark; add "
-                         "'landmarks: [vertex ids]' to it or pass --landmark-vertices")
+        raise no_landmark_map_error(spec, rig_path)
     if isinstance(source, (str, os.PathLike)):
         return read_vertex_map(source, n_points, n_vertices)
     vx = np.asarray(source, dtype=np.int64)
@@ -142,7 +155,7 @@ def _mask_text(weights: np.ndarray) -> str:
 
 @validate_params(PARAMS)
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
-                  neutral_frame=0, sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
+                  neutral_frame="auto", sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=3.0, contact_weight=4.0,
                   lip_closed=0.02, lid_closed=0.15, base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
@@ -169,14 +182,6 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
     rigid_points : sequence of int, optional
         Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
-    frames : {"all", "keys"}
-        ``all``: pose every frame too, written as ``curves.csv`` and named in ``targets.yaml`` (``curves:``),
-        so ``apply`` drives the rig with them; the key frames' rows are the same poses.
-    smooth : float
-        ``frames="all"``, delta fit: λ of :func:`retarget_cli.methods.rigpose.smooth_sliders`.
-    contact_weight, lip_closed, lid_closed : float
-        Delta fit, 68 points: the lip and lid gaps as targets of their own
-        (:func:`retarget_cli.methods.rigpose.contact_targets`, :data:`~retarget_cli.methods.rigpose.CONTACT_68`).
     """
 
     if fit not in FITS:
@@ -188,9 +193,12 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
     # Everything that is cheap to check, before the rig's OBJs are read.
-    spec, kf, lm, key_frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame,
+    spec, kf, lm, key_frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out,
                                                      skip_points, rigid_points, masks, base_dir)
+    neutral = neutral_from_keys(neutral_frame, kf, lm, landmarks=landmarks) if fit == "delta" else None
     r = load_rig(rig_path, cache_dir=cache_dir)
+    if landmark_vertices is None and spec.landmarks is None and lm.n_points == 68:
+        landmark_vertices = cached_landmark_map(rig_path, r, spec, out)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
     fixed = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
@@ -198,20 +206,24 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     Cf = lm.confidence[:, lm_ids].astype(np.float64)
     posed = list(range(lm.n_frames)) if frames == "all" else key_frames
     if fit == "delta":
+        Y0 = neutral.landmarks(lm.stabilized)[lm_ids].astype(np.float64)
+        C0 = neutral.weights(lm.confidence)[lm_ids].astype(np.float64)
+        if neutral.shape is not None:  # a calibration's shape stands in for its frame's landmarks
+            Y[neutral.frame], Cf[neutral.frame] = Y0, C0
         contact, front = _contact_rows(lm_ids, lm.n_points)
         opts = dict(sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
                     ridge=DEFAULT_RIDGE if ridge is None else ridge, contact=contact, front=front,
-                    contact_refs=contact_references(Y, contact, Cf, neutral=Y[neutral_frame], lid_closed=lid_closed)
+                    contact_refs=contact_references(Y, contact, Cf, neutral=Y0, lid_closed=lid_closed)
                     if contact else None,
                     contact_weight=contact_weight, lip_closed=lip_closed, lid_closed=lid_closed,
                     smooth=smooth if frames == "all" else 0.0)
-        poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, neutral_frame, region_rows, fixed,
+        poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, (Y0, C0), region_rows, fixed,
                                                     rigid, opts)
     else:
         poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, posed, list(kf.regions), region_rows, fixed,
                                                        alpha, mu)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
-                       neutral_frame, every_frame=frames == "all")
+                       None if neutral is None else neutral.frame, every_frame=frames == "all")
 
 
 def _contact_rows(lm_ids, L: int):
@@ -230,23 +242,23 @@ def _contact_rows(lm_ids, L: int):
     return out, front
 
 
-def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, neutral_frame, skip_points, rigid_points, masks,
-                  base_dir):
-    """Checks that need no OBJ: outputs that are not inputs, key and neutral frames inside the take, landmark
+def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, skip_points, rigid_points, masks, base_dir):
+    """Checks that need no OBJ: outputs that are not inputs, key frames inside the take, landmark
     ids, masks. Returns the rig spec, the keys, the landmarks, the sorted key frames and the mask files."""
 
     spec = read_rig(rig_path)
     kf, lm = read_keys(keys), load_landmarks(landmarks)
+    if landmark_vertices is None and spec.landmarks is None and lm.n_points != 68:
+        raise no_landmark_map_error(spec, rig_path)  # the map is found automatically for 68 points only
     inputs = [keys, landmarks, rig_path, *spec.files()] + ([landmark_vertices] if landmark_vertices else [])
-    check_not_input(out / "targets.yaml", inputs)
-    check_not_input(out / "sliders.csv", inputs)
-    check_not_input(out / "curves.csv", inputs)
+    found_map = ("landmark_map.txt", "landmark_map.png") if landmark_vertices is None and spec.landmarks is None else ()
+    for name in ("targets.yaml", "sliders.csv", "curves.csv", *found_map) + ((NEUTRAL_OBJ,) if spec.neutral is None
+                                                                             else ()):
+        check_not_input(out / name, inputs)
     key_frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
     bad = [f for f in key_frames if f >= lm.n_frames]
     if bad:
         raise InputError(f"{keys}: key frame {bad[0]} is outside {landmarks} ({lm.n_frames} frames)")
-    if not 0 <= neutral_frame < lm.n_frames:
-        raise InputError(f"neutral_frame: {neutral_frame} is outside {landmarks} ({lm.n_frames} frames)")
     L = lm.n_points
     for label, pts in (("skip_points", skip_points), ("rigid_points", rigid_points)):
         if pts is not None and any(not isinstance(i, int) or not 0 <= i < L for i in pts):
@@ -277,9 +289,12 @@ def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
     return region_rows, rigid
 
 
-def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, rigid, opts):
+def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts):
     """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*:
-    poses by frame, slider owners, sliders by region."""
+    poses by frame, slider owners, sliders by region.
+
+    *neutral* is the neutral key's (landmarks (M, 2), confidence (M,)) among the mapped landmarks.
+    """
 
     exclusive = spec.exclusive
     if exclusive is None:
@@ -287,7 +302,7 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral_frame, region_rows, fixed, 
         _, DL = rig_landmarks(r, vx)
         exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
         log.info("auto-pose: inferred exclusive pairs %s", exclusive)
-    res = delta_pose(r, vx, Y[neutral_frame], Y[frames], weights=Cf[frames], neutral_weights=Cf[neutral_frame],
+    res = delta_pose(r, vx, neutral[0], Y[frames], weights=Cf[frames], neutral_weights=neutral[1],
                      regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **opts)
     owner = res["owner"]
     log.info("auto-pose: %d frames posed, landmark displacement rms %.3f px (median)", len(frames),
@@ -328,6 +343,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
     planned = [out / f"{name}/key_{f:05d}.obj" for name in names for f in kf.regions[name]["frames"]]
     planned += [out / f"masks/{name}.txt" for name in names] + [out / "sliders.csv", out / "targets.yaml"]
+    planned += [out / NEUTRAL_OBJ] if spec.neutral is None else []
     planned += [out / "curves.csv"] if every_frame else []
     regions = {}
     # a failure part-way removes the files written so far; a rerun with other keys removes the old keys' OBJs
@@ -355,17 +371,19 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
             every = sorted(poses)
             write_animation(out / "curves.csv", r.names, np.stack([poses[f] for f in every]), every)
             written.append(out / "curves.csv")
-        nrel = os.path.relpath(spec.neutral.resolve(), out.resolve())
+        nrel = targets_neutral(out, r, ledger.add)
         rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
+        where = "" if neutral_frame is None else f", neutral frame {neutral_frame}"
         write_targets(out / "targets.yaml", regions, neutral=nrel, rig=rrel, sliders="sliders.csv",
                       curves="curves.csv" if every_frame else None,
-                      comment=f"Written by retarget auto-pose ({fit} fit, neutral frame {neutral_frame}"
+                      comment=f"Written by retarget auto-pose ({fit} fit{where}"
                               + (", every frame posed" if every_frame else "") + ").")
         written.append(out / "targets.yaml")
     return written
 
 
-__all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "run_auto_pose"]
+__all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "no_landmark_map_error",
+           "run_auto_pose"]
 
 
 #: The pipeline stage (:mod:`retarget_cli.run.pipeline`).

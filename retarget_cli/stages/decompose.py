@@ -24,6 +24,7 @@ from ..methods.decomposition import (
     row_residuals,
 )
 from ._common import Stage, _require
+from ._neutral import neutral_from_keys
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +46,10 @@ PARAMS = [
     Param("upper", "setting", float, None,
           "Upper bound on every weight (bounded and ridge-clipped use 1 when null).", min=1e-6,
           nullable=True),
-    Param("neutral_frame", "setting", int, 0, "Neutral frame S_0 of formulation delta (must be a key).",
-          min=0),
+    Param("neutral_frame", "setting", int, "auto",
+          "Neutral frame S_0 of formulation delta (must be a key of every region): auto takes the one "
+          "keys.json records (select's neutral_frame), else finds the rest frame among the shared keys.",
+          min=0, words=("auto",)),
     Param("confidence", "setting", bool, True, "Weight each landmark by its tracking confidence."),
     Param("lost_fraction", "setting", float, 0.5,
           "A region is lost in a frame when more than this fraction of its landmarks is lost; "
@@ -63,7 +66,7 @@ PARAMS = [
 
 @validate_params(PARAMS)
 def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formulation="whole", alpha=None, upper=None,
-                  neutral_frame=0, confidence=True, lost_fraction=0.5, smooth_space="shape",
+                  neutral_frame="auto", confidence=True, lost_fraction=0.5, smooth_space="shape",
                   robust=1.0) -> list[Path]:
     """Weights over the key shapes for every frame and region; writes ``weights.npz``.
 
@@ -85,19 +88,18 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formu
         prefetch_kernel((peek_frames(landmarks) or 0) * n_keys, weighted=confidence)
     lm = load_landmarks(landmarks)
     stab, conf = lm.stabilized, lm.confidence  # float32; a region's rows become float64 once, below
-    T = lm.n_frames
-    if formulation == "delta" and not 0 <= neutral_frame < T:
-        raise InputError(f"neutral_frame: frame {neutral_frame} is outside the take ({T} frames in {landmarks})")
+    neutral = neutral_from_keys(neutral_frame, kf, lm, landmarks=landmarks) if formulation == "delta" else None
     regions, extras, diagnostics = {}, {}, {}
     for name, reg in kf.regions.items():
         regions[name], extras[name], diagnostics[name] = _decompose_region(
             name, reg, lm, stab, conf, landmarks=landmarks, keys=keys, solver=solver, formulation=formulation,
-            alpha=alpha, upper=upper, neutral_frame=neutral_frame, confidence=confidence,
+            alpha=alpha, upper=upper, neutral=neutral, confidence=confidence,
             lost_fraction=lost_fraction, smooth_space=smooth_space, robust=robust)
     meta = {"solver": solver, "formulation": formulation, "alpha": alpha, "upper": upper,
             "smooth_space": smooth_space if solver in ("temporal", "temporal-causal") else None,
             "robust": robust if solver == "temporal" else None,
-            "neutral_frame": neutral_frame if formulation == "delta" else None, "confidence": confidence,
+            "neutral_frame": None if neutral is None else neutral.frame,
+            "neutral": None if neutral is None else neutral.record, "confidence": confidence,
             "fps": lm.fps, "landmarks": Path(landmarks).name, "diagnostics": diagnostics}
     save_weights(output, regions, meta, extras)
     written = [Path(output)]
@@ -108,9 +110,12 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formu
 
 
 
-def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, formulation, alpha, upper, neutral_frame,
+def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, formulation, alpha, upper, neutral,
                       confidence, lost_fraction, smooth_space, robust):
     """One region's weights (T, K) with its lost frames interpolated; its extras and diagnostics.
+
+    With formulation delta, *neutral* (:class:`~retarget_cli.stages._neutral.Neutral`) is S_0: its frame's
+    key column holds 1 - the others' sum, and a calibration's shape stands in for that key's landmarks.
 
     Returns
     -------
@@ -154,33 +159,37 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     weight = np.repeat(np.where(lost_pt, 0.0, C if confidence else 1.0), 2, axis=1)
     del C
     kw = {}
+    K = X[frames]
     if formulation == "delta":
-        if neutral_frame not in reg["frames"]:
-            raise InputError(f"{keys}: region {name!r}: formulation 'delta' needs neutral_frame {neutral_frame} "
+        if neutral.frame not in reg["frames"]:
+            raise InputError(f"{keys}: region {name!r}: formulation 'delta' needs neutral_frame {neutral.frame} "
                              f"among the key frames {reg['frames']} (set decompose.neutral_frame to one of them)")
-        kw["neutral"] = X[neutral_frame]
+        j = reg["frames"].index(neutral.frame)
+        if neutral.shape is not None:  # a calibration's rest shape is the neutral key
+            K = K.copy()
+            K[j] = np.asarray(neutral.shape, dtype=np.float64)[pts].reshape(-1)
+        kw["neutral"] = K[j]
     try:
-        W, res = decompose(X, X[frames], solver=solver, formulation=formulation, alpha=alpha, upper=upper,
+        W, res = decompose(X, K, solver=solver, formulation=formulation, alpha=alpha, upper=upper,
                          confidence=None if np.all(weight == 1) else weight, smooth_space=smooth_space,
                          robust=robust, **kw)
     except ValueError as exc:
         raise InputError(f"{keys}: region {name!r}: {exc}") from exc
     if formulation == "delta":
-        j = reg["frames"].index(neutral_frame)
         W[:, j] = 1.0 - (W.sum(1) - W[:, j])
     if lost.any():
         W = interpolate_lost(W, lost)
         log.warning("region %s: lost in %d of %d frames (first: %d); weights interpolated",
                     name, int(lost.sum()), T, int(np.flatnonzero(lost)[0]))
     if lost.any() or formulation == "delta":  # (else decompose's residual is this one already)
-        res = row_residuals(X, W, X[frames])
+        res = row_residuals(X, W, K)
     card = cardinality(W)
     diagnostics = {  # 6 significant digits keep the JSON short and deterministic
         "mean_residual_px": float(f"{res[~lost].mean() / np.sqrt(len(pts)):.6g}"),
         "mean_cardinality": float(f"{card.mean():.6g}"),
         "jitter": float(f"{jitter(W):.6g}"),
         # mesh-space jitter: mean acceleration of the reconstructed landmarks, and of the input ones
-        "shape_jitter_px": float(f"{mean_acceleration(W @ X[frames]):.6g}"),
+        "shape_jitter_px": float(f"{mean_acceleration(W @ K):.6g}"),
         "input_jitter_px": float(f"{mean_acceleration(X[:, ~lost_pt.all(0).repeat(2)]):.6g}"),
         "lost_frames": int(lost.sum()),
     }

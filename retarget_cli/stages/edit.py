@@ -12,7 +12,7 @@ from ..config import Command, Flag, Param, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, sha256_file, tracked_outputs
 from ..io.editfiles import edits_rig, read_animation, read_edits, write_animation
-from ..io.obj import FRAME_RE, count_vertices, write_obj
+from ..io.obj import FRAME_RE, write_obj
 from ..io.rig import load_rig, read_rig
 from ..methods.editing import apply_edits
 from ._common import NO_CACHE, NO_CACHE_FLAG, _no_progress, _require, command_cache_dir
@@ -24,7 +24,8 @@ PARAMS = [
     Param("animation", "input", str, help="Rig weights over time (CSV or NPZ)."),
     Param("edits", "input", str, help="edits.yaml: pins and attenuations over frame ranges."),
     Param("output", "output", str, help="Edited weights (.csv or .npz, same layout as ANIMATION)."),
-    Param("rig", "input", str, None, "rig.yaml (default: the 'rig:' named in EDITS).", nullable=True),
+    Param("rig", "input", str, None, "rig.yaml, or a .glb/.gltf/.vrm character (default: the 'rig:' named in "
+          "EDITS).", nullable=True),
     Param("objs", "output", str, None,
           "Also write the posed OBJ sequence (frame_00000.obj, ...) into this directory.", nullable=True),
 ]
@@ -77,8 +78,9 @@ def run_edit(*, animation, edits, output, rig=None, objs=None, progress=_no_prog
         hint = closest(unknown[0], list(spec.shapes))
         raise InputError(f"{animation}: slider {unknown[0]!r} is not a shape of {rig_path}"
                          + (f"; did you mean {hint!r}?" if hint else ""))
-    _require(spec.neutral, "neutral OBJ of the rig")
-    todo = read_edits(edits, n_vertices=count_vertices(spec.neutral), frames=frames,
+    if spec.neutral is not None:
+        _require(spec.neutral, "neutral OBJ of the rig")
+    todo = read_edits(edits, n_vertices=spec.vertex_count(), frames=frames,
                       expressions=[str(e) for e in spec.library])
     r = load_rig(rig_path, cache_dir=cache_dir)
     order = names + [n for n in r.names if n not in names]

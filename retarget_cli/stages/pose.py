@@ -11,17 +11,22 @@ import numpy as np
 from ..config import Command, Flag, Param, check_masks, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, load_npz, tracked_outputs
-from ..io.obj import count_vertices, write_obj
+from ..io.obj import write_obj
 from ..io.rig import load_rig, read_rig
 from ..io.stagefiles import read_keys, read_vertex_mask, write_targets
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
 
 log = logging.getLogger(__name__)
 
+#: The neutral that ``pose-keys`` and ``auto-pose`` write beside the keys when the rig has no neutral OBJ
+#: (a rig read from a ``.glb``/``.gltf``/``.vrm``), so that ``targets.yaml`` names one.
+NEUTRAL_OBJ = "neutral.obj"
+
 #: Declared parameters of ``pose`` (YAML validation, CLI options, manifests, docs/config.md).
 PARAMS = [
     Param("keys", "input", str, help="keys.json.", link="select.output"),
-    Param("rig", "input", str, help="rig.yaml: neutral OBJ plus named shape OBJs."),
+    Param("rig", "input", str, help="rig.yaml (a neutral OBJ plus named shape OBJs, or 'source:' a character "
+          "file), or a .glb/.gltf/.vrm character with morph targets."),
     Param("poses", "input", str, help="NPZ with 'curves' (T, E) and 'names' (E,)."),
     Param("output", "output", str, "targets", "Directory for the key OBJs and targets.yaml."),
     Param("masks", "setting", dict, None,
@@ -64,12 +69,14 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=N
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")
     planned = [out / f"{name}/key_{f:05d}.obj" for name, reg in kf.regions.items() for f in reg["frames"]]
+    planned += [out / NEUTRAL_OBJ] if spec.neutral is None else []
     inputs = [keys, rig_path, poses, *spec.files(), *mask_files.values()]
     for o in [*planned, out / "targets.yaml"]:
         check_not_input(o, inputs)
     if mask_files:
-
-        n_vertices = count_vertices(_require(spec.neutral, "neutral OBJ of the rig"))
+        if spec.neutral is not None:
+            _require(spec.neutral, "neutral OBJ of the rig")
+        n_vertices = spec.vertex_count()
         for mask in mask_files.values():
             read_vertex_mask(mask, n_vertices)
     rig = load_rig(rig_path, cache_dir=cache_dir)
@@ -84,7 +91,8 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=N
                 w[cols] = curves[f]
                 write_obj(written.add(out / rel), rig.template, rig.evaluate(w))
                 regions[name]["keys"][f] = rel
-        written.add(_write_targets_yaml(out, kf, keys, regions, masks, base_dir, rig_path, "pose-keys"))
+        neutral = targets_neutral(out, rig, written.add)
+        written.add(_write_targets_yaml(out, kf, keys, regions, masks, base_dir, neutral, "pose-keys"))
     return written.written
 
 
@@ -102,13 +110,21 @@ def _check_masks(kf, keys, masks, base_dir) -> dict:
     return {name: _require(Path(base_dir or ".") / mask, "region mask") for name, mask in masks.items()}
 
 
-def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, rig_path, command) -> Path:
-    """Add the region masks to *regions* and write ``out/targets.yaml`` (neutral = the rig's)."""
+def targets_neutral(out: Path, rig, add) -> str:
+    """``targets.yaml``'s ``neutral:`` relative to *out*: the rig's neutral OBJ, or, for a rig read from a
+    character file (no neutral OBJ), :data:`NEUTRAL_OBJ` written into *out* (passed to *add*) from the rig."""
+    if rig.spec.neutral is not None:
+        return os.path.relpath(rig.spec.neutral.resolve(), out.resolve())
+    write_obj(add(out / NEUTRAL_OBJ), rig.template, rig.neutral)
+    return NEUTRAL_OBJ
+
+
+def _write_targets_yaml(out: Path, kf, keys, regions, masks, base_dir, neutral: str, command) -> Path:
+    """Add the region masks to *regions* and write ``out/targets.yaml`` (*neutral* relative to *out*)."""
 
     for name, mask in _check_masks(kf, keys, masks, base_dir).items():
         regions[name]["vertices"] = os.path.relpath(mask.resolve(), out.resolve())
-    nrel = os.path.relpath(read_rig(rig_path).neutral.resolve(), out.resolve())
-    write_targets(out / "targets.yaml", regions, neutral=nrel, comment=f"Written by retarget {command}.")
+    write_targets(out / "targets.yaml", regions, neutral=neutral, comment=f"Written by retarget {command}.")
     return out / "targets.yaml"
 
 

@@ -16,6 +16,7 @@ from ..io.stagefiles import write_keys, write_targets
 from ..methods.regions import region_specs
 from ..methods.selection import curve_winner, evaluation_curve, key_error, select_keys
 from ._common import Stage, _no_progress, _require
+from ._neutral import choose_neutral
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +40,11 @@ PARAMS = [
     Param("kmeans_components", "setting", int, 2, "Principal components clustered by kmeans.",
           min=1, max=10),
     Param("evaluate_k", "setting", int, 40, "Largest k of the evaluation curve.", min=2, max=1000),
-    Param("neutral_frame", "setting", int, 0,
-          "Frame always kept as a key (the actor at rest); null to let the method choose all k.",
-          min=0, nullable=True),
+    Param("neutral_frame", "setting", int, "auto",
+          "Frame always kept as a key, the actor at rest: auto finds it (the calibration of track.neutral "
+          "when there is one, else the take's frame with closed lips and open eyes nearest its most common "
+          "shape; recorded in keys.json for decompose and auto_pose); null to let the method choose all k.",
+          min=0, nullable=True, words=("auto",)),
     Param("regions", "setting", dict, None,
           "Region name to 'all', landmark indices, null (68-point preset: brows-eyes, mouth, face) "
           "or {points, k} (default: face: all).", nullable=True, validate=check_regions),
@@ -53,7 +56,7 @@ TEMPLATE_MARK = "# targets.yaml template written by retarget select.\n"
 
 @validate_params(PARAMS)
 def run_select(*, landmarks, output, template=None, method="greedy", k=12, regions=None,
-               neutral_frame=0, kmeans_components=2, evaluate=None, plot=None, evaluate_k=40,
+               neutral_frame="auto", kmeans_components=2, evaluate=None, plot=None, evaluate_k=40,
                contact_sheet=None, video=None, seed=0, progress=_no_progress) -> list[Path]:
     """Choose key frames per region; write ``keys.json`` and a ``targets.yaml`` template.
 
@@ -61,6 +64,8 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     of the winner at each region's k (*evaluate* with suffix ``.json``) and,
     with *plot*, the curves as a picture (Fig. 6 of Chuang & Bregler 2002).
     With *contact_sheet*, the key frames cropped from *video* with their landmarks.
+    *neutral_frame* (a frame, ``"auto"`` or None) is resolved by
+    :func:`retarget_cli.stages._neutral.choose_neutral` and recorded in ``keys.json``.
     """
 
     landmarks = _require(landmarks, "landmarks file")
@@ -75,9 +80,8 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
         raise InputError(f"{contact_sheet}: a contact sheet needs the video (--video, or select.video)")
     lm = load_landmarks(landmarks)
     stab = lm.stabilized.astype(np.float64)
-    include = () if neutral_frame is None else (neutral_frame,)
-    if neutral_frame is not None and neutral_frame >= lm.n_frames:
-        raise InputError(f"neutral_frame: frame {neutral_frame} is outside the take ({lm.n_frames} frames in {landmarks})")
+    neutral = choose_neutral(neutral_frame, lm, landmarks=landmarks)
+    include = () if neutral is None else (neutral.frame,)
     specs = region_specs(regions, lm.n_points, k)
     result, tmpl, curves, chosen_k = {}, {}, {}, {}
     with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
@@ -101,7 +105,7 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
             result[name] = {"points": idx, "method": method, "frames": [int(f) for f in frames], "error": round(err, 6)}
             tmpl[name] = {"keys": {int(f): f"target/{name}/key_{int(f):05d}.obj" for f in frames}}
             log.info("region %s: keys %s, E = %.4g (eq. 5)", name, result[name]["frames"], err)
-    write_keys(output, landmarks, result)
+    write_keys(output, landmarks, result, None if neutral is None else neutral.record)
     written = [Path(output)]
     if template:
         t = Path(template)

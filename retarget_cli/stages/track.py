@@ -2,21 +2,24 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from pathlib import Path
 
 import numpy as np
 
+from .._validate import check_name
 from ..config import Command, Flag, Param, check_indices, check_size, check_strings, output_flag, validate_params
 from ..errors import FaceLostError, InputError, ParameterError, TruncatedInputError
 from ..io.annotations import read_annotations, read_csv_landmarks
-from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file
+from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file, tracked_outputs
 from ..io.facemark_model import load_facemark, save_lbf_model
-from ..io.frames import FrameSource, is_sequence, sequence_files
+from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
 from ..io.landmarks import Landmarks, save_landmarks
 from ..io.overlay import write_overlay
+from ..methods.neutral import align_shape, find_rest_frame
 from ..methods.tracking import TRACKERS, method_choices, method_help, tracker_params
-from ..methods.tracking.base import check_inside
+from ..methods.tracking.base import check_inside, to_gray
 from ..methods.tracking.detect import Detector, detector_installed
 from ..methods.tracking.facemark import train_lbf
 from ..methods.tracking.head import apply_similarity, estimate_head, invert_similarity
@@ -41,6 +44,10 @@ PARAMS = [
     Param("overlay", "output", str, None,
           "Also write an mp4 with the landmarks (coloured by confidence) and the head frame.",
           nullable=True),
+    Param("neutral", "input", str, None,
+          "A calibration image (png, jpg, exr), image sequence or clip of the actor at rest, tracked like the "
+          "take (its first frame annotated by the detector where the method needs an annotation); its rest "
+          "shape, aligned to the take, is the neutral key of neutral_frame auto.", nullable=True),
     Param("annotations", "setting", list, None,
           "More annotated frames (.pts named like face_00120.pts, or CSV); each re-anchors the track.",
           nullable=True, validate=check_strings),
@@ -122,7 +129,8 @@ def _all_track_params() -> list:
 @validate_params(_all_track_params)
 def run_track(*, video, init=None, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
               rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
-              fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, base_dir=None,
+              fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, neutral=None,
+              base_dir=None,
               progress=_no_progress, filter=FILTER_DEFAULTS["filter"], filter_model=FILTER_DEFAULTS["filter_model"],
               filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
               filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
@@ -147,7 +155,9 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     (``filter``, ``filter_*``; :mod:`retarget_cli.stages._landmark_filter`): the
     points are filtered before the head motion is estimated, and the tracker's
     own points are kept as ``points_raw``. Annotated frames keep their given
-    points and anchor the filter.
+    points and anchor the filter. *neutral*: a calibration image or clip of
+    the actor at rest, tracked the same way (:func:`_track_neutral`); its
+    rest shape is stored as the landmarks' ``neutral``.
     """
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
@@ -166,7 +176,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     _warn_unused(spec, method, tracker_settings, model)
     # gray trackers get grayscale frames, converted in the decoding thread
     with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=spec.gray) as source:
-        init_out = _check_track_outputs(source, given, output, overlay, start, need_auto)
+        calib = [] if neutral is None else (sequence_files(neutral) if is_sequence(neutral) else [Path(neutral)])
+        init_out = _check_track_outputs(source, given + calib, output, overlay, start, need_auto)
         W, H = source.frame_size
         it = iter(source)
         ahead = []
@@ -181,13 +192,17 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
         files = source.files()
     if need_auto and "detector" in spec.needs:
-        write_pts_once(init_out, points[0])
+        write_auto_init(init_out, points[0])
     points, raw, fmeta = apply_filter(points, conf, fps=source.fps, settings=fset, where=str(video),
                                       anchors=[i for i in index if i < len(points)])
     head, stab = estimate_head(points, conf, rigid_points=rigid_points)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
+    calibration = None
+    if neutral is not None:
+        calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
+                                     fps=fps)
     meta = {
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
@@ -203,8 +218,12 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     }
     if "model" in objects:
         meta["model"], meta["model_sha256"] = Path(model).name, sha256_file(model)
+    if calibration is not None:
+        meta["neutral"] = calibration[2]
     save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
-                                     frames=frame_numbers, points_raw=raw))
+                                     frames=frame_numbers, points_raw=raw,
+                                     neutral=None if calibration is None else calibration[0],
+                                     neutral_confidence=None if calibration is None else calibration[1]))
     written = [Path(output)] + ([init_out] if init_out else [])
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
     if overlay:
@@ -212,6 +231,75 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
                              progress=progress)
         written.append(Path(overlay))
     return written
+
+
+#: At most this many frames of a calibration clip (track.neutral) are tracked.
+CALIBRATION_MAX_FRAMES = 900
+
+
+def _calibration_frames(neutral, spec, fps) -> tuple[list, list]:
+    """The frames of a calibration (a single image, an image sequence or a clip) and the files read."""
+    path = Path(neutral)
+    if path.suffix.lower() in IMAGE_SUFFIXES and not is_sequence(path):
+        img = read_image(_require(path, "calibration image"))
+        return [to_gray(img) if spec.gray else img], [path]
+    with FrameSource(path, end=CALIBRATION_MAX_FRAMES, fps=fps, gray=spec.gray) as source:
+        frames = []
+        try:
+            frames.extend(source)
+        except TruncatedInputError as exc:
+            if not frames:
+                raise
+            log.warning("%s; using the %d calibration frames read", exc, len(frames))
+        if source.frame_count > CALIBRATION_MAX_FRAMES:
+            log.info("%s: the first %d of %d frames used as the calibration", path, CALIBRATION_MAX_FRAMES,
+                     source.frame_count)
+        return frames, source.files()
+
+
+def _track_neutral(neutral, spec, objects, settings, stab, conf, *, rigid_points, fps):
+    """Track the calibration *neutral* like the take; its rest shape aligned to the take (the neutral key).
+
+    The calibration's rest frame is found as the take's would be
+    (:func:`~retarget_cli.methods.neutral.find_rest_frame`; a single image is its own), and its landmarks are
+    mapped into the take's stabilized coordinates by a similarity on the rigid points
+    (:func:`~retarget_cli.methods.neutral.align_shape`).
+
+    Returns
+    -------
+    shape : ndarray (L, 2), confidence : ndarray (L,), meta : dict
+    """
+    frames, files = _calibration_frames(neutral, spec, fps)
+    objects = dict(objects)
+    index = {}
+    if "detector" not in spec.needs:  # the tracker needs its first frame annotated: the detector does it
+        if "detector" not in objects:
+            objects["detector"] = Detector()
+        index[0] = detect_frame(frames[0], detector=objects["detector"], where=f"{neutral}: frame 0")
+    track = spec.load()
+    kw = {k: settings[k] for k in spec.settings} | {k: objects[k] for k in spec.needs}
+    try:
+        points, cconf = track(iter(frames), index, progress=lambda t: None, **kw)
+    except (FaceLostError, ValueError) as exc:
+        raise InputError(f"{neutral}: the calibration could not be tracked ({exc})") from None
+    if points.shape[1] != stab.shape[1]:
+        raise InputError(f"{neutral}: tracked {points.shape[1]} points, the take has {stab.shape[1]}")
+    _, cstab = estimate_head(points, cconf, rigid_points=rigid_points)
+    try:
+        choice = find_rest_frame(cstab, cconf)
+        ok = np.isfinite(stab).all(axis=(1, 2))
+        shape = align_shape(choice.shape, np.median(np.asarray(stab, np.float64)[ok], axis=0),
+                            rigid_points=rigid_points)
+    except ValueError as exc:
+        raise InputError(f"{neutral}: {exc}") from None
+    if not choice.at_rest:
+        log.warning("%s: the calibration is not at rest: %s", neutral, choice.reason)
+    reason = "one image" if len(points) == 1 else f"{len(points)} frames; {choice.reason}"
+    meta = {"file": Path(neutral).name, "sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
+            "frames": int(len(points)), "frame": int(choice.frame), "at_rest": bool(choice.at_rest),
+            "reason": reason}
+    log.info("%s: calibration rest shape from %s", neutral, reason)
+    return shape, np.asarray(choice.confidence, dtype=np.float64), meta
 
 
 def _tracker(method: str):
@@ -260,14 +348,49 @@ def _warn_unused(spec, method, settings: dict, model) -> None:
 
 
 def _check_track_outputs(source, given, output, overlay, start, need_auto):
-    """Refuse outputs that are inputs; the path of the automatic annotation (or None)."""
+    """Refuse outputs that are inputs; the path of the automatic annotation (or None).
+
+    The outputs are checked against one another without being protected as inputs: a rerun writes
+    over its own landmarks file (``check_not_input`` would add it to the run's write guard).
+    """
 
     check_not_input(output, source.files() + given)
     if overlay:
         check_not_input(overlay, source.files() + given)
     init_out = init_pts_path(output, start) if need_auto else None
     if init_out is not None:
-        check_not_input(init_out, source.files() + given + [output] + ([overlay] if overlay else []))
+        check_not_input(init_out, source.files() + given)
+        same = [p for p in (output, overlay) if p is not None and Path(p).resolve() == init_out.resolve()]
+        if same:
+            raise InputError(f"{same[0]}: is also where the automatic annotation goes ({init_out}); "
+                             "choose another output path")
+    return init_out
+
+
+def _init_owner(init_out: Path) -> str:
+    """The owner name of the output manifest that lists the automatic annotations of one landmarks file."""
+    stem = init_out.name.split(".init_")[0]
+    try:
+        return check_name(f"track-{stem}", "owner")
+    except InputError:
+        return "track-" + hashlib.sha256(stem.encode()).hexdigest()[:12]
+
+
+def write_auto_init(init_out: Path, points) -> Path:
+    """Write the automatic annotation *init_out*, recorded in its folder's output manifest.
+
+    The annotation is an output of this run, not an input: a file an earlier
+    ``track`` wrote there and that nobody changed since is replaced when the
+    tracking settings give other points (a rerun with ``--force`` or another
+    setting); one changed by hand is not (:func:`~.annotate.write_pts_once`).
+    Annotations of other start frames written earlier for the same landmarks
+    file, unchanged since, are removed.
+    """
+
+    init_out = Path(init_out)
+    with tracked_outputs(init_out.parent, _init_owner(init_out)) as ledger:
+        write_pts_once(init_out, points, own=ledger.before.get(init_out.name))
+        ledger.add(init_out)
     return init_out
 
 
@@ -277,7 +400,7 @@ def _auto_annotate(it, source, start, detector, init_out, ann, src):
     frame = next(it)  # an undecodable video raises TruncatedInputError (an InputError) here
     ann[start] = detect_frame(frame, detector=detector, where=f"{source.path}: frame {start}")
     src[start] = init_out
-    write_pts_once(init_out, ann[start])
+    write_auto_init(init_out, ann[start])
     log.info("%s: frame %d annotated by the detector; wrote %s", source.path, start, init_out)
     return frame
 
@@ -518,7 +641,7 @@ def _track_files(kw) -> list[Path]:
 
 
 def _track_expand(name, path) -> list[Path]:
-    return sequence_files(path) if name == "video" and is_sequence(path) else [path]
+    return sequence_files(path) if name in ("video", "neutral") and is_sequence(path) else [path]
 
 
 #: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
@@ -565,6 +688,7 @@ _TRACK_FLAGS = (
     output_flag("landmarks.npz", "Landmarks file.", required=False),
     Flag("overlay", path="file", show_default=False,
          help="Also write an mp4 with the landmarks (green = confident, red = lost) and the head frame."),
+    Flag("neutral", path="file", show_default=False, metavar="IMAGE_OR_CLIP"),
     "method", "fuse", Flag("model", path="file"), "window", "levels", "fb_threshold", "anchor", "start", "end",
     "step", "downscale", "fps", "smooth_head",
     Flag("rigid_points", decls=("--rigid-points",), value="indices", metavar="SPEC", show_default=False,

@@ -133,6 +133,61 @@ def test_config_without_init_annotates_automatically(real_clip, tmp_path):
     assert [s for _, s, _ in run_pipeline(cfg)] == ["skipped"]
 
 
+@needs_dlib
+def test_rerun_with_init_auto_tracks_again_in_place(real_clip, tmp_path):
+    """Issue 27 item 6: --force and a changed tracking setting rerun track over its own landmarks and annotation."""
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(f"output_dir: out\ntrack: {{video: {real_clip / 'd3.avi'}, init: auto, method: detect, end: 8}}\n")
+    out, pts = tmp_path / "out" / "landmarks.npz", tmp_path / "out" / "landmarks.init_00000.pts"
+    assert run("run", cfg).exit_code == 0
+    first = pts.read_text()
+    r = run("run", cfg, "--force")
+    assert r.exit_code == 0 and "track: ran" in r.output, r.output
+    r = run("run", cfg, "--set", "track.fuse=false")  # another setting: frame 0's points, so the .pts, change
+    assert r.exit_code == 0 and "track: ran" in r.output, r.output
+    assert pts.read_text() != first
+    lm = load_landmarks(out)
+    assert np.allclose(read_pts(pts), lm.points[0] if lm.points_raw is None else lm.points_raw[0], atol=1e-3)
+    pts.write_text(pts.read_text() + "\n")  # corrected by hand: now the user's, never overwritten
+    r = run("-q", "run", cfg, "--force")
+    assert r.exit_code == 1 and "refusing to overwrite" in r.output and str(pts) in r.output, r.output
+
+
+@needs_dlib
+def test_a_calibration_image_is_the_neutral_of_a_take_that_starts_elsewhere(real_clip, tmp_path):
+    """Issue 27 item 2: track.neutral, a separate image of the actor at rest, tracked like the take."""
+    from retarget_cli.methods.neutral import face_openings
+
+    cap = cv2.VideoCapture(str(real_clip / "d3.avi"))
+    ok, frame = cap.read()  # frame 0: at rest (the take below starts at frame 20)
+    cap.release()
+    assert ok and cv2.imwrite(str(tmp_path / "calm.png"), frame)
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(f"output_dir: out\ntrack: {{video: {real_clip / 'd3.avi'}, start: 20, method: detect, "
+                   "neutral: calm.png}\nselect: {k: 6, regions: {brows-eyes: null, mouth: null}}\n"
+                   "decompose: {formulation: delta}\n")
+    r = run("run", cfg)
+    assert r.exit_code == 0, r.output
+    lm = load_landmarks(tmp_path / "out" / "landmarks.npz")
+    assert lm.neutral.shape == (68, 2) and lm.meta["neutral"]["file"] == "calm.png"
+    assert lm.meta["neutral"]["frames"] == 1
+    keys = json.loads((tmp_path / "out" / "keys.json").read_text())
+    assert keys["neutral"]["source"] == "calibration" and "calm.png" in keys["neutral"]["reason"]
+    np.testing.assert_allclose(keys["neutral"]["shape"], lm.neutral, atol=1e-3)
+    man = json.loads((tmp_path / "out" / ".retarget" / "decompose.json").read_text())
+    assert man["results"]["neutral"]["source"] == "calibration"
+    man = json.loads((tmp_path / "out" / ".retarget" / "track.json").read_text())
+    assert any(p.endswith("calm.png") for p in man["inputs"])  # an input: a new calibration reruns track
+    # the calibration's lips and lids, in the take's coordinates, are frame 0's
+    full = tmp_path / "full.npz"
+    assert run("track", real_clip / "d3.avi", "--method", "detect", "--end", 2, "-o", full).exit_code == 0
+    want, got = face_openings(load_landmarks(full).stabilized[:1]), face_openings(lm.neutral[None])
+    for k in want:
+        assert abs(got[k][0] - want[k][0]) < 0.02, (k, got[k], want[k])
+    iod = np.linalg.norm(lm.stabilized[:, 36] - lm.stabilized[:, 45], axis=1).mean()
+    assert abs(np.linalg.norm(lm.neutral[36] - lm.neutral[45]) / iod - 1) < 0.05  # the take's scale
+
+
 def test_init_auto_in_a_config_names_no_file(tmp_path):
     cfg_path = tmp_path / "config.yaml"
     cfg_path.write_text("track: {video: v.mp4, init: auto}\n")

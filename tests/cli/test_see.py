@@ -188,8 +188,8 @@ def test_report_is_self_contained_valid_html_with_one_figure_per_section(ran_tak
     # every section with data; no E-vs-k curve in this run, so it is omitted; decompose's
     # per-frame cardinality (weights.npz <region>_cardinality) fills the cardinality section
     # the take is synthetic (truth.npz beside the video): the truth section too
-    assert c.sections == {"summary": 1, "tracking": 1, "keys": 1, "weights": 1, "residuals": 1, "rig": 1,
-                          "truth": 1}
+    assert c.sections == {"summary": 1, "tracking": 1, "rest": 1, "keys": 1, "weights": 1, "residuals": 1,
+                          "rig": 1, "truth": 1}
     assert "Worst frames" in text and "source frame" in text and "target frame" in text
     # deterministic: same run, same bytes
     out2 = tmp_path / "again.html"
@@ -213,8 +213,8 @@ def test_report_adds_curve_and_rig_sections_when_their_data_exists(ran_take, tmp
     assert result.exit_code == 0, result.output
     c = check_html(out.read_text(encoding="utf-8"))
     # the copied run does not find its video, so neither the truth beside it
-    assert c.sections == {"summary": 1, "tracking": 1, "keys": 1, "curve": 1, "weights": 1, "residuals": 1,
-                          "rig": 1}
+    assert c.sections == {"summary": 1, "tracking": 1, "rest": 1, "keys": 1, "curve": 1, "weights": 1,
+                          "residuals": 1, "rig": 1}
 
 
 def test_report_of_weights_alone_omits_what_is_missing(ran_take, tmp_path):

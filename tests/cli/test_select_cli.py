@@ -61,10 +61,12 @@ def test_frames_with_lost_landmarks_are_left_out_of_selection(small_take, tmp_pa
     points = load_npz(small_take / "truth_landmarks.npz")["points"].copy()
     points[[7, 30], 50] = np.nan  # a mouth landmark lost in two frames
     savez(tmp_path / "lost.npz", {"points": points})
-    run_select(landmarks=tmp_path / "lost.npz", output=tmp_path / "keys.json", method="greedy", k=6)
+    run_select(landmarks=tmp_path / "lost.npz", output=tmp_path / "keys.json", method="greedy", k=6, neutral_frame=0)
     frames = read_keys(tmp_path / "keys.json").regions["face"]["frames"]
     assert len(frames) == 6 and 7 not in frames and 30 not in frames and 0 in frames
     points[0, 50] = np.nan
     savez(tmp_path / "lost0.npz", {"points": points})
     with pytest.raises(InputError, match="neutral frame 0 has lost"):
-        run_select(landmarks=tmp_path / "lost0.npz", output=tmp_path / "keys.json", k=6)
+        run_select(landmarks=tmp_path / "lost0.npz", output=tmp_path / "keys.json", k=6, neutral_frame=0)
+    run_select(landmarks=tmp_path / "lost0.npz", output=tmp_path / "keys.json", k=6)  # auto: a frame with them all
+    assert read_keys(tmp_path / "keys.json").neutral["frame"] not in (0, 7, 30)

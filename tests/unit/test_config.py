@@ -60,3 +60,31 @@ def test_every_stage_param_default_passes_its_own_check():
         for p in stage.params:
             if not p.required:
                 assert p.check(p.default, f"{stage.name}.{p.name}") == p.default
+
+
+@pytest.mark.parametrize("kind, text", [
+    ("config", "select: {k: 16, regions: {mouth: null}}\nselect: {k: 4}\n"),
+    ("rig", "neutral: n.obj\nshapes: {jawOpen: a.obj, jawOpen: b.obj}\n"),
+    ("targets", "version: 1\nversion: 1\n"),
+    ("edits", "edits:\n  - pin: {frames: 3, frames: 4}\n"),
+    ("shots", "shots:\n  - {name: a, config: c.yaml}\nshots: []\n"),
+])
+def test_a_key_given_twice_is_refused_in_every_yaml_kind(tmp_path, kind, text):
+    """PyYAML keeps the last of two equal keys silently (a second select: section replaced the first)."""
+    from retarget_cli.batch.plan import load_plan
+    from retarget_cli.config import load_config
+    from retarget_cli.errors import RetargetError
+    from retarget_cli.io.editfiles import read_edits
+    from retarget_cli.io.rig import read_rig
+    from retarget_cli.io.stagefiles import read_targets
+    from retarget_cli.run.pipeline import stage_params
+
+    path = tmp_path / f"{kind}.yaml"
+    path.write_text(text)
+    read = {"config": lambda p: load_config(p, stage_params()), "rig": read_rig, "targets": read_targets,
+            "edits": lambda p: read_edits(p, n_vertices=10, frames=list(range(10))),
+            "shots": load_plan}[kind]
+    with pytest.raises(RetargetError) as err:
+        read(path)
+    msg = str(err.value)
+    assert "\n" not in msg and f"{path}:" in msg and "given twice" in msg, msg

@@ -243,7 +243,8 @@ class GltfFile:
         except (binascii.Error, ValueError):
             raise self.error(f"{where}: the data: URI is not valid base64") from None
 
-    def _external(self, uri: str, where: str, length: int) -> bytes:
+    def _external_path(self, uri: str, where: str) -> tuple[str, Path]:
+        """The relative name and resolved path of an external buffer; refused outside the rig's folder."""
         rel = unquote(uri)
         first = rel.split("/", 1)[0]
         if (":" in first or rel.startswith(("/", "\\")) or "\\" in rel or "\0" in rel
@@ -254,6 +255,20 @@ class GltfFile:
         target = (base / rel).resolve()
         if not target.is_relative_to(base):
             raise self.error(f"{where}: uri {_short(uri)} resolves outside the rig's folder")
+        return rel, target
+
+    def external_files(self) -> list[Path]:
+        """The external buffer files the rig reads (checked like :meth:`buffer` checks them; nothing read)."""
+        out = []
+        for index in range(len(self.items("buffers"))):
+            buf = self.item("buffers", index, "the file")
+            uri = self.field(buf, "uri", f"buffer {index}", str, None)
+            if uri is not None and not uri.startswith("data:"):
+                out.append(self._external_path(uri, f"buffer {index}")[1])
+        return list(dict.fromkeys(out))
+
+    def _external(self, uri: str, where: str, length: int) -> bytes:
+        rel, target = self._external_path(uri, where)
         if target.exists() and not target.is_file():  # a FIFO or device would block or never end
             raise self.error(f"{where}: external buffer {rel} is not a regular file")
         try:
@@ -263,6 +278,17 @@ class GltfFile:
             raise self.error(f"{where}: external buffer {rel} not found beside the rig") from None
         except OSError as exc:
             raise self.error(f"{where}: cannot read external buffer {rel} ({exc.strerror})") from None
+
+    def resource(self, uri: str, where: str, limit: int) -> bytes:
+        """The bytes of a ``uri`` (an image's, a buffer's): a base64 ``data:`` URI or a file inside the rig's folder.
+
+        Checked as buffers are (no ``..``, no absolute path, no URL, regular files only); more than *limit*
+        bytes is an error.
+        """
+        data = self._data_uri(uri, where) if uri.startswith("data:") else self._external(uri, where, limit + 1)
+        if len(data) > limit:
+            raise self.error(f"{where}: uri {_short(uri)} holds more than {limit} bytes")
+        return data
 
     # ------------------------------------------------------------------ buffer views
     def view(self, index, where: str) -> memoryview:

@@ -14,6 +14,11 @@ template's non-coordinate bytes, so written OBJs are byte-identical to those
 of a cold load. A cache file that cannot be read, or whose key or shapes do
 not match, is logged and rebuilt; the cache only ever writes (atomically) and
 replaces files named ``rig-*.npz`` in *cache_dir*.
+
+A rig read from a character file (``source: char.glb``) is kept the same way
+by :func:`cached_arrays`: the key is the sha256 of ``rig.yaml``, the file and
+its external buffers, under another layout name, and the arrays are what
+:mod:`retarget_cli.io.rig.load` builds from the file.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ def _file_sha256(path: Path) -> str:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
-def cache_key(rig_path: str | os.PathLike, files) -> str:
+def cache_key(rig_path: str | os.PathLike, files, *, kind: str = "") -> str:
     """sha256 over the cache version, ``rig.yaml``'s bytes and each referenced file (name and bytes).
 
     Parameters
@@ -52,9 +57,12 @@ def cache_key(rig_path: str | os.PathLike, files) -> str:
         Every file the rig references, in a fixed order (names are taken
         relative to the ``rig.yaml``'s folder, so the cache survives moving
         the whole rig).
+    kind : str
+        What the cache file holds (``""``: a rig's OBJs; ``"source"``: a rig read from a character file),
+        so that two layouts never share a key.
     """
     rig_path = Path(rig_path)
-    h = hashlib.sha256(f"retarget rig cache v{CACHE_VERSION}\n".encode())
+    h = hashlib.sha256(f"retarget rig cache v{CACHE_VERSION}{' ' + kind if kind else ''}\n".encode())
     h.update(_file_sha256(rig_path).encode() + b"\n")
     for f in files:
         rel = os.path.relpath(Path(f).resolve(), rig_path.resolve().parent)
@@ -214,4 +222,55 @@ def load_rig_meshes(rig_path, entries, *, extra_files=(), cache_dir=None, check=
     return template, V
 
 
-__all__ = ["CACHE_VERSION", "cache_file", "cache_key", "check_vertex_counts", "load_rig_meshes"]
+def cached_arrays(rig_path, files, build, *, cache_dir=None, kind: str, check=None) -> dict:
+    """Arrays that *build* computes from a rig's files, kept in the cache between runs.
+
+    The key is :func:`cache_key` of *rig_path*, *files* and *kind*; the file is
+    ``cache_dir/rig-<key16>.npz`` (uncompressed), as for the OBJs.
+
+    Parameters
+    ----------
+    rig_path : path-like
+        The ``rig.yaml`` (or the character file given as the rig).
+    files : sequence of path-like
+        The other files the result depends on.
+    build : callable
+        ``build()`` -> dict of name to ndarray (no object arrays), called on a miss.
+    cache_dir : path-like, optional
+        None: *build* is called and nothing is kept.
+    kind : str
+        The layout's name (part of the key).
+    check : callable, optional
+        ``check(arrays)`` raises when cached arrays do not have the expected shapes: then they are
+        logged and rebuilt.
+
+    Returns
+    -------
+    dict of str to ndarray
+    """
+    if cache_dir is None:
+        return build()
+    key = cache_key(rig_path, files, kind=kind)
+    file = cache_file(cache_dir, key)
+    if file.is_file():
+        try:
+            with np.load(file, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+            if str(arrays.pop("key")) != key or int(arrays.pop("version")) != CACHE_VERSION:
+                raise ParameterError("key or version differs")
+            if check is not None:
+                check(arrays)
+            log.info("rig %s: read from the cache %s", rig_path, file)
+            return arrays
+        except Exception as exc:  # noqa: BLE001  (any unreadable cache is rebuilt, never an error)
+            log.warning("rig cache %s is unusable (%s); rebuilding it", file, exc)
+    arrays = build()
+    try:
+        savez(file, {"key": np.array(key), "version": np.array(CACHE_VERSION), **arrays}, compress=False)
+        log.info("rig %s: cached in %s", rig_path, file)
+    except OSError as exc:
+        log.warning("rig cache %s not written (%s)", file, exc)
+    return arrays
+
+
+__all__ = ["CACHE_VERSION", "cache_file", "cache_key", "cached_arrays", "check_vertex_counts", "load_rig_meshes"]

@@ -109,6 +109,9 @@ class GltfRig:
         ``"gltf"``, ``"vrm0"`` or ``"vrm1"``: where ``groups`` comes from.
     target_meshes : list of str
         The mesh name of each target.
+    target_refs : list of (int, int)
+        ``(node index, morph target index)`` of each target in the file: where
+        a writer animates it (a node's ``weights``).
     """
 
     neutral: np.ndarray
@@ -120,6 +123,31 @@ class GltfRig:
     raw_groups: dict
     kind: str = "gltf"
     target_meshes: list = field(default_factory=list)
+    target_refs: list = field(default_factory=list)
+
+
+@dataclass(frozen=True, eq=False)
+class GltfOutline:
+    """What :func:`read_gltf_rig` would return, from the file's JSON alone (no geometry decoded).
+
+    Attributes
+    ----------
+    n_vertices : int
+        V, the rows of :attr:`GltfRig.neutral` (from the declared accessor counts).
+    mesh_ranges, target_names, target_meshes, groups, raw_groups, kind
+        As :class:`GltfRig`'s, equal to them for the same file and filters.
+    files : list of Path
+        The external buffer files the rig reads (a ``.gltf``'s ``.bin``); empty for a GLB.
+    """
+
+    n_vertices: int
+    mesh_ranges: list
+    target_names: list
+    target_meshes: list
+    groups: dict
+    raw_groups: dict
+    kind: str
+    files: list
 
 
 @dataclass
@@ -167,17 +195,7 @@ def read_gltf_rig(path, *, meshes=None, targets=None) -> GltfRig:
     """
     f = GltfFile(path)
     world = _node_matrices(f)
-    scene = _scene_instances(f)
-    instances = _choose(f, scene, meshes)
-    for inst in instances:
-        _plan(f, inst)
-    table = [(i, k) for i, inst in enumerate(instances) for k in range(inst.n_targets)]
-    if not table:
-        names = ", ".join(inst.name for inst in (instances if meshes else scene)) or "none in the scene"
-        raise f.error(f"no morph targets in {'the chosen meshes' if meshes else 'any mesh'} (meshes: {names})")
-    unique = _unique_names(instances, table)
-    keep = _filter_targets(f, instances, table, unique, targets)
-    table, unique = [table[j] for j in keep], [unique[j] for j in keep]
+    instances, table, unique = _prepare(f, meshes, targets)
     n_vertices = sum(inst.n_vertices for inst in instances)
     if len(table) * n_vertices * 24 > MAX_DENSE_BYTES:
         raise f.error(f"{len(table)} targets x {n_vertices} vertices need {len(table) * n_vertices * 24 >> 20} MiB "
@@ -200,7 +218,52 @@ def read_gltf_rig(path, *, meshes=None, targets=None) -> GltfRig:
     return GltfRig(neutral=neutral, faces=np.concatenate(faces).astype(np.int64), mesh_ranges=ranges,
                    target_names=unique, deltas=deltas, groups=groups,
                    raw_groups={name: [(k, 1.0)] for k, name in enumerate(unique)}, kind=kind,
-                   target_meshes=[instances[i].name for i, _ in table])
+                   target_meshes=[instances[i].name for i, _ in table],
+                   target_refs=[(instances[i].node, k) for i, k in table])
+
+
+def node_world_matrices(f: GltfFile) -> list[np.ndarray]:
+    """World matrix (4, 4), float64, of every node of an opened file (checked: types, one parent, no cycle, finite)."""
+    return _node_matrices(f)
+
+
+def _prepare(f: GltfFile, meshes, targets):
+    """The chosen mesh instances (planned), their ``(instance, target)`` table and the targets' unique names."""
+    scene = _scene_instances(f)
+    instances = _choose(f, scene, meshes)
+    for inst in instances:
+        _plan(f, inst)
+    table = [(i, k) for i, inst in enumerate(instances) for k in range(inst.n_targets)]
+    if not table:
+        names = ", ".join(inst.name for inst in (instances if meshes else scene)) or "none in the scene"
+        raise f.error(f"no morph targets in {'the chosen meshes' if meshes else 'any mesh'} (meshes: {names})")
+    unique = _unique_names(instances, table)
+    keep = _filter_targets(f, instances, table, unique, targets)
+    return instances, [table[j] for j in keep], [unique[j] for j in keep]
+
+
+def read_gltf_outline(path, *, meshes=None, targets=None) -> GltfOutline:
+    """The meshes, targets and sliders of a rig file, from its JSON alone (nothing decoded or decompressed).
+
+    Cheap enough to run before any heavy work (``rig.yaml``'s checks, :func:`~retarget_cli.io.rig.read_rig`):
+    the same names, vertex counts and groups as :func:`read_gltf_rig` with the same arguments.
+
+    Raises
+    ------
+    InputError
+        As :func:`read_gltf_rig`, for everything but the binary data.
+    """
+    f = GltfFile(path)
+    instances, table, unique = _prepare(f, meshes, targets)
+    ranges, start = [], 0
+    for inst in instances:
+        ranges.append((inst.name, start, start + inst.n_vertices))
+        start += inst.n_vertices
+    kind, groups = _groups(f, instances, table, unique)
+    return GltfOutline(n_vertices=start, mesh_ranges=ranges, target_names=unique,
+                       target_meshes=[instances[i].name for i, _ in table], groups=groups,
+                       raw_groups={name: [(k, 1.0)] for k, name in enumerate(unique)}, kind=kind,
+                       files=f.external_files())
 
 
 # ---------------------------------------------------------------------- nodes and scene
@@ -716,4 +779,5 @@ def _fresh(name: str, used: list[str]) -> str:
     return out
 
 
-__all__ = ["GltfRig", "read_gltf_rig", "MAX_DENSE_BYTES"]
+__all__ = ["GltfFile", "GltfOutline", "GltfRig", "read_gltf_outline", "read_gltf_rig", "node_world_matrices",
+           "MAX_DENSE_BYTES"]

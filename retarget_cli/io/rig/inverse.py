@@ -91,6 +91,9 @@ def _quadratic_spec(path):
     if not path.is_file():
         raise InputError(f"{path}: rig file not found")
     spec = read_rig(path)
+    if spec.source is not None:
+        raise InputError(f"{path}: solve-rig reads a rig of OBJs (neutral:, shapes:, correctives:); a rig read from "
+                         f"{spec.source.name} has no corrective shapes")
     if tuple(float(x) for x in spec.range) != (0.0, 1.0):
         raise InputError(f"{path}: solve-rig supports range [0, 1] (Racković et al. eq. 8), got {list(spec.range)}")
     if not spec.shapes:

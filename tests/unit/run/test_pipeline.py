@@ -90,6 +90,19 @@ def test_force_and_ranges(small_take):
     assert status == {"select": "ran", "decompose": "ran"}
 
 
+def test_code_fingerprint_covers_the_whole_package(monkeypatch):
+    """A change anywhere in retarget_cli (a method, a stage), not only in run/, reruns the stages."""
+    from pathlib import Path
+
+    from retarget_cli.run import manifest
+
+    seen, real = [], Path.read_bytes
+    monkeypatch.setattr(Path, "read_bytes", lambda self: (seen.append(self), real(self))[1])
+    manifest.code_fingerprint()
+    folders = {p.parent.name for p in seen}
+    assert {"methods", "stages", "io", "run"} <= folders, folders
+
+
 def test_code_change_invalidates_manifests(small_take, monkeypatch):
     run(small_take)
     from retarget_cli.run import manifest

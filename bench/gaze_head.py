@@ -1,0 +1,228 @@
+"""Benchmark: gaze and 3D head pose (issue 28's methods) against MediaPipe, and head pose on known rotations.
+
+Real clips (``../shared/realdata/videos``): each is tracked with ``retarget track --method detect`` (the
+documented tracker), then
+
+- gaze (:func:`retarget_cli.methods.tracking.gaze.gaze`): each iris's offset from its eye corners, in eye
+  widths, correlated (Pearson r) with MediaPipe Face Mesh's iris centre (points 468/473) relative to its own
+  corners (33-133, 362-263), on eyes whose reference gaze moves (standard deviation >= 0.05 eye widths);
+  the peer's own gaze (Face Landmarker's eyeLookIn/Out/Up/Down scores) is scored against the same reference;
+- head pose (:func:`retarget_cli.methods.tracking.headpose.head_pose`): yaw, pitch, roll against the
+  rotation of Face Landmarker's facial transformation matrix, where the reference moves (sd >= 2 degrees).
+  That matrix is fitted on the whole face mesh, mouth included, so a strong expression moves it too.
+
+Synthetic: the ICT FaceKit's 68 landmark vertices posed at random slider weights (expressions), turned by
+known yaw/pitch/roll up to +-30 degrees, projected by a pinhole camera with 1 px noise: the mean angle error.
+
+Run: ``python bench/gaze_head.py [--videos d3,d9,d12]``. Without ``../shared/realdata`` the real part prints
+a skip line. Caches under ``build/gaze_head``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+
+DATA = ROOT.parent / "shared" / "realdata"
+BUILD = ROOT / "build" / "gaze_head"
+MOVES_GAZE = 0.05
+MOVES_HEAD = 2.0
+#: MediaPipe Face Mesh: (left corner in the image, right corner, iris centre) of the actor's right and left eye.
+MP_EYES = ((33, 133, 468), (362, 263, 473))
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def pearson(a, b) -> float:
+    ok = np.isfinite(a) & np.isfinite(b)
+    return float(np.corrcoef(a[ok], b[ok])[0, 1]) if ok.sum() > 2 and np.std(a[ok]) > 0 else float("nan")
+
+
+def reference_gaze(points) -> np.ndarray:
+    """MediaPipe iris offsets (T, 2, 2) like :class:`~retarget_cli.methods.tracking.gaze.Gaze`'s."""
+    out = np.full((len(points), 2, 2), np.nan)
+    for e, (lc, rc, ic) in enumerate(MP_EYES):
+        L, R, C = points[:, lc], points[:, rc], points[:, ic]
+        d = R - L
+        w = np.linalg.norm(d, axis=1)
+        x = d / w[:, None]
+        y = np.stack([-x[:, 1], x[:, 0]], axis=1)
+        m = (L + R) / 2
+        out[:, e, 0] = np.sum((C - m) * x, axis=1) / w
+        out[:, e, 1] = np.sum((C - m) * y, axis=1) / w
+    return out
+
+
+def peer_gaze(scores, names) -> np.ndarray:
+    """The peer's eyeLook scores as signed offsets (T, 2, 2): > 0 toward the image's right / down."""
+    names = [str(n) for n in names]
+
+    def s(n):
+        return scores[:, names.index(n)]
+
+    out = np.zeros((len(scores), 2, 2))
+    out[:, 0, 0] = s("eyeLookInRight") - s("eyeLookOutRight")   # actor's right eye looking in = image right
+    out[:, 1, 0] = s("eyeLookOutLeft") - s("eyeLookInLeft")
+    out[:, 0, 1] = s("eyeLookDownRight") - s("eyeLookUpRight")
+    out[:, 1, 1] = s("eyeLookDownLeft") - s("eyeLookUpLeft")
+    return out
+
+
+def matrix_angles(M) -> np.ndarray:
+    """Yaw, pitch, roll (degrees, :class:`HeadPose`'s convention) of Face Landmarker's matrices (T, 4, 4)."""
+    from retarget_cli.methods.tracking.headpose import rotation_angles
+
+    F = np.diag([1.0, -1.0, -1.0])  # its camera looks down -z with y up; OpenCV's down +z with y down
+    return rotation_angles(F @ np.asarray(M, dtype=np.float64)[:, :3, :3] @ F)
+
+
+def frames_of(video: Path) -> list:
+    import cv2
+
+    cap = cv2.VideoCapture(str(video))
+    out = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        out.append(f)
+    return out
+
+
+def track(video: Path) -> Path:
+    out = BUILD / f"{video.stem}.landmarks.npz"
+    if not out.is_file():
+        BUILD.mkdir(parents=True, exist_ok=True)
+        subprocess.run([sys.executable, "-m", "retarget_cli", "-q", "track", str(video), "--method", "detect",
+                        "-o", str(out)], check=True, capture_output=True)
+    return out
+
+
+def peer(video: Path, n: int) -> dict:
+    from reference import venv_python
+
+    path = BUILD / f"{video.stem}.peer.npz"
+    if not path.is_file():
+        cmd = [str(venv_python()), str(HERE / "reference" / "mp_blendshapes.py"), str(video),
+               str(DATA / "peers" / "face_landmarker.task"), str(path), "--start", "0", "--end", str(n)]
+        subprocess.run(cmd, check=True, capture_output=True)
+    with np.load(path) as d:
+        return {k: d[k] for k in d.files}
+
+
+def real_clip(name: str) -> dict:
+    from reference import reference_landmarks
+
+    from retarget_cli.io.landmarks import load_landmarks
+    from retarget_cli.methods.tracking.gaze import gaze
+    from retarget_cli.methods.tracking.headpose import head_pose
+
+    video = DATA / "videos" / f"{name}.mp4"
+    lm = load_landmarks(track(video))
+    frames = frames_of(video)
+    t0 = time.perf_counter()
+    g = gaze(frames, lm.points, confidence=lm.confidence)
+    t_gaze = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    hp = head_pose(lm.points, lm.frame_size, confidence=lm.confidence)
+    t_head = time.perf_counter() - t0
+    ref = reference_landmarks(video, log=log)
+    T = min(len(ref["points"]), lm.n_frames)
+    G = reference_gaze(np.asarray(ref["points"], np.float64)[:T])
+    pr = peer(video, T)
+    P = peer_gaze(pr["scores"][:T], pr["names"])
+    A = matrix_angles(pr["matrices"][:T])
+    row = {"clip": name, "frames": T, "gaze_s": t_gaze, "head_s": t_head}
+    for k, axis in enumerate(("h", "v")):
+        for who, est in (("ours", g.offset[:T]), ("peer", P)):
+            rs = [pearson(est[:, e, k], G[:, e, k]) for e in range(2) if np.nanstd(G[:, e, k]) >= MOVES_GAZE]
+            row[f"{who}_{axis}"] = float(np.mean(rs)) if rs else float("nan")
+    for k, axis in enumerate(("yaw", "pitch", "roll")):
+        moves = np.std(A[:, k]) >= MOVES_HEAD
+        row[axis] = pearson(hp.angles[:T, k], A[:, k]) if moves else float("nan")
+        row[f"{axis}_sd"] = float(np.std(A[:, k]))
+    return row
+
+
+def synthetic(n: int = 400, seed: int = 0) -> dict:
+    """Mean angle error on the ICT's landmark vertices with expressions, turned by known angles."""
+    import tarfile
+    import tempfile
+
+    import yaml
+
+    from retarget_cli.io.rig import load_rig
+    from retarget_cli.methods.tracking.headpose import angles_rotation, camera_matrix, head_pose
+
+    tar = ROOT / "sample_data" / "ict" / "ict-facekit-rig.tar.xz"
+    rig_dir = BUILD / "ict-facekit"
+    if not (rig_dir / "rig.yaml").is_file():
+        BUILD.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=BUILD) as tmp, tarfile.open(tar) as tf:
+            tf.extractall(tmp, filter="data")
+            (Path(tmp) / "ict-facekit" / "rig.yaml").write_text((ROOT / "sample_data" / "ict" / "rig.yaml").read_text())
+            os.replace(Path(tmp) / "ict-facekit", rig_dir)
+    rig = load_rig(rig_dir / "rig.yaml")
+    ids = np.asarray(yaml.safe_load((rig_dir / "rig.yaml").read_text())["landmarks"])
+    rng = np.random.default_rng(seed)
+    W = rng.uniform(0, 1, size=(n, rig.n_sliders)) * (rng.uniform(size=(n, rig.n_sliders)) < 0.08)
+    X = np.stack([rig.evaluate(w)[ids] for w in W])                       # (n, 68, 3), y up, z to the viewer
+    X = X * np.array([1.0, -1.0, -1.0])                                   # OpenCV camera axes
+    X -= X[:, [36, 39, 42, 45]].mean(axis=1, keepdims=True)
+    true = rng.uniform(-30, 30, size=(n, 3)) * np.array([1.0, 1.0, 0.5])
+    K = camera_matrix((1280, 720))
+    Y = np.einsum("nij,nlj->nli", angles_rotation(true), X) + np.array([0.0, 0.0, 60.0])
+    p = Y @ K.T
+    pts = p[..., :2] / p[..., 2:] + rng.normal(0, 1.0, size=(n, 68, 2))
+    est = np.concatenate([head_pose(pts[i:i + 1], (1280, 720)).angles for i in range(n)])
+    err = np.abs(est - true)
+    return {"frames": n, "mean": err.mean(axis=0), "p95": np.percentile(err, 95, axis=0)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--videos", default="d3,d9,d12")
+    args = ap.parse_args(argv)
+    s = synthetic()
+    print("## Head pose on known rotations (ICT landmark vertices with expressions, 1 px noise)\n")
+    print(f"{s['frames']} poses, yaw/pitch up to +-30 deg, roll +-15: mean error yaw {s['mean'][0]:.2f}, pitch "
+          f"{s['mean'][1]:.2f}, roll {s['mean'][2]:.2f} deg (95th percentile {s['p95'][0]:.2f} / {s['p95'][1]:.2f} / "
+          f"{s['p95'][2]:.2f})\n")
+    if not (DATA / "videos").is_dir():
+        print(f"skip: {DATA} not found (real clips)")
+        return 0
+    rows = [real_clip(v) for v in args.videos.split(",")]
+    print("## Real clips against MediaPipe (Pearson r; '-' where the reference does not move)\n")
+    print("| clip | frames | gaze h ours | gaze h peer | gaze v ours | gaze v peer | yaw | pitch | roll | "
+          "head sd yaw/pitch/roll | gaze + head s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+
+    def f(x):
+        return "-" if not np.isfinite(x) else f"{x:.2f}"
+
+    for r in rows:
+        print(f"| {r['clip']} | {r['frames']} | {f(r['ours_h'])} | {f(r['peer_h'])} | {f(r['ours_v'])} | "
+              f"{f(r['peer_v'])} | {f(r['yaw'])} | {f(r['pitch'])} | {f(r['roll'])} | {r['yaw_sd']:.1f} / "
+              f"{r['pitch_sd']:.1f} / {r['roll_sd']:.1f} | {r['gaze_s'] + r['head_s']:.1f} |")
+    for key in ("ours_h", "peer_h", "ours_v", "peer_v", "yaw", "pitch", "roll"):
+        vals = [r[key] for r in rows if np.isfinite(r[key])]
+        print(f"mean {key}: {np.mean(vals):.2f} over {len(vals)} clips" if vals else f"mean {key}: -")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

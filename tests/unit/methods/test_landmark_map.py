@@ -1,0 +1,207 @@
+"""The landmark map found automatically (methods/landmark_map): the ICT neutral, the sliders' fallback, corrections."""
+
+import numpy as np
+import pytest
+import yaml
+
+from retarget_cli.io.obj import read_obj
+from retarget_cli.methods import landmark_map as lm
+from retarget_cli.methods.tracking.detect import detector_installed
+
+
+def sphere_head(n_lat=36, n_lon=48):
+    """A smooth sphere (radius 1, facing +z) with blink, jaw-open and smile targets and no face to detect.
+
+    Returns vertices (N, 3), quads (F, 4), deltas (4, N, 3), names and the centres of the features.
+    """
+    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat)
+    lon = np.linspace(-np.pi, np.pi, n_lon, endpoint=False)
+    la, lo = np.meshgrid(lat, lon, indexing="ij")
+    V = np.stack([np.cos(la) * np.sin(lo), np.sin(la), np.cos(la) * np.cos(lo)], -1).reshape(-1, 3)
+    idx = np.arange(n_lat * n_lon).reshape(n_lat, n_lon)
+    nxt = np.roll(idx, -1, axis=1)
+    quads = np.stack([idx[:-1], nxt[:-1], nxt[1:], idx[1:]], -1).reshape(-1, 4)
+
+    def bump(cx, cy, s):
+        return np.exp(-((V[:, 0] - cx) ** 2 + (V[:, 1] - cy) ** 2) / s ** 2) * (V[:, 2] > 0)
+
+    eyes = {"right": (-0.35, 0.25), "left": (0.35, 0.25)}  # image right / left: +x is the image's right
+    D = np.zeros((4, len(V), 3))
+    D[0, :, 1] = -0.12 * bump(0.35, 0.30, 0.09)   # blink_L: the upper lid of the image-right eye comes down
+    D[1, :, 1] = -0.12 * bump(-0.35, 0.30, 0.09)  # blink_R
+    D[2, :, 1] = -0.3 * np.clip(-0.3 - V[:, 1], 0, None) * (V[:, 2] > 0)  # jawOpen: the lower face drops
+    D[3, :, 0] = 0.05 * (bump(0.25, -0.45, 0.07) - bump(-0.25, -0.45, 0.07))  # smile: corners out
+    D[3, :, 1] = 0.05 * (bump(0.25, -0.45, 0.07) + bump(-0.25, -0.45, 0.07))
+    return V, quads, D, ["blink_L", "blink_R", "jawOpen", "mouthSmile"], eyes
+
+
+class NoFace:
+    """A detector that finds nothing."""
+
+    def detect(self, gray):
+        return np.zeros((0, 4))
+
+
+def test_fallback_on_a_stylised_head_places_lids_chin_and_corners_from_the_sliders():
+    V, quads, D, names, _ = sphere_head()
+    m = lm.find_landmark_map(V, quads, D, names, detector=NoFace())
+    assert m.found_by == "sliders" and m.tried == [s.name for s in lm.STYLES]
+    assert abs(m.render.yaw) < 5  # the motion faces +z
+    assert all(m.source[i] == "sliders:blink" for i in range(36, 48))
+    assert m.source[8] == "sliders:jaw" and m.source[48] == m.source[54] == "sliders:smile"
+    P = V[m.vertices]
+    # points 36-41 on the image-left eye (x < 0), 42-47 on the image-right one; upper lids where the blink moves most
+    assert (P[36:42, 0] < 0).all() and (P[42:48, 0] > 0).all()
+    blink_l = np.linalg.norm(D[0], axis=1)
+    assert blink_l[m.vertices[43]] > 0.8 * blink_l.max() and blink_l[m.vertices[44]] > 0.8 * blink_l.max()
+    assert P[37, 1] > P[41, 1] and P[44, 1] > P[46, 1]  # lower lid below the upper
+    assert P[8, 1] < -0.6 and abs(P[8, 0]) < 0.15  # the chin: low, in the middle
+    assert P[48, 0] < -0.15 and P[54, 0] > 0.15 and abs(P[48, 1] + 0.45) < 0.1
+    assert "template" in m.source  # what the sliders do not see comes from the template, and says so
+    q = lm.map_quality(V, m.vertices, source=m.source)
+    assert q["symmetry_mean"] < 0.1
+    assert q["regions"]["eye_left"] == {"sliders:blink": 6}
+
+
+def test_fallback_follows_a_head_that_faces_minus_z():
+    V, quads, D, names, _ = sphere_head()
+    flip = np.array([-1.0, 1.0, -1.0])  # turned 180 degrees about y, as a VRM 0.x avatar
+    m = lm.find_landmark_map(V * flip, quads, D * flip, names, detector=None)
+    assert abs(abs(m.render.yaw) - 180) < 5
+    # the image-left eye is still points 36-41: the subject's right, at model +x once turned
+    assert (V[m.vertices[36:42], 0] < 0).all()
+
+
+def test_corrections_by_vertex_and_by_pixel():
+    V, quads, D, names, _ = sphere_head()
+    m = lm.find_landmark_map(V, quads, D, names, detector=None)
+    target = int(m.vertices[30])
+    px = m.render.xy[target]
+    fixed = lm.correct(m, {0: 5}, {30: tuple(px)})
+    assert fixed.vertices[0] == 5 and fixed.source[0] == "user"
+    assert fixed.vertices[30] == target and fixed.source[30] == "user"
+    assert fixed.vertices[1] == m.vertices[1]
+    sheet_px = (px + 0.5) * lm.SHEET_SCALE - 0.5
+    assert np.allclose(lm.points_from_sheet([sheet_px])[0], px)
+    img = lm.draw_sheet(fixed, "test")
+    assert img.shape == (m.render.image.shape[0] * lm.SHEET_SCALE, m.render.image.shape[1] * lm.SHEET_SCALE, 3)
+
+
+def test_quality_names_shared_vertices_and_asymmetry():
+    V, quads, D, names, _ = sphere_head()
+    m = lm.find_landmark_map(V, quads, D, names, detector=None)
+    vx = m.vertices.copy()
+    vx[0] = vx[1]
+    q = lm.map_quality(V, vx)
+    assert [0, 1] in q["shared"]
+    vx = m.vertices.copy()
+    vx[45] = vx[39]  # an outer eye corner on the inner one: the 36/45 pair is no longer mirrored
+    q2 = lm.map_quality(V, vx)
+    assert q2["symmetry_max"] > lm.map_quality(V, m.vertices)["symmetry_max"]
+
+
+@pytest.mark.skipif(not detector_installed(), reason="the detector (the extra 'detect': dlib) is not installed")
+def test_map_found_on_the_ict_neutral_is_near_the_shipped_map(ict_rig_dir):
+    """The ICT FaceKit (sample_data/ict): neutral, blinks, jaw-open and smiles only (enough for the view)."""
+    from retarget_cli.methods.tracking.detect import Detector
+
+    spec = yaml.safe_load((ict_rig_dir / "rig.yaml").read_text())
+    neutral = read_obj(ict_rig_dir / spec["neutral"])
+    names = ["eyeBlink_L", "eyeBlink_R", "jawOpen", "mouthSmile_L", "mouthSmile_R"]
+    D = np.stack([read_obj(ict_rig_dir / spec["shapes"][n]).vertices - neutral.vertices for n in names])
+    V = neutral.vertices
+    m = lm.find_landmark_map(V, neutral.faces(), D, names, detector=Detector())
+    assert m.found_by != "sliders" and set(m.source) == {"detector"}
+    ref = np.asarray(spec["landmarks"])
+    d = np.linalg.norm(V[m.vertices] - V[ref], axis=1) / np.linalg.norm(V[ref[45]] - V[ref[36]])
+    # bench/landmark_map.py (all 57 sliders): 0.048 over the 68 points, 0.038 without the jaw line; here 0.051
+    assert d[17:].mean() < 0.06
+    assert d[36:48].mean() < 0.05 and d[48:68].mean() < 0.05
+    assert d.mean() < 0.08
+
+
+def test_cheek_points_lift_to_the_occluding_contour_and_the_chin_to_the_front():
+    V, quads, D, names, _ = sphere_head(144, 96)
+    tris = lm.triangulate(quads)
+    face = np.ones(len(V), bool)
+    r = lm.render_face(V, tris, face, 0.0)
+    skin = lm.skin_vertices(r, tris)
+    pts = np.zeros((68, 2))
+    pts[36], pts[45] = r.view.project(np.array([[-0.4, 0.25, 0.88], [0.4, 0.25, 0.88]]))[1]
+    left = np.flatnonzero(skin)[np.argmin(r.xy[skin, 0])]       # the outline on the image's left
+    bottom = np.flatnonzero(skin)[np.argmax(r.xy[skin, 1])]     # and at the bottom
+    pts[0], pts[8] = r.xy[left], r.xy[bottom]
+    vx = lm.lift_landmarks(pts, r, skin)
+    cos = np.abs(lm._view_cosine(r.cam, r.normals, False))
+    iod = np.linalg.norm(pts[45] - pts[36])
+    near = np.flatnonzero(skin & (np.linalg.norm(r.xy - pts[0], axis=1) < lm.CONTOUR_RADIUS * iod))
+    assert len(near) >= 3 and cos[vx[0]] == cos[near].min() < 0.1   # on the contour, not the front-most vertex
+    assert r.cam[vx[0], 2] < r.cam[near, 2].max()
+    near8 = np.flatnonzero(skin & (np.linalg.norm(r.xy - pts[8], axis=1) < lm.CONTOUR_RADIUS * iod))
+    assert r.cam[vx[8], 2] == r.cam[near8, 2].max()                # the chin: the vertex nearest the camera
+
+
+def test_the_inside_seen_through_an_opening_is_drawn_dark():
+    V, quads, D, names, eyes = sphere_head()
+    cx, cy = eyes["left"]
+    hole = np.linalg.norm(V[quads][:, :, :2].mean(1) - [cx, cy], axis=1) < 0.12
+    hole &= V[quads][:, :, 2].mean(1) > 0
+    r = lm.render_face(V, quads[~hole], np.ones(len(V), bool), 0.0)
+    gray = r.image.mean(2)
+    eye = np.rint(r.view.project(np.array([[cx, cy, 0.9]]))[1][0]).astype(int)
+    cheek = np.rint(r.view.project(np.array([[0.0, -0.1, 0.99]]))[1][0]).astype(int)
+    assert gray[eye[1], eye[0]] < 0.3 * gray[cheek[1], cheek[0]]
+
+
+def test_a_closed_mouths_inner_lip_pair_is_lifted_onto_its_two_lips():
+    """Two grids meeting on one row (closed lips: each row vertex twice); jaw-open moves the lower grid down."""
+    x = np.linspace(-1, 1, 41)
+
+    def grid(ys):
+        X, Y = np.meshgrid(x, ys)
+        V = np.stack([X.ravel(), Y.ravel(), 0.2 * np.cos(X.ravel())], 1)
+        idx = np.arange(len(V)).reshape(len(ys), len(x))
+        quads = np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]], -1).reshape(-1, 4)
+        return V, quads
+
+    upper, qu = grid(np.linspace(0, 1, 21))
+    lower, ql = grid(np.linspace(-1, 0, 21))
+    V = np.concatenate([upper, lower])
+    quads = np.concatenate([qu, ql + len(upper)])
+    D = np.zeros((1, len(V), 3))
+    D[0, len(upper):, 1] = -0.2 * (1 + lower[:, 1])  # jawOpen: the lower lip drops, the chin less
+    r = lm.render_face(V, lm.triangulate(quads), np.ones(len(V), bool), 0.0)
+    skin = r.visible
+    P = np.zeros((68, 2))
+    P[[36, 45, 48, 54, 62, 66]] = r.view.project(np.array(
+        [[-0.4, 0.5, 0.2], [0.4, 0.5, 0.2], [-0.3, 0.0, 0.2], [0.3, 0.0, 0.2], [0.0, 0.0, 0.2], [0.0, 0.0, 0.2]]))[1]
+    vx = lm.lift(P, r, skin)
+    assert vx[62] == vx[66]                                   # one vertex for both: the fit could not see them part
+    out = lm.part_closed_lips(vx, P, r, skin, V, D, ["jawOpen"])
+    assert out[62] < len(upper) <= out[66]                     # the upper point on the upper lip, the lower on the lower
+    assert abs(V[out[62], 1]) < 0.06 and abs(V[out[66], 1]) < 0.06  # both on the lip line
+    assert (np.delete(out, [62, 66]) == np.delete(vx, [62, 66])).all()
+    assert (lm.part_closed_lips(vx, P, r, skin, V, D, ["smile"]) == vx).all()  # no jaw-open: kept
+
+
+def test_fallback_puts_the_lips_on_a_mouth_laid_on_a_static_skin():
+    """A stylised mouth (a thin strip of its own in front of the skin) that 'a' opens: the template's lip points
+    would land on the skin, which no mouth slider moves; they go to the strip, upper points on its top row."""
+    V0, quads0, D0, names, _ = sphere_head()
+    xs = np.linspace(-0.25, 0.25, 11)
+    top = np.stack([xs, np.full(11, -0.44), np.sqrt(1 - xs ** 2 - 0.44 ** 2) + 0.02], 1)
+    bottom = np.stack([xs, np.full(11, -0.46), np.sqrt(1 - xs ** 2 - 0.46 ** 2) + 0.02], 1)
+    V = np.concatenate([V0, top, bottom])
+    t0, b0 = len(V0), len(V0) + 11
+    strip = np.array([[t0 + i, b0 + i, b0 + i + 1, t0 + i + 1] for i in range(10)])  # facing +z
+    quads = np.concatenate([quads0, strip])
+    D = np.zeros((4, len(V), 3))
+    D[:2, :len(V0)] = D0[:2]                            # the blinks as before; jaw and smile on the strip only
+    D[2, t0:b0, 1], D[2, b0:, 1] = 0.03, -0.08          # 'a': the top row up, the bottom row down
+    D[3, [t0, b0], 0], D[3, [t0 + 10, b0 + 10], 0] = -0.04, 0.04  # smile: the strip's ends out
+    m = lm.find_landmark_map(V, quads, D, names, detector=None)
+    assert m.source[48] == m.source[54] == "sliders:smile"
+    assert all(m.source[i] == "sliders:jaw" for i in (*lm.UPPER_LIP_68, *lm.LOWER_LIP_68, *lm.INNER_CORNERS_68))
+    assert all(m.vertices[i] >= t0 for i in lm.INNER_CORNERS_68)
+    assert all(t0 <= m.vertices[i] < b0 for i in lm.UPPER_LIP_68)
+    assert all(m.vertices[i] >= b0 for i in lm.LOWER_LIP_68)
