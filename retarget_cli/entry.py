@@ -12,10 +12,11 @@ import sys
 
 
 def _fail(exc: BaseException) -> int:
-    if isinstance(exc, KeyboardInterrupt) or type(exc).__name__ == "Abort":
-        from .errors import stop_message
+    from .errors import stop_cause, stop_message
 
-        msg, code = stop_message(exc)
+    stop = stop_cause(exc)
+    if stop is not None or type(exc).__name__ == "Abort":
+        msg, code = stop_message(stop if stop is not None else exc)
         print(f"error: {msg}", file=sys.stderr)
         return code
     if "-vv" in sys.argv[1:3] or sys.argv[1:3].count("-v") >= 2 or "--verbose" in sys.argv[1:2]:

@@ -97,6 +97,18 @@ class Terminated(KeyboardInterrupt):
         return f"terminated ({signal.Signals(self.signum).name})"
 
 
+def stop_cause(exc: BaseException) -> BaseException | None:
+    """The Ctrl-C or :class:`Terminated` behind *exc*, if any: a signal that lands while Python 3.11 builds a class
+    (``__set_name__``) comes out wrapped in a RuntimeError whose cause it is."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def stop_message(exc: BaseException) -> tuple[str, int]:
     """The one line and exit status of a stop: Ctrl-C (``interrupted``, 130) or :class:`Terminated`."""
     if isinstance(exc, Terminated):

@@ -22,7 +22,7 @@ import click
 from .. import __version__
 from ..batch import command as batch_command
 from ..config import UNSET, Command, Flag, Param, show_paths
-from ..errors import RetargetError, UsageError, stop_message
+from ..errors import RetargetError, UsageError, stop_cause, stop_message
 from ..io.atomic import guard_writes, remove_stale_parts
 from ..run import pipeline
 from ..see import commands as see_commands
@@ -274,6 +274,11 @@ class RetargetGroup(click.Group):
             ctx.exit(code)
         except Exception as exc:
             log.debug("traceback of the error below", exc_info=True)
+            stop = stop_cause(exc)
+            if stop is not None:  # a signal wrapped by the interpreter (a class being built when it landed)
+                msg, code = stop_message(stop)
+                click.echo(f"error: {msg}", err=True)
+                ctx.exit(code)
             click.echo(f"error: {one_line(exc)}", err=True)
             ctx.exit(exit_status(exc))
 

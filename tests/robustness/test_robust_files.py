@@ -248,3 +248,22 @@ def test_a_full_stdout_is_one_warning_and_the_run_completes(take):
     assert res.returncode == 0, res.stderr
     assert "warning: stdout: No space left on device" in res.stderr and "Traceback" not in res.stderr, res.stderr
     assert "Exception ignored" not in res.stderr
+
+
+def test_a_signal_wrapped_by_the_interpreter_is_still_a_stop():
+    """Python 3.11 wraps an exception raised while a class is built (__set_name__) in a RuntimeError: a SIGTERM
+    landing there must still be 'terminated', exit 143, not an internal error."""
+    from retarget_cli.errors import Terminated, stop_cause, stop_message
+
+    class Field:
+        def __set_name__(self, owner, name):
+            raise Terminated(signal.SIGTERM)
+
+    try:
+        type("Built", (), {"f": Field()})
+    except Exception as exc:  # RuntimeError on 3.11, the Terminated itself (a BaseException) on 3.12
+        wrapped = exc
+    except BaseException as exc:
+        wrapped = exc
+    assert stop_message(stop_cause(wrapped)) == ("terminated (SIGTERM)", 143)
+    assert stop_cause(RuntimeError("unrelated")) is None
