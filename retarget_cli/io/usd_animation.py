@@ -46,6 +46,7 @@ import numpy as np
 
 from ..errors import InputError, ParameterError
 from .atomic import write_bytes
+from .gltf_animation import check_fps, clipped_curves
 from .rig._isolated import run_isolated
 
 log = logging.getLogger(__name__)
@@ -82,16 +83,8 @@ def target_weights(curves, names, sliders: dict, target_names, *, lower=None, up
         ``W[:, k] = sum_s clip(curves[:, s]) * w_sk`` (Lewis et al. 2005, §3: the delta rig's weights per target);
         0 for a target no slider drives.
     """
-    C = np.asarray(curves, dtype=np.float64)
     names = list(names)
-    if C.ndim != 2 or C.shape[1] != len(names) or len(C) == 0:
-        raise ParameterError(f"curves: expected (T >= 1, {len(names)}) values for the {len(names)} sliders, "
-                             f"got shape {C.shape}")
-    if not np.isfinite(C).all():
-        raise ParameterError("curves: values that are not finite")
-    lo = np.full(len(names), -np.inf) if lower is None else np.asarray(lower, dtype=np.float64)
-    hi = np.full(len(names), np.inf) if upper is None else np.asarray(upper, dtype=np.float64)
-    C = np.clip(C, lo, hi)
+    C = clipped_curves(curves, names, lower, upper)
     index = {t: k for k, t in enumerate(target_names)}
     W = np.zeros((len(C), len(index)))
     for e, name in enumerate(names):
@@ -129,8 +122,7 @@ def write_animated_usd(path: str | os.PathLike, source, weights, target_names, f
     W = np.asarray(weights, dtype=np.float64)
     if W.ndim != 2 or W.shape[1] != len(target_names) or len(W) == 0 or not np.isfinite(W).all():
         raise ParameterError(f"weights: expected finite (T >= 1, {len(target_names)}) values, got shape {W.shape}")
-    if not (isinstance(fps, int | float) and np.isfinite(fps) and fps > 0):
-        raise ParameterError(f"fps: expected a positive number, got {fps!r}")
+    check_fps(fps)
     if path.suffix.lower() != source.suffix.lower():
         raise ParameterError(f"{path.name}: the copy of {source.name} keeps its suffix {source.suffix}")
     request = {"meshes": meshes, "targets": targets, "target_names": list(target_names), "fps": float(fps),

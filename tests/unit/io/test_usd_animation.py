@@ -23,36 +23,11 @@ from retarget_cli.io.usd import write_usd_skel
 from retarget_cli.io.usd_animation import copy_name, target_weights, write_animated_usd
 
 pytest.importorskip("pxr", reason="usd-core (the 'usd' extra) is not installed")
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, UsdUtils, Vt  # noqa: E402
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdSkel, UsdUtils  # noqa: E402
+
+from tests.unit.io.rig.test_usd_reader import TRI, _mesh  # noqa: E402
 
 FPS, T = 24.0, 7
-TRI = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
-
-
-def _mesh(stage, path, points, faces, shapes, *, translate=None, scale=None):
-    """A Mesh prim under an Xform (translated, scaled) with BlendShape children: name -> (offsets, ids or None)."""
-    parent = path.rsplit("/", 1)[0]
-    xf = UsdGeom.Xform.Define(stage, parent) if parent else None
-    if translate is not None:
-        xf.AddTranslateOp().Set(Gf.Vec3d(*translate))
-    if scale is not None:
-        xf.AddScaleOp().Set(Gf.Vec3f(*scale))
-    mesh = UsdGeom.Mesh.Define(stage, path)
-    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(points, np.float32)))
-    mesh.CreateFaceVertexCountsAttr([len(f) for f in faces])
-    mesh.CreateFaceVertexIndicesAttr([i for f in faces for i in f])
-    if shapes:
-        binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
-        binding.CreateBlendShapesAttr(list(shapes))
-        targets = []
-        for k, (offsets, ids) in enumerate(shapes.values()):
-            shape = UsdSkel.BlendShape.Define(stage, f"{path}/bs{k}")
-            shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(offsets, np.float32)))
-            if ids is not None:
-                shape.CreatePointIndicesAttr(list(ids))
-            targets.append(shape.GetPath())
-        binding.CreateBlendShapeTargetsRel().SetTargets(targets)
-    return mesh
 
 
 def _character(path: Path, *, teeth_parent="Teeth"):
@@ -234,7 +209,13 @@ def test_two_meshes_of_one_animation_driven_differently_is_one_line(tmp_path):
 
 def test_a_mesh_at_the_root_of_the_stage_is_one_line(tmp_path):
     stage = Usd.Stage.CreateNew(str(tmp_path / "root.usda"))
-    _mesh(stage, "/Face", TRI, [[0, 1, 3, 2]], {"jawOpen": ([[0, -1, 0]], [0])})
+    mesh = UsdGeom.Mesh.Define(stage, "/Face")
+    mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([3]), mesh.CreateFaceVertexIndicesAttr([0, 1, 2])
+    shape = UsdSkel.BlendShape.Define(stage, "/Face/jaw")
+    shape.CreateOffsetsAttr([(0, -1, 0)]), shape.CreatePointIndicesAttr([0])
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateBlendShapesAttr(["jawOpen"]), binding.CreateBlendShapeTargetsRel().SetTargets([shape.GetPath()])
     stage.GetRootLayer().Save()
     ctx = _ctx(tmp_path, tmp_path / "root.usda")
     with pytest.raises(InputError, match=r"^root.usda: mesh /Face is at the root of the stage; UsdSkel animates"):
