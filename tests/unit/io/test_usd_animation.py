@@ -153,6 +153,8 @@ def test_copy_of_a_usdskel_character_keeps_its_skeleton_and_animation(tmp_path, 
     assert list(ctx.rig.names) == ["jawOpen", "blink"]
     [path] = SameExport(ctx).finish()
     assert path == ctx.out / f"skel_animated{suffix}"
+    first = path.read_bytes()
+    assert SameExport(ctx).finish() == [path] and path.read_bytes() == first  # deterministic
     copy, source = Usd.Stage.Open(str(path)), Usd.Stage.Open(str(src))
     assert _prims(copy) == _prims(source)  # bound already: nothing added
     anim = UsdSkel.Animation(copy.GetPrimAtPath("/Character/Skel/Anim"))
