@@ -219,9 +219,9 @@ def _save(pxr, source: Path, copy_stage, inner: set, out: Path, suffix: str):
     names = list(src.GetFileNames()) if src else []
     writer = Sdf.ZipFileWriter.CreateNew(str(out / "copy.usdz"))
     writer.AddFile(str(root), f"{source.stem}_animated.usdc")
-    for member in names[1:]:  # the first is the source's root layer, flattened into the copy's
+    for n, member in enumerate(names[1:]):  # the first is the source's root layer, flattened into the copy's
         if member in inner:
-            data = out / "member"
+            data = out / f"member{n}"
             data.write_bytes(bytes(src.GetFile(member)))
             writer.AddFile(str(data), member)
     writer.Save()
