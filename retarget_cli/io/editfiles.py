@@ -30,7 +30,7 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
     CSV: a header with ``frame``, optionally ``time``, and one column per
     slider; frames are strictly increasing integers. NPZ: ``curves`` (T, E)
     and ``names`` (E,) (what ``retarget synth`` writes as ``truth.npz``),
-    optionally ``frames`` (T,); other members are ignored.
+    optionally ``frames`` (T,) and ``times`` (T,); other members are ignored.
 
     Returns
     -------
@@ -51,6 +51,10 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
         if W.ndim != 2 or W.shape[1] != len(names):
             raise InputError(f"{path}: 'curves' must be (T, {len(names)}) for {len(names)} names, got {W.shape}")
         frames = np.asarray(data.get("frames", np.arange(len(W))), dtype=np.int64)
+        if "times" in data:
+            times = np.asarray(data["times"], dtype=np.float64)
+            if times.shape != (len(W),):
+                raise InputError(f"{path}: 'times' must be ({len(W)},), one per row, got {times.shape}")
     elif path.suffix.lower() == ".csv":
 
         lines = [ln for ln in read_text(path, "animation CSV").splitlines() if ln.strip()]
@@ -92,6 +96,8 @@ def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, me
     if path.suffix.lower() == ".npz":
         arrays = {"curves": W, "names": np.asarray(names, dtype=str), "frames": np.asarray(frames, dtype=np.int64),
                   "meta": np.array(json.dumps({"version": __version__, **(meta or {})}, sort_keys=True))}
+        if times is not None:
+            arrays["times"] = np.asarray(times, dtype=np.float64)
         savez(path, arrays)
         return
     if path.suffix.lower() != ".csv":

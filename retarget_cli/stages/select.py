@@ -10,6 +10,7 @@ import numpy as np
 from ..config import TOP_LEVEL, Command, Flag, Param, check_regions, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_json, write_text
+from ..io.frames import is_sequence, sequence_files
 from ..io.landmarks import load_landmarks
 from ..io.select_plots import curve_csv, write_contact_sheet, write_curve_plot
 from ..io.stagefiles import write_keys, write_targets
@@ -121,9 +122,11 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
         written += _write_evaluation(evaluate, plot, curves, chosen_k, result, method)
     if contact_sheet:
 
-        video = _require(video, "video file")
+        if not is_sequence(video):
+            video = _require(video, "video file")
         write_contact_sheet(contact_sheet, video, lm.points,
-                            {n: (r["points"], r["frames"]) for n, r in result.items()})
+                            {n: (r["points"], r["frames"]) for n, r in result.items()}, source_frames=lm.frames,
+                            fps=lm.source_fps)
         written.append(Path(contact_sheet))
     return written
 
@@ -175,6 +178,7 @@ STAGE = Stage(
     "Choose key frames per region (Chuang & Bregler §4.2) and evaluate the methods by E (eq. 5).",
     PARAMS,
     run_select,
+    expand_input=lambda name, path: sequence_files(path) if name == "video" and is_sequence(path) else [path],
     uses_seed=True,
     uses_progress=True,
 )
