@@ -16,7 +16,7 @@ from pathlib import Path
 
 from .. import stages
 from ..config import REQUIRED, Command, Config, Flag, Param, load_config
-from ..errors import ConfigError, InputError, RetargetError
+from ..errors import ConfigError, InputError, OutputError, RetargetError
 from ..io.atomic import folder_lock, guard_writes, remove_stale_parts
 from ..stages._common import Stage, collect_results
 from .manifest import check_unchanged, manifest_matches, record_inputs, write_manifest
@@ -177,7 +177,13 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = Tru
         call["cache_dir"] = cache_dir(cfg) if cache else None
     t0 = time.perf_counter()
     with collect_results() as results:
-        outputs = stage.runner(**call)
+        try:
+            outputs = stage.runner(**call)
+        except OSError as exc:
+            if isinstance(exc, RetargetError) or not exc.errno:
+                raise
+            where = f"{exc.filename}: " if exc.filename else ""
+            raise OutputError(f"stage '{name}': {where}{exc.strerror or exc} (errno {exc.errno})") from exc
     seconds = round(time.perf_counter() - t0, 3)
     check_unchanged(inputs, name)
     write_manifest(manifest_path(cfg, name), name, settings=_settings(stage, kw, cfg), inputs=inputs,
