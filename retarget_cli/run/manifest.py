@@ -89,6 +89,7 @@ def write_manifest(path: Path, stage: str, *, settings: dict, inputs, outputs, b
         "version": __version__,
         "code": code_fingerprint(),
         "settings": settings,
+        "base": os.path.abspath(base),  # where the relative paths start (preview/report find the video by it)
         "inputs": {os.path.relpath(p, base): rec for p, rec in recs.items()},
         "outputs": {os.path.relpath(p, base): record(p) for p in outputs},
         "seconds": seconds,
