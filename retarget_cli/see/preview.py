@@ -16,11 +16,11 @@ import numpy as np
 from ..errors import InputError, ParameterError
 from ..io.atomic import check_not_input, write_bytes
 from ..io.editfiles import read_animation
+from ..io.frames import FrameSource as SourceFrames
 from ..io.landmarks import load_landmarks
 from ..io.obj import read_obj, read_vertices_like
 from ..io.rig import load_rig
 from ..io.stagefiles import read_targets
-from ..io.frames import FrameSource as SourceFrames
 from ..io.video import atomic_video_writer
 from ..methods.render import Camera, MeshRenderer
 from ..run.runfiles import RunFiles, read_run_weights
