@@ -60,7 +60,9 @@ PARAMS = [
     Param("downscale", "setting", float, 1.0,
           "Track on frames scaled by this factor (coordinates stay at full resolution).",
           min=0.05, max=1.0),
-    Param("fps", "setting", float, None, "Frame rate of an image sequence (default 30).",
+    Param("fps", "setting", float, None,
+          "Frame rate: of an image sequence (default 30), or of a video instead of its container's (which is "
+          "refused outside 1-480 fps, e.g. a remux claiming 2344; a missing one is taken as 30 with a warning).",
           min=0.01, nullable=True),
     Param("smooth_head", "setting", int, 0,
           "Temporal smoothing of the head track: Savitzky-Golay window in frames (0: none).",
