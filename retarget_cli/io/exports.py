@@ -111,10 +111,21 @@ class ExportContext:
 
     def timing(self) -> tuple[np.ndarray, np.ndarray, float]:
         """Source frame numbers (T,), their times in seconds (T,) and the source's rate, defaults filled."""
-        rate = float(self.source_fps or self.fps)
-        frames = np.arange(self.n_frames, dtype=np.int64) if self.frames is None else np.asarray(self.frames)
-        times = frames / rate if self.times is None else np.asarray(self.times, dtype=np.float64)
-        return frames, times, rate
+        return timing(self)
+
+
+def timing(ctx) -> tuple[np.ndarray, np.ndarray, float]:
+    """:meth:`ExportContext.timing` of *ctx*, or of any object with ``fps`` and ``n_frames`` or ``curves``
+    (rows 0 … T−1)."""
+    rate = float(getattr(ctx, "source_fps", None) or ctx.fps)
+    frames = getattr(ctx, "frames", None)
+    if frames is None:
+        n = getattr(ctx, "n_frames", None)
+        frames = np.arange(len(ctx.curves) if n is None else n, dtype=np.int64)
+    frames = np.asarray(frames)
+    times = getattr(ctx, "times", None)
+    times = frames / rate if times is None else np.asarray(times, dtype=np.float64)
+    return frames, times, rate
 
 
 class Exporter:
@@ -181,7 +192,7 @@ class CsvExport(Exporter):
 
     def finish(self):
         path = self.ctx.out / self.files[0]
-        frames, times, _ = self.ctx.timing()
+        frames, times, _ = timing(self.ctx)
         write_text(path, weights_csv(self.ctx.regions, self.ctx.fps, frames, times))
         return [path]
 
@@ -215,7 +226,7 @@ class GlbExport(Exporter):
         path = c.out / self.files[0]
         write_glb(path, base=c.base, faces=None, targets=mt, target_names=names, weights=mw,
                   fps=c.fps, node_transforms=c.head, name=c.template.path.stem, surface=obj_surface(c.template),
-                  times=c.timing()[1])
+                  times=timing(c)[1])
         return [path]
 
 
@@ -226,7 +237,7 @@ class CurvesExport(Exporter):
 
     def finish(self):
         c = self.ctx
-        frames, times, rate = c.timing()
+        frames, times, rate = timing(c)
         csv, npz = (c.out / f for f in self.files)
         write_animation(csv, c.rig.names, c.curves, frames, times)
         write_animation(npz, c.rig.names, c.curves, frames, times,
@@ -242,7 +253,7 @@ class LiveLinkExport(Exporter):
 
     def finish(self):
         c = self.ctx
-        frames, _, rate = c.timing()
+        frames, _, rate = timing(c)
         return [write_livelink(c.out / self.files[0], c.rig, c.curves, rate, landmarks=c.landmarks, frames=frames)]
 
 
@@ -256,7 +267,7 @@ class UsdExport(Exporter):
 
     def finish(self):
         c = self.ctx
-        frames, _, rate = c.timing()
+        frames, _, rate = timing(c)
         return [write_usd(c.out / self.files[0], c.template, c.base, c.positions, c.n_frames, rate,
                           morph_targets=c.morph_targets if c.rig is not None else None, head=c.head, frames=frames)]
 
@@ -309,7 +320,7 @@ class SameExport(Exporter):
         if missing:
             log.warning("%s: %d slider(s) are not sliders or morph targets of the file and are not in %s: %s",
                         src.name, len(missing), glb.name, ", ".join(missing))
-        times = c.timing()[1]
+        times = timing(c)[1]
         written = [write_animated_copy(glb, src, c.curves, names, c.fps, groups, lower=c.rig.lower,
                                        upper=c.rig.upper, times=times)]
         if is_vrm(src):
