@@ -11,7 +11,7 @@ from ..config import TOP_LEVEL, Command, Flag, Param, check_regions, output_flag
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_json, write_text
 from ..io.frames import is_sequence, sequence_files
-from ..io.landmarks import load_landmarks
+from ..io.landmarks import LOST_CONFIDENCE, load_landmarks
 from ..io.select_plots import curve_csv, write_contact_sheet, write_curve_plot
 from ..io.stagefiles import write_keys, write_targets
 from ..methods.regions import region_specs
@@ -88,7 +88,7 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
         for name, (idx, rk) in specs.items():
             X = stab[:, idx].reshape(lm.n_frames, -1)
-            keep = _usable_frames(X, name, landmarks, include)
+            keep = _usable_frames(X, name, landmarks, include, lost=(lm.confidence[:, idx] <= LOST_CONFIDENCE).all(1))
             local = {int(f): i for i, f in enumerate(keep)}
             Xk = X[keep]
             inc = tuple(local[int(f)] for f in include)
@@ -132,13 +132,15 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
 
 
 
-def _usable_frames(X, name, landmarks, include) -> np.ndarray:
+def _usable_frames(X, name, landmarks, include, lost=None) -> np.ndarray:
     """Frames of region *name* (rows of *X*) without lost landmarks; the frames in *include* must be among them.
 
-    Frames where a landmark of the region is lost (NaN) can be neither keys
-    nor scored by eq. 5; decompose interpolates their weights later.
+    Frames where a landmark of the region is lost (NaN), or all of them are (*lost*: confidence 0 in every
+    point, a frame missing from an image sequence), can be neither keys nor scored by eq. 5; decompose
+    interpolates their weights later.
     """
-    keep = np.flatnonzero(np.isfinite(X).all(1))
+    ok = np.isfinite(X).all(1)
+    keep = np.flatnonzero(ok if lost is None else ok & ~lost)
     if keep.size == 0:
         raise InputError(f"{landmarks}: region {name!r}: every frame has lost (NaN) landmarks")
     if keep.size < len(X):

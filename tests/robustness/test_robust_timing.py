@@ -78,6 +78,7 @@ def test_image_sequence_with_and_without_a_gap_runs_through_every_stage(take, pa
             c["output_dir"] = out
             c["track"]["video"] = pattern
             c["apply"]["formats"] = ["obj", "csv"]
+            c["select"]["contact_sheet"] = "keys.png"  # the key frames cut from the sequence
         return edit
 
     full = _cli("run", _config(take, "seq.yaml", seq("full")))
@@ -103,6 +104,9 @@ def test_image_sequence_with_and_without_a_gap_runs_through_every_stage(take, pa
     later = np.abs(g["points_raw"][gap + 2:] - lm["points_raw"][gap + 2:]).mean()
     one_early = np.abs(g["points_raw"][gap + 2:-1] - lm["points_raw"][gap + 3:]).mean()
     assert later < 0.25 * one_early, (later, one_early)
+    keys = json.loads((take / "gap/keys.json").read_text())
+    assert all(gap not in r["frames"] for r in keys["regions"].values())  # a lost frame is never a key
+    assert cv2.imread(str(take / "gap/keys.png")) is not None
     w = np.load(take / "gap/weights.npz")
     assert any(w[k][gap] for k in w.files if k.endswith("_lost"))
     rows = (take / "gap/frames/weights.csv").read_text().splitlines()
