@@ -519,6 +519,9 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
             if source.frame_count and f >= source.frame_count:
                 raise InputError(f"{src[f]}: frame {f} is past the last frame of {source.path} "
                                  f"({source.frame_count - 1})")
+            if f in source.missing:
+                raise InputError(f"{src[f]}: annotates frame {f}, which the image sequence lacks (a gap in its "
+                                 "numbering)")
             try:
                 check_inside(P, (W, H), f"frame {f}")
             except ValueError as exc:
