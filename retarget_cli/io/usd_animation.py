@@ -9,8 +9,8 @@ on it, as the UsdSkel schema (Pixar 2019-2025, "Blend Shapes", "Binding") requir
 - every mesh whose blend shapes a slider drives is bound to a ``Skeleton`` (``skel:skeleton``, inherited or
   authored) under a ``SkelRoot``, and that skeleton's ``skel:animationSource`` is a ``SkelAnimation`` whose
   ``blendShapes`` lists the driven shapes' tokens and whose ``blendShapeWeights`` are time-sampled at every
-  frame: time code ``t`` is frame ``t`` (0 to T-1), with the stage's ``timeCodesPerSecond`` and
-  ``framesPerSecond`` set to the take's frame rate;
+  frame: a frame's time code is its source frame number (0 to T-1 for a whole video), with the stage's
+  ``timeCodesPerSecond`` and ``framesPerSecond`` set to the source's frame rate (as ``apply --format usd``);
 - a mesh already bound keeps its skeleton; the skeleton's animation, when it has one, gets the
   ``blendShapes``/``blendShapeWeights`` (its joint animation is kept; shapes it animated that no slider drives
   keep their values at the new time codes); a skeleton without one gets a new ``SkelAnimation`` child;
@@ -96,7 +96,7 @@ def target_weights(curves, names, sliders: dict, target_names, *, lower=None, up
 
 
 def write_animated_usd(path: str | os.PathLike, source, weights, target_names, fps: float, *, meshes=None,
-                       targets=None) -> Path:
+                       targets=None, frames=None) -> Path:
     """Write the animated copy of the USD character *source* to *path* (atomically); see the module docstring.
 
     Parameters
@@ -110,7 +110,10 @@ def write_animated_usd(path: str | os.PathLike, source, weights, target_names, f
     target_names : sequence of str
         The K targets as the reader names them (with the same *meshes* and *targets* filters).
     fps : float
-        The take's frame rate: the copy's ``timeCodesPerSecond``.
+        The take's frame rate (the source video's): the copy's ``timeCodesPerSecond``.
+    frames : ndarray, shape (T,), optional
+        The source frame number of each row, its time code (so time code / *fps* is the source's time, as
+        ``apply --format usd`` writes them); default 0 … T−1.
 
     Raises
     ------
@@ -125,8 +128,11 @@ def write_animated_usd(path: str | os.PathLike, source, weights, target_names, f
     check_fps(fps)
     if path.suffix.lower() != source.suffix.lower():
         raise ParameterError(f"{path.name}: the copy of {source.name} keeps its suffix {source.suffix}")
+    codes = np.arange(len(W)) if frames is None else np.asarray(frames)
+    if codes.shape != (len(W),) or not np.isfinite(codes).all() or np.any(np.diff(codes) <= 0):
+        raise ParameterError(f"frames: expected {len(W)} increasing frame numbers, got shape {codes.shape}")
     request = {"meshes": meshes, "targets": targets, "target_names": list(target_names), "fps": float(fps),
-               "suffix": source.suffix.lower()}
+               "suffix": source.suffix.lower(), "codes": [float(c) for c in codes]}
     with run_isolated("usd-copy", source, "usd-core", request, arrays={"weights": W}) as out:
         made = out / f"copy{source.suffix.lower()}"
         size = made.stat().st_size

@@ -132,8 +132,8 @@ def _weights_of(name: str, track: list, W: np.ndarray) -> tuple[list[str], np.nd
     return tokens, W[:, cols]
 
 
-def _animate(pxr, name: str, anim_prim, tokens: list[str], weights: np.ndarray):
-    """Author ``blendShapes`` and time-sampled ``blendShapeWeights`` (time code t = frame t) on the animation."""
+def _animate(pxr, name: str, anim_prim, tokens: list[str], weights: np.ndarray, codes: list):
+    """Author ``blendShapes`` and time-sampled ``blendShapeWeights`` (row t at time code ``codes[t]``) on the animation."""
     Usd, UsdSkel, Vt = pxr.Usd, pxr.UsdSkel, pxr.Vt
     anim = UsdSkel.Animation(anim_prim)
     T = len(weights)
@@ -143,7 +143,7 @@ def _animate(pxr, name: str, anim_prim, tokens: list[str], weights: np.ndarray):
         attr = anim.GetBlendShapeWeightsAttr()
         old = np.zeros((T, len(kept)))
         for t in range(T):
-            value = attr.Get(Usd.TimeCode(t))
+            value = attr.Get(Usd.TimeCode(codes[t]))
             if value is not None and len(value) == len(old_tokens):
                 row = np.asarray(value, dtype=np.float64)
                 old[t] = [row[old_tokens.index(tok)] for tok in kept]
@@ -154,7 +154,7 @@ def _animate(pxr, name: str, anim_prim, tokens: list[str], weights: np.ndarray):
     attr = anim.CreateBlendShapeWeightsAttr()
     attr.Clear()
     for t in range(T):
-        attr.Set(Vt.FloatArray.FromNumpy(weights[t].astype(np.float32)), Usd.TimeCode(t))
+        attr.Set(Vt.FloatArray.FromNumpy(weights[t].astype(np.float32)), Usd.TimeCode(codes[t]))
 
 
 def _absolute_assets(pxr, source: Path, stage, copy, package: str | None) -> set:
@@ -195,15 +195,15 @@ def _absolute_assets(pxr, source: Path, stage, copy, package: str | None) -> set
     return inner
 
 
-def _stage_time(pxr, name: str, layer, fps: float, T: int):
+def _stage_time(pxr, name: str, layer, fps: float, codes: list):
     old = layer.timeCodesPerSecond if layer.HasTimeCodesPerSecond() else None
     if old is not None and abs(old - fps) > 1e-9:
         log.info("%s: timeCodesPerSecond %g replaced by the take's %g (other time samples of the file play at that "
                  "rate)", name, old, fps)
     layer.timeCodesPerSecond = fps
     layer.framesPerSecond = fps
-    layer.startTimeCode = 0
-    layer.endTimeCode = max(T - 1, 0)
+    layer.startTimeCode = codes[0]
+    layer.endTimeCode = codes[-1]
 
 
 def _save(pxr, source: Path, copy_stage, inner: set, out: Path, suffix: str):
@@ -231,7 +231,7 @@ def animate_here(path, request: dict, out: Path) -> None:
     """Write ``out/copy.<suffix>``: the animated copy of the USD character *path* (in the child process).
 
     *request*: ``meshes``, ``targets`` (the reader's filters), ``target_names`` (the K names the parent's weights
-    follow), ``fps``, ``suffix``; ``out/weights.npy`` holds the (T, K) weights.
+    follow), ``fps``, ``codes`` (the T time codes), ``suffix``; ``out/weights.npy`` holds the (T, K) weights.
     """
     path, out = Path(path), Path(out)
     pxr = usd._pxr(path)
@@ -255,8 +255,8 @@ def animate_here(path, request: dict, out: Path) -> None:
             binder.bind(copy.GetPrimAtPath(chosen[i].aliases[0]), chosen[i].labels, mesh_rows)
         for anim_path, track in binder.tracks.items():
             tokens, weights = _weights_of(path.name, track, W)
-            _animate(pxr, path.name, copy.GetPrimAtPath(anim_path), tokens, weights)
-        _stage_time(pxr, path.name, layer, float(request["fps"]), len(W))
+            _animate(pxr, path.name, copy.GetPrimAtPath(anim_path), tokens, weights, request["codes"])
+        _stage_time(pxr, path.name, layer, float(request["fps"]), request["codes"])
         _save(pxr, path, copy, inner, out, request["suffix"])
     except pxr.Tf.ErrorException as exc:
         raise usd._usd_error(path, exc) from None

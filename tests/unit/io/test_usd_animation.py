@@ -242,3 +242,18 @@ def test_target_weights_and_argument_checks(tmp_path):
     with pytest.raises(InputError, match="changed since it was read"):
         write_animated_usd(tmp_path / "o.usda", src, np.zeros((2, 3)), ["a", "b", "c"], 30.0)
     assert not (tmp_path / "o.usda").exists()
+
+
+def test_time_codes_are_the_source_frame_numbers(tmp_path):
+    src = _character(tmp_path / "char.usda")
+    ctx = _ctx(tmp_path, src, seed=7)
+    ctx.frames, ctx.source_fps = np.array([3, 4, 5, 8, 9, 10, 12]), 25.0  # a sequence with gaps, as apply passes
+    [path] = SameExport(ctx).finish()
+    copy = Usd.Stage.Open(str(path))
+    assert copy.GetTimeCodesPerSecond() == 25.0 and (copy.GetStartTimeCode(), copy.GetEndTimeCode()) == (3, 12)
+    anim = UsdSkel.Animation(copy.GetPrimAtPath("/Char/Teeth/RetargetSkeleton/RetargetAnimation"))
+    assert anim.GetBlendShapeWeightsAttr().GetTimeSamples() == [3, 4, 5, 8, 9, 10, 12]
+    W = [anim.GetBlendShapeWeightsAttr().Get(Usd.TimeCode(int(f)))[0] for f in ctx.frames]
+    np.testing.assert_allclose(W, np.clip(ctx.curves[:, list(ctx.rig.names).index("jawOpen")], 0, 1), atol=1e-6)
+    with pytest.raises(ParameterError, match="frames: expected 7 increasing frame numbers"):
+        write_animated_usd(tmp_path / "o.usda", src, np.zeros((7, 3)), ["a", "b", "c"], 30.0, frames=[1] * 7)
