@@ -805,16 +805,19 @@ def part_closed_lips(vx, points, render: FaceRender, skin, vertices, deltas, nam
 
     On a closed mouth the detector puts each upper inner-lip point and its
     lower partner (61/67, 62/66, 63/65) on the lips' one line, and the nearest
-    vertex is one lip's for both: the fit then cannot see the mouth open there
-    (the VALID head: 62 and 66 on one upper-lip vertex; the ICT FaceKit as a
-    GLB: 61/67 and 62/66 on lower-lip vertices). For such a pair the visible
+    vertex is one lip's for both, or each lands on the other's lip: the fit
+    then cannot see the mouth open there, or twists the mouth to open it (the
+    VALID head: 62 and 66 on one upper-lip vertex, or 63 on the lower lip and
+    65 on the upper; the ICT FaceKit as a GLB: 61/67 and 62/66 on lower-lip
+    vertices). For a pair whose lower vertex the jaw-open (below) does not move
+    down the picture by a pixel more than its upper one, the visible
     skin vertices within :data:`LIP_RADIUS` inter-ocular distances of the two
     points are split by how far the jaw-open sliders (by name,
     :data:`SLIDER_PATTERNS`; each vertex by the one that moves it most) move
     them down the picture, at the midpoint of that motion's range: the upper
     point goes to the nearest vertex (in the picture) of those that move less
-    (the upper lip), the lower point to the nearest of the others. Pairs on two
-    vertices, and rigs without a jaw-open slider, are kept.
+    (the upper lip), the lower point to the nearest of the others. Pairs the
+    jaw-open parts, and rigs without a jaw-open slider, are kept.
 
     Parameters
     ----------
@@ -833,10 +836,12 @@ def part_closed_lips(vx, points, render: FaceRender, skin, vertices, deltas, nam
     ndarray (68,), int64
     """
     vx = np.array(vx, np.int64)
-    shared = [(u, lo) for u, lo in INNER_LIP_PAIRS_68 if vx[u] == vx[lo]]
-    opened = _opened(render, vertices, deltas, slider_groups(names)["jaw"]) if shared else None
+    opened = _opened(render, vertices, deltas, slider_groups(names)["jaw"])
     if opened is None:
         return vx
+    drop = opened[:, 1] - render.xy[:, 1]  # down the picture when the mouth opens
+    # a pair on one vertex, or whose lower point the jaw-open does not move down a pixel more than the upper
+    shared = [(u, lo) for u, lo in INNER_LIP_PAIRS_68 if vx[u] == vx[lo] or drop[vx[lo]] - drop[vx[u]] < 1.0]
     P = np.asarray(points, np.float64)
     iod = np.linalg.norm(P[45] - P[36])
     ids = np.flatnonzero(skin)
@@ -844,7 +849,7 @@ def part_closed_lips(vx, points, render: FaceRender, skin, vertices, deltas, nam
         near = ids[np.linalg.norm(render.xy[ids] - (P[u] + P[lo]) / 2, axis=1) < LIP_RADIUS * iod]
         if len(near) < 2:
             continue
-        dy = opened[near, 1] - render.xy[near, 1]  # down the picture when the mouth opens
+        dy = drop[near]
         if dy.max() - dy.min() < 1.0:  # the jaw-open does not part them here (a pixel)
             continue
         split = (dy.min() + dy.max()) / 2

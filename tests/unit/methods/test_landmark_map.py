@@ -199,6 +199,12 @@ def test_a_closed_mouths_inner_lip_pair_is_lifted_onto_its_two_lips():
     assert abs(V[out[62], 1]) < 0.06 and abs(V[out[66], 1]) < 0.06  # both on the lip line
     assert (np.delete(out, [62, 66]) == np.delete(vx, [62, 66])).all()
     assert (lm.part_closed_lips(vx, P, r, skin, V, D, ["smile"]) == vx).all()  # no jaw-open: kept
+    assert (lm.part_closed_lips(out, P, r, skin, V, D, ["jawOpen"]) == out).all()  # a parted pair is kept
+    # each point on the other's lip (the VALID head's 63/65): the fit twisted the mouth to open it
+    swapped = out.copy()
+    swapped[[62, 66]] = out[[66, 62]]
+    again = lm.part_closed_lips(swapped, P, r, skin, V, D, ["jawOpen"])
+    assert again[62] < len(upper) <= again[66]
 
 
 def test_fallback_puts_the_lips_on_a_mouth_laid_on_a_static_skin():
