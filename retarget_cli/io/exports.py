@@ -79,6 +79,11 @@ class ExportContext:
         ``apply``'s settings (``vat``, ...).
     ledger : TrackedOutputs
         The folder's output manifest (an exporter of many files plans them there).
+    found : ndarray, shape (T,), bool, or None
+        Whether the face was found in each frame (``landmarks.npz``'s ``found``); None: every frame.
+    gaps : str
+        ``apply.gaps``: ``omit`` leaves the frames of a gap out of the exports that can (curves.csv,
+        livelink.csv); the curves already hold the behaviour's values (:func:`retarget_cli.methods.gaps.fill_gaps`).
     """
 
     out: Path
@@ -99,6 +104,14 @@ class ExportContext:
     morph_targets: Callable
     settings: dict
     ledger: Any
+    found: np.ndarray | None = None
+    gaps: str = "ease"
+
+    def written_rows(self) -> np.ndarray | None:
+        """Frames the row-per-frame exports write: all but the gaps' with ``gaps: omit``; None for every frame."""
+        if self.found is None or self.gaps != "omit" or np.all(self.found):
+            return None
+        return np.asarray(self.found, bool)
 
 
 class Exporter:
@@ -210,9 +223,15 @@ class CurvesExport(Exporter):
         c = self.ctx
         frames = np.arange(c.n_frames)
         csv, npz = (c.out / f for f in self.files)
-        write_animation(csv, c.rig.names, c.curves, frames, frames / c.fps)
-        write_animation(npz, c.rig.names, c.curves, frames,
-                        meta={"fps": c.fps, "rig": Path(c.rig_file).name, "weights": Path(c.weights).name})
+        rows = c.written_rows()
+        keep = slice(None) if rows is None else rows
+        found = None if c.found is None or np.all(c.found) else np.asarray(c.found, bool)
+        write_animation(csv, c.rig.names, c.curves[keep], frames[keep], frames[keep] / c.fps,
+                        found=None if found is None else found[keep])
+        gap_meta = {} if found is None else {"gaps": c.gaps}
+        write_animation(npz, c.rig.names, c.curves, frames, found=found,
+                        meta={"fps": c.fps, "rig": Path(c.rig_file).name, "weights": Path(c.weights).name,
+                              **gap_meta})
         return [csv, npz]
 
 
@@ -223,7 +242,8 @@ class LiveLinkExport(Exporter):
 
     def finish(self):
         c = self.ctx
-        return [write_livelink(c.out / self.files[0], c.rig, c.curves, c.fps, landmarks=c.landmarks)]
+        return [write_livelink(c.out / self.files[0], c.rig, c.curves, c.fps, landmarks=c.landmarks,
+                               rows=c.written_rows())]
 
 
 class UsdExport(Exporter):
@@ -337,7 +357,7 @@ def head_rotation(landmarks, T: int):
     return head_rotation_from_similarity(lm.head)
 
 
-def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None) -> Path:
+def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None, rows=None) -> Path:
     """Write the rig's curves as a Live Link Face CSV (:func:`retarget_cli.io.livelink.livelink_csv`).
 
     Parameters
@@ -347,13 +367,15 @@ def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks
     curves : ndarray, shape (T, n)
     landmarks : path-like, optional
         ``landmarks.npz``: HeadRoll from its head motion; without it the head columns are 0.
+    rows : ndarray, shape (T,), bool, optional
+        The frames written (:meth:`ExportContext.written_rows`); default every frame.
     """
 
     rot = head_rotation(landmarks, len(curves))
     if rot is None:
         log.info("Live Link Face CSV: no landmarks file, so the head rotation columns are 0")
     names = rig.spec.names if rig.spec is not None else {}
-    write_text(path, livelink_csv(curves, rig.names, fps, names=names, head_rotation=rot))
+    write_text(path, livelink_csv(curves, rig.names, fps, names=names, head_rotation=rot, rows=rows))
     return path
 
 

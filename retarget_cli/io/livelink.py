@@ -211,11 +211,13 @@ def livelink_table(curves, sliders, *, names=None, head_rotation=None) -> tuple[
     return values, unmapped
 
 
-def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None) -> str:
+def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None, rows=None) -> str:
     """A Live Link Face CSV (text) of slider curves; see the module docstring for the layout.
 
     Parameters are those of :func:`livelink_table`, plus *fps*, the take's
-    frame rate (timecodes). Unmapped ARKit columns are listed in one warning.
+    frame rate (timecodes), and *rows* (T,) bool, optional: the frames written (the others, such as the
+    frames of a gap left out, are skipped; each row keeps its own frame's timecode). Unmapped ARKit
+    columns are listed in one warning.
     """
     if not fps > 0:
         raise ShapeError(f"fps: expected > 0, got {fps}")
@@ -225,6 +227,8 @@ def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None)
                     "map them with 'names:' in rig.yaml", len(unmapped), ", ".join(unmapped))
     lines = [",".join(COLUMNS)]
     for t, row in enumerate(values):
+        if rows is not None and not rows[t]:
+            continue
         cells = [f"{v:.6f}" for v in row]
         lines.append(f"{timecode(t, fps)},{BLENDSHAPE_COUNT}," + ",".join(c if c != "-0.000000" else "0.000000"
                                                                         for c in cells))

@@ -204,7 +204,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
     Y = lm.stabilized[:, lm_ids].astype(np.float64)
     Cf = lm.confidence[:, lm_ids].astype(np.float64)
-    posed = list(range(lm.n_frames)) if frames == "all" else key_frames
+    # frames all: each segment of the take (found frames between gaps and cuts) is posed and smoothed apart
+    posed = [list(range(a, b)) for a, b in lm.segments] if frames == "all" else [key_frames]
     if fit == "delta":
         Y0 = neutral.landmarks(lm.stabilized)[lm_ids].astype(np.float64)
         C0 = neutral.weights(lm.confidence)[lm_ids].astype(np.float64)
@@ -220,8 +221,10 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, (Y0, C0), region_rows, fixed,
                                                     rigid, opts)
     else:
-        poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, posed, list(kf.regions), region_rows, fixed,
-                                                       alpha, mu)
+        poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, [f for part in posed for f in part],
+                                                       list(kf.regions), region_rows, fixed, alpha, mu)
+    if frames == "all" and len(poses) < lm.n_frames:
+        poses = _hold_gaps(poses, lm.n_frames)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
                        None if neutral is None else neutral.frame, every_frame=frames == "all")
 
@@ -290,8 +293,8 @@ def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
 
 
 def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts):
-    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*:
-    poses by frame, slider owners, sliders by region.
+    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*
+    (a list of frame lists, each fitted and smoothed on its own): poses by frame, slider owners, sliders by region.
 
     *neutral* is the neutral key's (landmarks (M, 2), confidence (M,)) among the mapped landmarks.
     """
@@ -302,15 +305,29 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
         _, DL = rig_landmarks(r, vx)
         exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
         log.info("auto-pose: inferred exclusive pairs %s", exclusive)
-    res = delta_pose(r, vx, neutral[0], Y[frames], weights=Cf[frames], neutral_weights=neutral[1],
-                     regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **opts)
+    poses, rms = {}, []
+    for part in frames:  # a list of frames per segment of the take, each smoothed on its own
+        res = delta_pose(r, vx, neutral[0], Y[part], weights=Cf[part], neutral_weights=neutral[1],
+                         regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **opts)
+        poses.update(zip(part, res["w"]))
+        rms.extend(res["rms"])
+        for f, e in zip(part, res["rms"]):
+            log.debug("frame %d: landmark displacement rms %.3f px", f, e)
     owner = res["owner"]
-    log.info("auto-pose: %d frames posed, landmark displacement rms %.3f px (median)", len(frames),
-             float(np.median(res["rms"])) if len(frames) else 0.0)
-    for f, e in zip(frames, res["rms"]):
-        log.debug("frame %d: landmark displacement rms %.3f px", f, e)
+    log.info("auto-pose: %d frames posed in %d segment(s), landmark displacement rms %.3f px (median)", len(rms),
+             len(frames), float(np.median(rms)) if rms else 0.0)
     region_sliders = {name: [r.names[j] for j in np.flatnonzero(owner == ri)] for ri, name in enumerate(res["regions"])}
-    return dict(zip(frames, res["w"])), owner, region_sliders
+    return poses, owner, region_sliders
+
+
+def _hold_gaps(poses: dict, T: int) -> dict:
+    """Every frame's pose: a frame in a gap of the take holds the last posed frame's (the first's before any);
+    ``apply.gaps`` decides what the exported curves do there."""
+    posed = np.zeros(T, bool)
+    posed[list(poses)] = True
+    last = np.maximum.accumulate(np.where(posed, np.arange(T), -1))
+    src = np.where(last >= 0, last, int(np.argmax(posed)))
+    return {t: poses[int(src[t])] for t in range(T)}
 
 
 def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
