@@ -138,6 +138,7 @@ def _usable_frames(X, name, landmarks, include, found=None, k=None) -> np.ndarra
     (``landmarks.npz``'s ``found``) hold another frame's landmarks: never a key.
     """
     finite = np.isfinite(X).all(1)
+    n_nan = int((~finite).sum())
     if found is not None and not found.all():
         gaps = np.flatnonzero(~found)
         bad_inc = [int(f) for f in include if not found[f]]
@@ -154,9 +155,9 @@ def _usable_frames(X, name, landmarks, include, found=None, k=None) -> np.ndarra
     keep = np.flatnonzero(finite)
     if keep.size == 0:
         raise InputError(f"{landmarks}: region {name!r}: every frame has lost (NaN) landmarks")
-    if keep.size < len(X):
+    if n_nan:
         log.warning("%s: region %s: %d frames with lost landmarks are left out of key selection",
-                    landmarks, name, len(X) - keep.size)
+                    landmarks, name, n_nan)
     bad_inc = [f for f in include if f not in set(keep.tolist())]
     if bad_inc:
         raise InputError(f"{landmarks}: region {name!r}: neutral frame {bad_inc[0]} has lost (NaN) landmarks; "

@@ -449,8 +449,8 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         raise ShapeError("frames: the sequence is empty")
     track.end_segment()
     if gaps and not any(track.found):
-        raise FaceLostError(f"no face found in any of the {len(track.pts)} frames", 0, np.zeros((0, 68, 2)),
-                            np.zeros((0, 68)))
+        raise FaceLostError(f"frame 0: no face found by the detector, nor in any of the {len(track.pts)} frames "
+                            "of the take", 0, np.zeros((0, 68, 2)), np.zeros((0, 68)))
     out = track.points()
     for t in ann:  # annotated frames exactly as given
         if t < len(out):
