@@ -145,3 +145,16 @@ def test_too_few_found_frames_for_the_keys_is_one_line(ran):
     assert res.exit_code == 1
     lines = res.output.strip().splitlines()
     assert len(lines) == 1 and "found in 120 of 160 frames" in lines[0] and "k = 130" in lines[0], res.output
+
+
+def test_the_report_shows_the_gaps(ran):
+    pytest.importorskip("matplotlib")
+    res = run("-q", "report", ran / "config.yaml", "-o", ran / "out" / "report.html")
+    assert res.exit_code == 0, res.output
+    page = (ran / "out" / "report.html").read_text()
+    assert "2 gaps (cut 1, no face 1), 40 frames" in page
+    assert "40 of 160 frames without a face" in page
+    # the table: where, how long, why
+    row = ('<tr><td class="num">60</td><td class="num">40</td><td class="num">1.33</td><td>no face</td><td></td></tr>'
+           '<tr><td class="num">130</td><td class="num">0</td><td class="num">0.00</td><td>cut</td><td>yes</td></tr>')
+    assert row in page
