@@ -83,7 +83,7 @@ class ExportContext:
         Whether the face was found in each frame (``landmarks.npz``'s ``found``); None: every frame.
     gaps : str
         ``apply.gaps``: ``omit`` leaves the frames of a gap out of the exports that can (curves.csv,
-        livelink.csv); the curves already hold the behaviour's values (:func:`retarget_cli.methods.gaps.fill_gaps`).
+        livelink.csv, the glTF's keys); the curves already hold the behaviour's values (:func:`retarget_cli.methods.gaps.fill_gaps`).
     """
 
     out: Path
@@ -210,7 +210,8 @@ class GlbExport(Exporter):
         mt, names, mw = c.morph_targets()
         path = c.out / self.files[0]
         write_glb(path, base=c.base, faces=None, targets=mt, target_names=names, weights=mw,
-                  fps=c.fps, node_transforms=c.head, name=c.template.path.stem, surface=obj_surface(c.template))
+                  fps=c.fps, node_transforms=c.head, name=c.template.path.stem, surface=obj_surface(c.template),
+                  keys=c.written_rows())
         return [path]
 
 

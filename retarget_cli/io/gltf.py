@@ -264,7 +264,7 @@ def _container(doc: dict, b: _Bin) -> bytes:
 
 
 def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_transforms=None,
-              name: str = "character", surface=None) -> bytes:
+              name: str = "character", surface=None, keys=None) -> bytes:
     """A complete ``.glb`` file.
 
     The mesh at frame ``t`` is ``base + Σ_m weights[t, m] targets[m]`` (glTF
@@ -291,6 +291,9 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
         (:func:`~retarget_cli.io.objsurface.obj_surface`); replaces *faces*
         and adds ``TEXCOORD_0``, ``NORMAL`` and materials (see the module
         docstring).
+    keys : ndarray, shape (T,), bool, optional
+        The frames keyed (default all): the others are left out of the animation, which the player
+        interpolates across (``apply.gaps: omit``).
     """
     base = np.asarray(base, dtype=np.float32)
     D = np.asarray(targets, dtype=np.float32)
@@ -306,12 +309,17 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
         attributes, groups, materials, D = _surface_mesh(b, surface, base, D, N)
     targets = [{"POSITION": b.add(d, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)} for d in D]
     prims = _primitives(b, groups, attributes, targets)
-    times = (np.arange(T) / fps).astype(np.float32)
+    rows = np.arange(T) if keys is None else np.flatnonzero(np.asarray(keys, bool))
+    if keys is not None and (np.shape(keys) != (T,) or not rows.size):
+        raise ShapeError(f"keys: expected ({T},) booleans with at least one true, got shape {np.shape(keys)}")
+    times = (rows / fps).astype(np.float32)
     t_acc = b.add(times, kind="SCALAR", bounds=True)
-    samplers = [{"input": t_acc, "output": b.add(W.reshape(-1), kind="SCALAR"), "interpolation": "LINEAR"}]
+    samplers = [{"input": t_acc, "output": b.add(W[rows].reshape(-1), kind="SCALAR"), "interpolation": "LINEAR"}]
     channels = [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]
     if node_transforms is not None:
-        _node_animation(b, node_transforms, T, t_acc, samplers, channels)
+        if np.shape(node_transforms)[:1] != (T,):
+            raise ShapeError(f"node_transforms: expected shape ({T}, 3, 4), got {np.shape(node_transforms)}")
+        _node_animation(b, np.asarray(node_transforms)[rows], len(rows), t_acc, samplers, channels)
     doc = {
         "asset": {"version": "2.0", "generator": f"retarget {__version__}"},
         "scene": 0,

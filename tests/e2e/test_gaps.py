@@ -61,7 +61,7 @@ def take(tmp_path_factory):
            "select": {"landmarks": "landmarks.npz", "k": 8, "regions": {"brows-eyes": None, "mouth": None}},
            "decompose": {"landmarks": "landmarks.npz", "formulation": "delta"},
            "auto_pose": {"landmarks": "landmarks.npz", "rig": "rig.yaml"},
-           "apply": {"landmarks": "landmarks.npz", "formats": ["curves", "livelink"]}}
+           "apply": {"landmarks": "landmarks.npz", "formats": ["curves", "livelink", "glb"]}}
     (d / "config.yaml").write_text(yaml.safe_dump(cfg))
     return d
 
@@ -69,6 +69,20 @@ def take(tmp_path_factory):
 def curves_npz(d):
     data = np.load(d / "out" / "frames" / "curves.npz")
     return data["curves"], data["found"], [str(n) for n in data["names"]]
+
+
+def glb_key_times(path):
+    """The times of the glTF's weight animation (its first sampler's input accessor)."""
+    import struct
+
+    data = path.read_bytes()
+    n = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + n])
+    acc = doc["accessors"][doc["animations"][0]["samplers"][0]["input"]]
+    view = doc["bufferViews"][acc["bufferView"]]
+    binary = data[20 + n + 8:]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    return np.frombuffer(binary, np.float32, count=acc["count"], offset=start)
 
 
 def csv_rows(path):
@@ -131,9 +145,12 @@ def test_gap_frames_hold_or_are_left_out(ran, behaviour):
     header, rows = csv_rows(ran / "out" / "frames" / "curves.csv")
     _, ll_rows = csv_rows(ran / "out" / "frames" / "livelink.csv")
     frames = [int(r[0]) for r in rows]
+    keyed = glb_key_times(ran / "out" / "frames" / "animation.glb")
     if behaviour == "hold":
         assert frames == list(range(T)) and len(ll_rows) == T
+        assert np.allclose(keyed, np.arange(T) / 30.0)
     else:
+        assert np.allclose(keyed, np.array(frames) / 30.0)  # the glTF keys the found frames only
         assert frames == [t for t in range(T) if not GAP.start <= t < GAP.stop]
         assert len(ll_rows) == T - (GAP.stop - GAP.start)
         # each Live Link row keeps its own frame's timecode: the first after the gap is frame 100 (3 s 10 f)
