@@ -7,7 +7,8 @@ Per shared clip (d3, d9, d12 of ``../shared/realdata/videos``), three variants a
 - ``slide``: from a third of the clip on, the picture slides sideways out of the frame in 0.5 s (black
   behind it), stays out 1 s and slides back in 0.5 s;
 - ``cut``: from the middle on, the frames of another shared clip at the same frame numbers (d3 -> d9,
-  d9 -> d3, d12 -> d3; as long as the shorter of the two).
+  d9 -> d3, d12 -> d3; as long as the shorter of the two; scaled uniformly to the first clip's frame size
+  and centred on black where the sizes differ: d9 is 512x480).
 
 Each variant and each clean clip runs the documented path (``configs/real.yaml`` with the video swapped and
 ``track.init: auto``: ``bench/peer.py``'s :func:`run_ours`, cached under ``build/gaps``). Checked and printed:
@@ -89,6 +90,21 @@ def write_video(path: Path, frames, fps: float) -> None:
     os.replace(tmp, path)
 
 
+def fit(img, w: int, h: int):
+    """*img* scaled uniformly to fit a *w* x *h* frame, centred on black (d9 is 512x480, d3 and d12 512x512)."""
+    import cv2
+
+    ih, iw = img.shape[:2]
+    if (iw, ih) == (w, h):
+        return img.copy()
+    k = min(w / iw, h / ih)
+    sw, sh = int(round(iw * k)), int(round(ih * k))
+    out = np.zeros((h, w, 3), img.dtype)
+    x, y = (w - sw) // 2, (h - sh) // 2
+    out[y:y + sh, x:x + sw] = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA)
+    return out
+
+
 def make_variant(clip: str, variant: str) -> tuple[Path, dict]:
     """The variant's video (made once) and what changed: ``changed`` (T,) bool, ``source`` per frame."""
     frames, fps = read_video(DATA / "videos" / f"{clip}.mp4")
@@ -119,7 +135,7 @@ def make_variant(clip: str, variant: str) -> tuple[Path, dict]:
         out, src, changed = out[:T], src[:T], changed[:T]
         h = T // 2
         for i in range(h, T):
-            out[i] = other[i].copy()
+            out[i] = fit(other[i], out[0].shape[1], out[0].shape[0])
             src[i] = CUT_TO[clip]
         changed[h] = True  # the cut itself: the frames either side are excluded
     path = BUILD / "videos" / f"{clip}_{variant}.mp4"

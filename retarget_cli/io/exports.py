@@ -83,7 +83,7 @@ class ExportContext:
         Whether the face was found in each frame (``landmarks.npz``'s ``found``); None: every frame.
     gaps : str
         ``apply.gaps``: ``omit`` leaves the frames of a gap out of the exports that can (curves.csv,
-        livelink.csv, the glTF's keys); the curves already hold the behaviour's values (:func:`retarget_cli.methods.gaps.fill_gaps`).
+        livelink.csv, the glTF's keys, the USD's time samples); the curves already hold the behaviour's values (:func:`retarget_cli.methods.gaps.fill_gaps`).
     """
 
     out: Path
@@ -258,7 +258,8 @@ class UsdExport(Exporter):
     def finish(self):
         c = self.ctx
         return [write_usd(c.out / self.files[0], c.template, c.base, c.positions, c.n_frames, c.fps,
-                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.head)]
+                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.head,
+                          keys=c.written_rows())]
 
 
 class SameExport(Exporter):
@@ -413,7 +414,7 @@ def rig_shapes(rig, curves: np.ndarray) -> tuple[np.ndarray, list[str], np.ndarr
 
 
 def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: float, *, morph_targets=None,
-              head=None) -> Path:
+              head=None, keys=None) -> Path:
     """Write ``animation.usd``: a UsdSkel character with a rig, else a point cache.
 
     Parameters
@@ -428,6 +429,9 @@ def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: fl
         ``morph_targets()`` -> (shapes, names, weights) of the rig (:func:`rig_shapes`); without it a point cache.
     head : ndarray, shape (T, 3, 4), optional
         Head motion, the time-sampled transform of ``/Character``.
+    keys : ndarray, shape (T,), bool, optional
+        The frames time-sampled with a rig (``apply.gaps: omit`` leaves the gaps' out); the point cache
+        samples every frame.
     """
 
     surf = obj_surface(template)
@@ -435,7 +439,7 @@ def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: fl
     common = dict(counts=surf.counts, corners=surf.v, fps=fps, uv=uv, transforms=head, name=Path(template.path).stem)
     if morph_targets is not None:
         shapes, names, weights = morph_targets()
-        write_usd_skel(path, points=base, shapes=shapes, names=names, weights=weights, **common)
+        write_usd_skel(path, points=base, shapes=shapes, names=names, weights=weights, keys=keys, **common)
     else:
         X = np.concatenate([positions(slice(s, min(s + 64, T))) for s in range(0, T, 64)])
         write_usd_points(path, positions=X, **common)

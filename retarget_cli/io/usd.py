@@ -130,7 +130,7 @@ def _check(points, counts, corners, T_weights=None):
 
 
 def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps: float, uv=None,
-                   transforms=None, name: str = "face") -> None:
+                   transforms=None, name: str = "face", keys=None) -> None:
     """Write a UsdSkel character: neutral mesh, one BlendShape per shape, time-sampled weights.
 
     At time code ``t`` the mesh is ``points + Σ_m weights[t, m] shape_m``
@@ -156,6 +156,9 @@ def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps
         Face-varying texture coordinates: values and per-corner indices.
     transforms : ndarray, shape (T, 3, 4), optional
         Per-frame similarity of the character (head motion).
+    keys : ndarray, shape (T,), bool, optional
+        The frames time-sampled (default all); the others are left out, and USD interpolates across them
+        (``apply.gaps: omit``).
     """
     require_pxr()
     from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
@@ -170,6 +173,9 @@ def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps
     if not fps > 0:
         raise ShapeError(f"fps: expected > 0, got {fps}")
     T = len(W)
+    if keys is not None and (np.shape(keys) != (T,) or not np.any(keys)):
+        raise ShapeError(f"keys: expected ({T},) booleans with at least one true, got shape {np.shape(keys)}")
+    keyed = np.ones(T, bool) if keys is None else np.asarray(keys, bool)
     tokens = [str(n) for n in names]
     with _new_stage(path, fps, T) as stage:
         root = UsdSkel.Root.Define(stage, "/Character")
@@ -177,7 +183,8 @@ def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps
         if transforms is not None:
             op = UsdGeom.Xformable(root).AddTransformOp()
             for t, M in enumerate(_matrices(transforms)):
-                op.Set(M, Usd.TimeCode(t))
+                if keyed[t]:
+                    op.Set(M, Usd.TimeCode(t))
         skel = UsdSkel.Skeleton.Define(stage, "/Character/Skel")
         skel.CreateJointsAttr(["root"])
         skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
@@ -189,7 +196,7 @@ def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps
         anim.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)]))
         anim.CreateBlendShapesAttr(tokens)
         attr = anim.CreateBlendShapeWeightsAttr()
-        for t in range(T):
+        for t in np.flatnonzero(keyed).tolist():
             attr.Set(Vt.FloatArray.FromNumpy(W[t].astype(np.float32)), Usd.TimeCode(t))
         UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
         mesh_path = f"/Character/{_valid_names([name])[0]}"

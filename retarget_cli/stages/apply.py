@@ -72,7 +72,7 @@ PARAMS = [
     Param("gaps", "setting", str, "ease",
           "The rig's curves in the gaps of a take (frames without a face, landmarks.npz's found; needs "
           "landmarks): ease (to the rest pose and back), hold (the last pose), or omit (those rows left out of "
-          "curves.csv and livelink.csv and those keys of the glTF; the meshes and USD hold the last pose).",
+          "curves.csv and livelink.csv and those keys of the glTF and USD; the OBJ/EXR meshes hold the last pose).",
           choices=GAP_BEHAVIOURS),
     Param("gap_ease", "setting", float, 0.4, "gaps ease: seconds of each ease, to the rest pose and back.",
           min=0, max=60),

@@ -6,6 +6,7 @@ test_rest_pose.py; frames 60-99 are a gap (the face not found: the last found fr
 confidence 0, as track writes them) and a scene cut starts a new segment at frame 130.
 """
 
+import importlib.util
 import json
 
 import numpy as np
@@ -57,11 +58,12 @@ def take(tmp_path_factory):
     meta = {"gaps": describe_gaps(found, cuts=cuts, fps=30.0)}
     save_landmarks(d / "landmarks.npz", Landmarks(pts, conf, head, pts, 30.0, np.array([320, 320]), meta=meta,
                                                   found=found, segment=segment_ids(found, cuts)))
+    formats = ["curves", "livelink", "glb"] + (["usd"] if importlib.util.find_spec("pxr") else [])
     cfg = {"output_dir": "out",
            "select": {"landmarks": "landmarks.npz", "k": 8, "regions": {"brows-eyes": None, "mouth": None}},
            "decompose": {"landmarks": "landmarks.npz", "formulation": "delta"},
            "auto_pose": {"landmarks": "landmarks.npz", "rig": "rig.yaml"},
-           "apply": {"landmarks": "landmarks.npz", "formats": ["curves", "livelink", "glb"]}}
+           "apply": {"landmarks": "landmarks.npz", "formats": formats}}
     (d / "config.yaml").write_text(yaml.safe_dump(cfg))
     return d
 
@@ -83,6 +85,17 @@ def glb_key_times(path):
     binary = data[20 + n + 8:]
     start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
     return np.frombuffer(binary, np.float32, count=acc["count"], offset=start)
+
+
+def usd_times(path):
+    """The time codes of the USD's blend-shape weights (None without the usd extra: the file is not written)."""
+    if not path.is_file():
+        return None
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(path))
+    attr = stage.GetPrimAtPath("/Character/Skel/Anim").GetAttribute("blendShapeWeights")
+    return [int(t) for t in attr.GetTimeSamples()]
 
 
 def csv_rows(path):
@@ -146,11 +159,14 @@ def test_gap_frames_hold_or_are_left_out(ran, behaviour):
     _, ll_rows = csv_rows(ran / "out" / "frames" / "livelink.csv")
     frames = [int(r[0]) for r in rows]
     keyed = glb_key_times(ran / "out" / "frames" / "animation.glb")
+    usd = usd_times(ran / "out" / "frames" / "animation.usd")
     if behaviour == "hold":
         assert frames == list(range(T)) and len(ll_rows) == T
         assert np.allclose(keyed, np.arange(T) / 30.0)
+        assert usd is None or usd == list(range(T))
     else:
         assert np.allclose(keyed, np.array(frames) / 30.0)  # the glTF keys the found frames only
+        assert usd is None or usd == frames  # and so does the USD
         assert frames == [t for t in range(T) if not GAP.start <= t < GAP.stop]
         assert len(ll_rows) == T - (GAP.stop - GAP.start)
         # each Live Link row keeps its own frame's timecode: the first after the gap is frame 100 (3 s 10 f)
