@@ -124,3 +124,15 @@ def test_keep_partial_is_for_truncated_files_only(real_clip, tmp_path):
     lm = load_landmarks(tmp_path / "lm.npz")
     assert lm.n_frames == 40 and lm.found.sum() == 10
     assert json.loads(json.dumps(lm.meta["gaps"]))[0]["frames"] == 30
+
+
+def test_without_a_gap_the_track_is_what_it_was(real_clip):
+    """gaps=True changes nothing on a take with a face in every frame: the same points as the tracker without it."""
+    from retarget_cli.methods.tracking.detect import Detector, track_detect
+
+    frames = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames_of(real_clip / "d3.avi")[:30]]
+    det = Detector()
+    P0, C0 = track_detect(iter(frames), detector=det)
+    P1, C1, cov = track_detect(iter(frames), detector=det, gaps=True)
+    assert cov.found.all() and not cov.cuts.any() and (cov.segment == 0).all()
+    assert np.array_equal(P0, P1) and np.array_equal(C0, C1)
