@@ -29,6 +29,7 @@ from ..io.rig import load_rig, read_rig
 from ..io.rig.vertexmap import read_vertex_map
 from ..io.stagefiles import read_keys, write_targets
 from ..methods.editing import auto_pose
+from ..methods.neutral import find_rest_frame
 from ..methods.rigpose import (
     CONTACT_68,
     DEFAULT_RIDGE,
@@ -218,8 +219,10 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
                     if contact else None,
                     contact_weight=contact_weight, lip_closed=lip_closed, lid_closed=lid_closed,
                     smooth=smooth if frames == "all" else 0.0)
+        shots = _shot_neutrals(lm, posed, neutral.frame, (Y0, C0), lm_ids, Y, Cf, contact, lid_closed,
+                               opts["contact_refs"]) if frames == "all" else None
         poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, (Y0, C0), region_rows, fixed,
-                                                    rigid, opts)
+                                                    rigid, opts, shots=shots)
     else:
         poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, [f for part in posed for f in part],
                                                        list(kf.regions), region_rows, fixed, alpha, mu)
@@ -292,11 +295,62 @@ def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
     return region_rows, rigid
 
 
-def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts):
+def _cut_rows(lm) -> list[int]:
+    """Rows of the take where a scene cut goes from one face straight to another (``meta.gaps`` of reason
+    ``cut``, the gaps of length 0), sorted."""
+    rows = []
+    for g in lm.meta.get("gaps") or []:
+        if isinstance(g, dict) and g.get("reason") == "cut" and not g.get("frames"):
+            start = int(g["start"])
+            row = int(np.searchsorted(lm.frames, start)) if lm.frames is not None else start
+            if 0 < row < lm.n_frames:
+                rows.append(row)
+    return sorted(set(rows))
+
+
+def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contact, lid_closed, refs):
+    """Per part of *parts* (lists of frames), the neutral it is measured from and its contact references, or
+    None for a take without a cut from one face straight to another.
+
+    A scene cut can show another actor, or the same one from another camera: each shot (the frames between
+    two such cuts) is measured from its own rest shape (:func:`~retarget_cli.methods.neutral.find_rest_frame`
+    over its found frames), and its lips' and lids' references (:func:`contact_references`) are its own. The
+    shot that holds the neutral frame keeps the take's neutral.
+
+    Returns
+    -------
+    list of (Y0 (M, 2), C0 (M,), contact references) or None
+    """
+    cuts = _cut_rows(lm)
+    if not cuts:
+        return None
+    bounds = [0, *cuts, lm.n_frames]
+    home = int(np.searchsorted(cuts, neutral_frame, side="right"))
+    found = lm.found_mask
+    cache, out = {home: (neutral[0], neutral[1], refs)}, []
+    for part in parts:
+        k = int(np.searchsorted(cuts, part[0], side="right"))
+        if k not in cache:
+            rows = np.arange(bounds[k], bounds[k + 1])
+            rows = rows[found[rows]]
+            choice = find_rest_frame(lm.stabilized[rows], lm.confidence[rows])
+            y0, c0 = choice.shape[lm_ids], choice.confidence[lm_ids]
+            shot_refs = contact_references(Y[rows], contact, Cf[rows], neutral=y0, lid_closed=lid_closed) \
+                if contact else None
+            cache[k] = (y0, c0, shot_refs)
+            log.info("auto-pose: the shot of frames %d-%d (after a scene cut) is measured from its own rest shape "
+                     "(rest frame %d)", bounds[k], bounds[k + 1] - 1, int(rows[choice.frame]))
+        out.append(cache[k])
+    return out
+
+
+def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts, shots=None):
     """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*
     (a list of frame lists, each fitted and smoothed on its own): poses by frame, slider owners, sliders by region.
 
-    *neutral* is the neutral key's (landmarks (M, 2), confidence (M,)) among the mapped landmarks.
+    *neutral* is the neutral key's (landmarks (M, 2), confidence (M,)) among the mapped landmarks; *shots*, per
+    part of *frames*, the (landmarks, confidence, contact references) that part is measured from instead
+    (:func:`_shot_neutrals`).
     """
 
     exclusive = spec.exclusive
@@ -306,9 +360,11 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
         exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
         log.info("auto-pose: inferred exclusive pairs %s", exclusive)
     poses, rms = {}, []
-    for part in frames:  # a list of frames per segment of the take, each smoothed on its own
-        res = delta_pose(r, vx, neutral[0], Y[part], weights=Cf[part], neutral_weights=neutral[1],
-                         regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **opts)
+    for i, part in enumerate(frames):  # a list of frames per segment of the take, each smoothed on its own
+        y0, c0, o = (*neutral, opts) if shots is None else (shots[i][0], shots[i][1],
+                                                            {**opts, "contact_refs": shots[i][2]})
+        res = delta_pose(r, vx, y0, Y[part], weights=Cf[part], neutral_weights=c0,
+                         regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **o)
         poses.update(zip(part, res["w"]))
         rms.extend(res["rms"])
         for f, e in zip(part, res["rms"]):
