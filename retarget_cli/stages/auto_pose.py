@@ -220,7 +220,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
                     contact_weight=contact_weight, lip_closed=lip_closed, lid_closed=lid_closed,
                     smooth=smooth if frames == "all" else 0.0)
         shots = _shot_neutrals(lm, posed, neutral.frame, (Y0, C0), lm_ids, Y, Cf, contact, lid_closed,
-                               opts["contact_refs"]) if frames == "all" else None
+                               opts["contact_refs"], keep_home=neutral.record.get("source") != "take") \
+            if frames == "all" else None
         poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, (Y0, C0), region_rows, fixed,
                                                     rigid, opts, shots=shots)
     else:
@@ -308,14 +309,16 @@ def _cut_rows(lm) -> list[int]:
     return sorted(set(rows))
 
 
-def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contact, lid_closed, refs):
+def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contact, lid_closed, refs,
+                   keep_home: bool = False):
     """Per part of *parts* (lists of frames), the neutral it is measured from and its contact references, or
     None for a take without a cut from one face straight to another.
 
     A scene cut can show another actor, or the same one from another camera: each shot (the frames between
     two such cuts) is measured from its own rest shape (:func:`~retarget_cli.methods.neutral.find_rest_frame`
-    over its found frames), and its lips' and lids' references (:func:`contact_references`) are its own. The
-    shot that holds the neutral frame keeps the take's neutral.
+    over its found frames), and its lips' and lids' references (:func:`contact_references`) are its own: the
+    take's rest shape found by ``neutral_frame: auto`` averages frames of every shot, two faces at once. With
+    *keep_home* (a neutral frame given, or a calibration), the shot that holds the neutral frame keeps it.
 
     Returns
     -------
@@ -327,7 +330,7 @@ def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contac
     bounds = [0, *cuts, lm.n_frames]
     home = int(np.searchsorted(cuts, neutral_frame, side="right"))
     found = lm.found_mask
-    cache, out = {home: (neutral[0], neutral[1], refs)}, []
+    cache, out = ({home: (neutral[0], neutral[1], refs)} if keep_home else {}), []
     for part in parts:
         k = int(np.searchsorted(cuts, part[0], side="right"))
         if k not in cache:

@@ -26,11 +26,15 @@ def test_a_cut_between_two_faces_gives_the_second_shot_its_own_neutral():
     neutral = (lm.stabilized[3].astype(np.float64), np.ones(68))
     parts = [list(range(0, 20)), list(range(20, T))]
     shots = _shot_neutrals(lm, parts, 3, neutral, ids, lm.stabilized, lm.confidence, None, 0.15, "refs")
-    assert shots[0][0] is neutral[0] and shots[0][2] == "refs"  # the neutral's own shot keeps the take's
-    want = find_rest_frame(lm.stabilized[20:], lm.confidence[20:])
-    assert np.allclose(shots[1][0], want.shape) and shots[1][2] is None
+    for shot, rows in zip(shots, (slice(0, 20), slice(20, T))):  # each shot its own rest shape
+        want = find_rest_frame(lm.stabilized[rows], lm.confidence[rows])
+        assert np.allclose(shot[0], want.shape) and shot[2] is None
+    # a neutral frame given (or a calibration): the shot that holds it keeps it
+    kept = _shot_neutrals(lm, parts, 3, neutral, ids, lm.stabilized, lm.confidence, None, 0.15, "refs",
+                          keep_home=True)
+    assert kept[0][0] is neutral[0] and kept[0][2] == "refs" and np.allclose(kept[1][0], shots[1][0])
     # the second actor's rest is far from the first's: measured from the first, rest would read as expression
-    assert np.abs(shots[1][0] - neutral[0]).mean() > 2.0
+    assert np.abs(shots[1][0] - shots[0][0]).mean() > 2.0
 
 
 def test_no_face_to_face_cut_no_shots():
