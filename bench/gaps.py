@@ -17,7 +17,7 @@ follow ``apply.gaps`` (default ``ease``: the middle of a 2 s gap at the rest pos
 frames away from the changed ones (5 frames excluded each side), Pearson r of the character's mouth opening
 and eye openings (the ICT landmark vertices posed at the curves, ``bench/peer.py``'s :func:`score`) against
 the reference, beside the clean clip's r on the same frames (the cut's second part against the other clip's
-clean run). Target: every difference within 0.03. The reference is MediaPipe Face Mesh 0.10.14
+clean run, framed as the cut shows it when the sizes differ: d9 letterboxed to 512x512 after d3). Target: every difference within 0.03. The reference is MediaPipe Face Mesh 0.10.14
 (``bench/reference``) where its venv can be made, else raw per-frame dlib (say which in the output).
 
 ``--long MINUTES`` (e.g. ``1,3``): also a synthetic long take per length: d12 scaled to 256x256 and looped,
@@ -103,6 +103,19 @@ def fit(img, w: int, h: int):
     x, y = (w - sw) // 2, (h - sh) // 2
     out[y:y + sh, x:x + sw] = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA)
     return out
+
+
+def fitted(other: str, clip: str) -> Path | None:
+    """*other* whole, framed to *clip*'s size as the cut shows it (:func:`fit`); None when the sizes match."""
+    frames, fps = read_video(DATA / "videos" / f"{other}.mp4")
+    first, _ = read_video(DATA / "videos" / f"{clip}.mp4")
+    h, w = first[0].shape[:2]
+    if frames[0].shape[:2] == (h, w):
+        return None
+    path = BUILD / "videos" / f"{other}_fit{w}x{h}.mp4"
+    if not path.is_file():
+        write_video(path, [fit(f, w, h) for f in frames], fps)
+    return path
 
 
 def make_variant(clip: str, variant: str) -> tuple[Path, dict]:
@@ -217,7 +230,7 @@ def check_variant(clip: str, variant: str, ctx, refs: dict, clean: dict, args) -
         if sel.size < 10:
             continue
         r_var = r_on(C, ctx, refs[part], sel)
-        r_cln = r_on(clean[part]["curves"], ctx, refs[part], sel)
+        r_cln = r_on(clean.get(f"{part}@{clip}", clean[part])["curves"], ctx, refs[part], sel)
         row["r"][part] = {"n": int(sel.size), "variant": r_var, "clean": r_cln,
                           "diff": {m: r_var[m] - r_cln[m] for m in MEASURES}}
     return row
@@ -321,6 +334,12 @@ def main(argv=None) -> int:
             n = len(read_video(DATA / "videos" / f"{c}.mp4")[0])
             clean[c] = run(DATA / "videos" / f"{c}.mp4", n, ctx, BUILD / "runs" / f"{c}_clean", args)
             log(f"{c}: clean run, {n} frames")
+        for c in clips if "cut" in variants else ():  # the other clip framed as in the cut, where sizes differ
+            path = fitted(CUT_TO[c], c)
+            if path is not None:
+                n = len(read_video(path)[0])
+                clean[f"{CUT_TO[c]}@{c}"] = run(path, n, ctx, BUILD / "runs" / f"{path.stem}_clean", args)
+                log(f"{CUT_TO[c]} framed as {c}: clean run, {n} frames")
         for c in clips:
             for v in variants:
                 rows.append(check_variant(c, v, ctx, refs, clean, args))
