@@ -194,7 +194,7 @@ def exclusive_indices(pairs, index: dict) -> np.ndarray:
 
 
 def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_SPARSITY,
-                ridge: float = DEFAULT_RIDGE, exclusive=None, free=None) -> np.ndarray:
+                ridge: float = DEFAULT_RIDGE, exclusive=None, free=None, scale_rows=None) -> np.ndarray:
     """Bounded, sparse least-squares sliders with mutually exclusive pairs.
 
     .. math::
@@ -203,7 +203,7 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
         + \\tfrac{\\mu'}{2} \\lVert w \\rVert^2
 
     with ``λ' = sparsity · h̄`` and ``μ' = ridge · h̄``, ``h̄`` the mean
-    diagonal of ``BᵀCB`` over the free sliders, so both are independent of the
+    diagonal of ``BᵀCB`` (its first *scale_rows* rows) over the free sliders, so both are independent of the
     rig's units. The L1 term applies to sliders whose lower bound is 0 or more
     (for them ``|w| = w``). Exclusive pairs: after a solve, the smaller member
     of every pair with both members above :data:`ACTIVE` is fixed at 0 and the
@@ -222,6 +222,10 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
     exclusive : ndarray of int, shape (P, 2), optional
     free : array_like of bool, shape (n,), optional
         Sliders that may move (others stay 0).
+    scale_rows : int, optional
+        ``h̄`` over the first *scale_rows* rows only (the landmarks), so that rows appended with weights of
+        their own (the contact gaps, boosted up to ``CONTACT_BOOST ** CONTACT_PASSES``) do not raise the
+        sparsity and ridge price of every slider with them. Default: every row.
 
     Returns
     -------
@@ -229,11 +233,11 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
     """
 
     return _slider_qp(B, m, lower, upper, weights=weights, sparsity=sparsity, ridge=ridge, exclusive=exclusive,
-                      free=free)[0]
+                      free=free, scale_rows=scale_rows)[0]
 
 
 def _slider_qp(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE,
-               exclusive=None, free=None):
+               exclusive=None, free=None, scale_rows=None):
     """:func:`fit_sliders`, also returning its QP: ``(w, H, q, free)``, ``½ wᵀHw − qᵀw`` over the final *free*
     sliders (the exclusive pairs' losers removed); ``H`` is None when nothing is free."""
     B = check_array(B, "B", ndim=2)
@@ -256,7 +260,8 @@ def _slider_qp(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_SP
     BtC = B.T * c
     H = BtC @ B
     q = BtC @ m
-    hbar = float(np.mean(np.diag(H)[free]))
+    k = r if scale_rows is None else scale_rows
+    hbar = float(np.mean(((c[:k, None] * B[:k] ** 2).sum(axis=0))[free]))
     if hbar <= 0:
         return w, None, None, np.zeros(n, dtype=bool)
     H = H + ridge * hbar * np.eye(n)
@@ -816,7 +821,7 @@ def _fit_region(rig, fr: _Frame, i, sr, free, groups, *, sparsity, ridge, exclus
 
     h = np.ones(len(i))
     cw = row_weights(h)
-    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free)
+    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free, scale_rows=2 * len(i))
     w, H, q, used = _slider_qp(A, b, rig.lower, rig.upper, weights=cw, **qp)
     for _ in range(robust_iterations):
         # Huber reweighting per landmark: a point the tracker lost (tens of pixels off) must not pose the
