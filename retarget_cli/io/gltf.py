@@ -264,7 +264,7 @@ def _container(doc: dict, b: _Bin) -> bytes:
 
 
 def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_transforms=None,
-              name: str = "character", surface=None, keys=None) -> bytes:
+              name: str = "character", surface=None, times=None) -> bytes:
     """A complete ``.glb`` file.
 
     The mesh at frame ``t`` is ``base + Σ_m weights[t, m] targets[m]`` (glTF
@@ -281,7 +281,7 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
     target_names : sequence of str, length M
         Stored in ``mesh.extras.targetNames``.
     weights : ndarray, shape (T, M)
-        Morph weights per frame; keyed at ``t / fps`` seconds.
+        Morph weights per frame; keyed at ``t / fps`` seconds, or at *times*.
     fps : float
     node_transforms : ndarray, shape (T, 3, 4), optional
         Per-frame similarity ``X' = s R X + t`` (rotation, uniform scale,
@@ -291,9 +291,8 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
         (:func:`~retarget_cli.io.objsurface.obj_surface`); replaces *faces*
         and adds ``TEXCOORD_0``, ``NORMAL`` and materials (see the module
         docstring).
-    keys : ndarray, shape (T,), bool, optional
-        The frames keyed (default all): the others are left out of the animation, which the player
-        interpolates across (``apply.gaps: omit``).
+    times : ndarray, shape (T,), optional
+        Each frame's time in seconds (the source's timestamps: a take tracked from frame 100 starts at 100 / fps).
     """
     base = np.asarray(base, dtype=np.float32)
     D = np.asarray(targets, dtype=np.float32)
@@ -309,17 +308,14 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
         attributes, groups, materials, D = _surface_mesh(b, surface, base, D, N)
     targets = [{"POSITION": b.add(d, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)} for d in D]
     prims = _primitives(b, groups, attributes, targets)
-    rows = np.arange(T) if keys is None else np.flatnonzero(np.asarray(keys, bool))
-    if keys is not None and (np.shape(keys) != (T,) or not rows.size):
-        raise ShapeError(f"keys: expected ({T},) booleans with at least one true, got shape {np.shape(keys)}")
-    times = (rows / fps).astype(np.float32)
+    times = (np.arange(T) / fps if times is None else np.asarray(times, dtype=np.float64)).astype(np.float32)
+    if times.shape != (T,) or np.any(np.diff(times) <= 0):
+        raise ShapeError(f"times: expected {T} increasing seconds, got shape {times.shape}")
     t_acc = b.add(times, kind="SCALAR", bounds=True)
-    samplers = [{"input": t_acc, "output": b.add(W[rows].reshape(-1), kind="SCALAR"), "interpolation": "LINEAR"}]
+    samplers = [{"input": t_acc, "output": b.add(W.reshape(-1), kind="SCALAR"), "interpolation": "LINEAR"}]
     channels = [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]
     if node_transforms is not None:
-        if np.shape(node_transforms)[:1] != (T,):
-            raise ShapeError(f"node_transforms: expected shape ({T}, 3, 4), got {np.shape(node_transforms)}")
-        _node_animation(b, np.asarray(node_transforms)[rows], len(rows), t_acc, samplers, channels)
+        _node_animation(b, node_transforms, T, t_acc, samplers, channels)
     doc = {
         "asset": {"version": "2.0", "generator": f"retarget {__version__}"},
         "scene": 0,
