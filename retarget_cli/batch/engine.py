@@ -31,6 +31,7 @@ from ..io.stagefiles import load_weights
 from ..run.pipeline import ORDER, manifest_path, resolve, run_pipeline, stage_params
 from ..run.runfiles import locate_run
 from ..see.report import write_report
+from .plan import gaps_cell
 
 log = logging.getLogger(__name__)
 
@@ -83,16 +84,17 @@ def _distributed():
 
 
 def shot_metrics(cfg) -> dict:
-    """Frames, mean tracking confidence, and the decomposition's mean residual and jitter of a run.
+    """Frames, mean tracking confidence, the take's gaps, and the decomposition's mean residual and jitter of a run.
 
     Reads the run's ``landmarks.npz`` and ``weights.npz`` (``None`` for what
-    is missing). *residual_px* and *jitter* are the means over the regions of
+    is missing). *gaps* is the list ``track`` recorded (where, how long, why:
+    :func:`retarget_cli.methods.gaps.describe_gaps`), None for landmarks without a ``found`` flag. *residual_px* and *jitter* are the means over the regions of
     the decompose stage's diagnostics (``mean_residual_px``, ``jitter``).
     """
     import numpy as np
 
 
-    out = {"frames": None, "confidence": None, "residual_px": None, "jitter": None}
+    out = {"frames": None, "confidence": None, "residual_px": None, "jitter": None, "gaps": None}
     if "track" in cfg.sections:
         lm = Path(resolve(cfg, "track")["output"])
         if lm.is_file():
@@ -100,6 +102,7 @@ def shot_metrics(cfg) -> dict:
             out["frames"] = int(data["points"].shape[0])
             if "confidence" in data:
                 out["confidence"] = float(f"{float(np.mean(data['confidence'])):.6g}")
+            out["gaps"] = _gaps_of(data)
     if "decompose" in cfg.sections:
         w = Path(resolve(cfg, "decompose")["output"])
         if w.is_file():
@@ -109,6 +112,17 @@ def shot_metrics(cfg) -> dict:
                 out["residual_px"] = float(f"{np.mean([d['mean_residual_px'] for d in diag]):.6g}")
                 out["jitter"] = float(f"{np.mean([d['jitter'] for d in diag]):.6g}")
     return out
+
+
+def _gaps_of(data: dict) -> list | None:
+    """The gaps ``landmarks.npz`` records in its meta (None when it has no ``found`` flag)."""
+    if "found" not in data:
+        return None
+    try:
+        gaps = json.loads(str(data["meta"].ravel()[0])).get("gaps") if "meta" in data else None
+    except (ValueError, AttributeError):
+        gaps = None
+    return gaps if isinstance(gaps, list) else []
 
 
 def _report_stale(cfg, report: Path) -> bool:
@@ -272,7 +286,7 @@ def run_batch(client, shots: list, *, retries: int = 1, force: bool = False, cac
             except BaseException as lost:  # cancelled: the scheduler lost the task
                 exc = lost
             res = {"name": shot.name, "output_dir": str(shot.output_dir), "stages": {}, "frames": None,
-                   "confidence": None, "residual_px": None, "jitter": None, "seconds": None,
+                   "confidence": None, "residual_px": None, "jitter": None, "gaps": None, "seconds": None,
                    "status": "failed", "attempts": attempts[shot.name], "error": _error_text(exc)}
             if attempts[shot.name] <= retries:
                 attempts[shot.name] += 1
@@ -368,6 +382,7 @@ def index_html(batch_dir, shot_list, results: list) -> str:
         for k in ("attempts", "frames", "confidence", "residual_px", "jitter", "seconds"):
             v = r.get(k)
             cells.append(f"<td>{'-' if v is None else esc(f'{v:.4g}' if isinstance(v, float) else str(v))}</td>")
+        cells.append(f"<td>{esc(gaps_cell(r.get('gaps'), detail=True))}</td>")
         for n in stage_cols:
             s = st.get(n)
             text = "-" if s is None else "skip" if s["status"] == "skipped" else f"{s['seconds']:.2f}"
@@ -375,7 +390,7 @@ def index_html(batch_dir, shot_list, results: list) -> str:
         cells.append(f"<td>{esc(r.get('error') or '')}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     head = "".join(f"<th>{esc(h)}</th>" for h in
-                   ["shot", "status", "tries", "frames", "confidence", "residual px", "jitter", "seconds",
+                   ["shot", "status", "tries", "frames", "confidence", "residual px", "jitter", "seconds", "gaps",
                     *[f"{n} s" for n in stage_cols], "error"])
     n_fail = sum(r["status"] == "failed" for r in results)
     return f"""<!DOCTYPE html>

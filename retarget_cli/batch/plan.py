@@ -39,6 +39,7 @@ from ..config import TOP_LEVEL, load_config, load_yaml, unknown_key_error, yaml_
 from ..errors import ConfigError, InputError
 from ..io.frames import is_sequence, sequence_files
 from ..io.text import read_text
+from ..methods.gaps import gap_summary
 from ..run.pipeline import ORDER, STAGES, check_up_to_date, resolve, select_stages, stage_params
 
 #: Keys of a shot entry (besides ``STAGE.KEY`` columns of a CSV).
@@ -440,7 +441,22 @@ def pending(shot: Shot, *, force: bool = False) -> bool:
 # ----------------------------------------------------------------------------- summary table
 
 #: Summary columns of the stdout table (besides one column of seconds per stage).
-TABLE_COLUMNS = ("shot", "status", "tries", "frames", "confidence", "residual_px", "jitter", "seconds")
+TABLE_COLUMNS = ("shot", "status", "tries", "frames", "confidence", "residual_px", "jitter", "seconds", "gaps")
+
+
+def gaps_cell(gaps, *, detail: bool = False) -> str:
+    """The take's gaps in one cell: ``-`` (not known), ``none``, or the count by reason and the frames; with
+    *detail*, also where and how long each is (the first eight)."""
+    if gaps is None:
+        return "-"
+    if not gaps:
+        return "none"
+    text = gap_summary(gaps)
+    if detail:
+        each = [f"{g.get('reason')} at {g.get('start')}" + (f" ({g.get('frames')} f)" if g.get("frames") else "")
+                for g in gaps[:8]]
+        text += ": " + "; ".join(each) + ("; ..." if len(gaps) > 8 else "")
+    return text
 
 
 def _fmt(v, digits=3) -> str:
@@ -459,7 +475,7 @@ def format_table(results: list) -> str:
     results : list of dict
         Shot summaries as written to ``batch.json`` (``name``, ``status``,
         ``attempts``, ``frames``, ``confidence``, ``residual_px``,
-        ``jitter``, ``seconds``, ``stages``, ``error``).
+        ``jitter``, ``seconds``, ``gaps``, ``stages``, ``error``).
     """
 
     stage_cols = [n for n in ORDER if any(n in (r.get("stages") or {}) for r in results)]
@@ -469,7 +485,7 @@ def format_table(results: list) -> str:
         st = r.get("stages") or {}
         cells = [r["name"], r["status"], _fmt(r.get("attempts")), _fmt(r.get("frames")),
                  _fmt(r.get("confidence")), _fmt(r.get("residual_px")), _fmt(r.get("jitter")),
-                 _fmt(r.get("seconds"))]
+                 _fmt(r.get("seconds")), gaps_cell(r.get("gaps"))]
         for n in stage_cols:
             s = st.get(n)
             cells.append("-" if s is None else ("skip" if s["status"] == "skipped" else f"{s['seconds']:.2f}"))

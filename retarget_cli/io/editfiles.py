@@ -66,7 +66,7 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
         frames = fcol.astype(np.int64)
         if "time" in header:
             times = rows[:, header.index("time")]
-        names = [h for h in header if h not in ("frame", "time")]
+        names = [h for h in header if h not in ("frame", "time", "found")]
         W = rows[:, [header.index(n) for n in names]]
     else:
         raise InputError(f"{path}: expected a .csv or .npz animation")
@@ -117,8 +117,14 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, meta: dict | None = None) -> None:
-    """Write rig weights over time, CSV or NPZ by the file's extension (the formats of :func:`read_animation`)."""
+def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, meta: dict | None = None,
+                    found=None) -> None:
+    """Write rig weights over time, CSV or NPZ by the file's extension (the formats of :func:`read_animation`).
+
+    *found* (T,) bool, optional: whether the face was found in each frame (a take with gaps): a ``found``
+    column of 0/1 after ``frame``/``time`` in a CSV (:func:`read_animation` skips it), a ``found`` member of
+    an NPZ.
+    """
     path = Path(path)
     W = np.asarray(W, dtype=np.float64)
     if path.suffix.lower() == ".npz":
@@ -126,16 +132,19 @@ def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, me
                   "meta": np.array(json.dumps({"version": __version__, **(meta or {})}, sort_keys=True))}
         if times is not None:
             arrays["times"] = np.asarray(times, dtype=np.float64)
+        if found is not None:
+            arrays["found"] = np.asarray(found, dtype=bool)
         savez(path, arrays)
         return
     if path.suffix.lower() != ".csv":
         raise InputError(f"{path}: expected a .csv or .npz output")
-    head = ["frame"] + (["time"] if times is not None else []) + list(names)
+    head = ["frame"] + (["time"] if times is not None else []) + (["found"] if found is not None else []) + list(names)
     line = io.StringIO()
     csv.writer(line, lineterminator="").writerow(head)  # a name holding a comma or a quote is quoted
     out = [line.getvalue()]
     for t, f in enumerate(frames):
-        cells = [str(int(f))] + ([f"{times[t]:.6f}"] if times is not None else []) + [f"{v:.6f}" for v in W[t]]
+        cells = [str(int(f))] + ([f"{times[t]:.6f}"] if times is not None else []) + \
+            ([str(int(bool(found[t])))] if found is not None else []) + [f"{v:.6f}" for v in W[t]]
         out.append(",".join(cells))
     write_text(path, "\n".join(out) + "\n")
 

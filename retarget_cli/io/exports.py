@@ -87,6 +87,12 @@ class ExportContext:
         Each frame's time in seconds in the source (``weights.npz`` ``time``); default ``frames / fps``.
     source_fps : float, optional
         The source's own frame rate (frame numbers over it are times); default *fps*.
+    found : ndarray, shape (T,), bool, or None
+        Whether the face was found in each frame (``landmarks.npz``'s ``found``); None: every frame.
+    gaps : str
+        ``apply.gaps``: ``omit`` leaves the frames of a gap out of the exports that can (curves.csv,
+        livelink.csv, the glTF's keys, the USD's time samples); the curves already hold the behaviour's
+        values (:func:`retarget_cli.methods.gaps.fill_gaps`).
     """
 
     out: Path
@@ -110,6 +116,14 @@ class ExportContext:
     frames: np.ndarray | None = None
     times: np.ndarray | None = None
     source_fps: float | None = None
+    found: np.ndarray | None = None
+    gaps: str = "ease"
+
+    def written_rows(self) -> np.ndarray:
+        """Rows the row-per-frame exports write (T,) bool: all but the gaps' with ``gaps: omit``."""
+        if self.found is None or self.gaps != "omit":
+            return np.ones(self.n_frames, bool)
+        return np.asarray(self.found, bool)
 
     def timing(self) -> tuple[np.ndarray, np.ndarray, float]:
         """Source frame numbers (T,), their times in seconds (T,) and the source's rate, defaults filled."""
@@ -226,9 +240,10 @@ class GlbExport(Exporter):
         c = self.ctx
         mt, names, mw = c.morph_targets()
         path = c.out / self.files[0]
-        write_glb(path, base=c.base, faces=None, targets=mt, target_names=names, weights=mw,
-                  fps=c.fps, node_transforms=c.head, name=c.template.path.stem, surface=obj_surface(c.template),
-                  times=timing(c)[1])
+        keep = c.written_rows()  # gaps omit: the gap frames are not keyed (the player interpolates across)
+        write_glb(path, base=c.base, faces=None, targets=mt, target_names=names, weights=mw[keep],
+                  fps=c.fps, node_transforms=None if c.head is None else c.head[keep], name=c.template.path.stem,
+                  surface=obj_surface(c.template), times=timing(c)[1][keep])
         return [path]
 
 
@@ -241,10 +256,13 @@ class CurvesExport(Exporter):
         c = self.ctx
         frames, times, rate = timing(c)
         csv, npz = (c.out / f for f in self.files)
-        write_animation(csv, c.rig.names, c.curves, frames, times)
-        write_animation(npz, c.rig.names, c.curves, frames, times,
+        keep = c.written_rows()
+        found = None if c.found is None or np.all(c.found) else np.asarray(c.found, bool)
+        write_animation(csv, c.rig.names, c.curves[keep], frames[keep], times[keep],
+                        found=None if found is None else found[keep])
+        write_animation(npz, c.rig.names, c.curves, frames, times, found=found,
                         meta={"fps": c.fps, "source_fps": rate, "rig": Path(c.rig_file).name,
-                              "weights": Path(c.weights).name})
+                              "weights": Path(c.weights).name, **({} if found is None else {"gaps": c.gaps})})
         return [csv, npz]
 
 
@@ -256,7 +274,8 @@ class LiveLinkExport(Exporter):
     def finish(self):
         c = self.ctx
         frames, _, rate = timing(c)
-        return [write_livelink(c.out / self.files[0], c.rig, c.curves, rate, landmarks=c.landmarks, frames=frames)]
+        return [write_livelink(c.out / self.files[0], c.rig, c.curves, rate, landmarks=c.landmarks, frames=frames,
+                               rows=c.written_rows())]
 
 
 class UsdExport(Exporter):
@@ -271,7 +290,8 @@ class UsdExport(Exporter):
         c = self.ctx
         frames, _, rate = timing(c)
         return [write_usd(c.out / self.files[0], c.template, c.base, c.positions, c.n_frames, rate,
-                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.head, frames=frames)]
+                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.head, frames=frames,
+                          keys=c.written_rows())]
 
 
 class SameExport(Exporter):
@@ -391,7 +411,8 @@ def head_rotation(landmarks, T: int):
     return head_rotation_from_similarity(lm.head)
 
 
-def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None, frames=None) -> Path:
+def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None, frames=None,
+                   rows=None) -> Path:
     """Write the rig's curves as a Live Link Face CSV (:func:`retarget_cli.io.livelink.livelink_csv`).
 
     Parameters
@@ -403,11 +424,18 @@ def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks
         ``landmarks.npz``: HeadRoll from its head motion; without it the head columns are 0.
     fps, frames
         The source's rate and each row's source frame number: the timecodes (:func:`~.livelink.livelink_csv`).
+    rows : ndarray, shape (T,), bool, optional
+        The rows written (``apply.gaps: omit`` leaves the gaps' out; each row keeps its frame's timecode).
     """
 
     rot = head_rotation(landmarks, len(curves))
     if rot is None:
         log.info("Live Link Face CSV: no landmarks file, so the head rotation columns are 0")
+    if rows is not None and not np.all(rows):
+        keep = np.asarray(rows, bool)
+        curves = np.asarray(curves)[keep]
+        frames = (np.arange(len(keep)) if frames is None else np.asarray(frames))[keep]
+        rot = None if rot is None else rot[keep]
     names = rig.spec.names if rig.spec is not None else {}
     write_text(path, livelink_csv(curves, rig.names, fps, names=names, head_rotation=rot, frames=frames))
     return path
@@ -446,7 +474,7 @@ def rig_shapes(rig, curves: np.ndarray) -> tuple[np.ndarray, list[str], np.ndarr
 
 
 def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: float, *, morph_targets=None,
-              head=None, frames=None) -> Path:
+              head=None, frames=None, keys=None) -> Path:
     """Write ``animation.usd``: a UsdSkel character with a rig, else a point cache.
 
     Parameters
@@ -463,6 +491,9 @@ def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: fl
         Head motion, the time-sampled transform of ``/Character``.
     frames : ndarray, shape (T,), optional
         Each frame's source frame number, its time code (*fps* is then the source's rate).
+    keys : ndarray, shape (T,), bool, optional
+        With a rig, the frames time-sampled (``apply.gaps: omit`` leaves the gaps' out; USD interpolates
+        across); the point cache samples every frame.
     """
 
     surf = obj_surface(template)
@@ -471,6 +502,11 @@ def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: fl
                   frames=frames)
     if morph_targets is not None:
         shapes, names, weights = morph_targets()
+        if keys is not None and not np.all(keys):
+            keep = np.asarray(keys, bool)
+            weights = weights[keep]
+            common.update(transforms=None if head is None else np.asarray(head)[keep],
+                          frames=(np.arange(T) if frames is None else np.asarray(frames))[keep])
         write_usd_skel(path, points=base, shapes=shapes, names=names, weights=weights, **common)
     else:
         X = np.concatenate([positions(slice(s, min(s + 64, T))) for s in range(0, T, 64)])

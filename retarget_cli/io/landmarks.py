@@ -17,6 +17,8 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputError, ParameterError
+from ..methods.gaps import segments as gap_segments
+from ..methods.gaps import segments_of
 from ..methods.tracking.head import estimate_head
 from .atomic import load_npz, savez
 
@@ -57,6 +59,14 @@ class Landmarks:
         ``neutral_frame: auto`` uses it as the neutral key's shape.
     neutral_confidence : ndarray, shape (L,), float32, optional
         Its landmarks' confidence (given with *neutral*).
+    found : ndarray, shape (T,), bool, optional
+        Whether the face was found in the frame (a take with gaps); a frame
+        without it keeps the last found frame's landmarks with confidence 0.
+        Absent: every frame (:attr:`found_mask`).
+    segment : ndarray, shape (T,), int32, optional
+        Segment of each frame (a run of found frames between gaps and scene
+        cuts, smoothed on its own), -1 in the gaps. Absent: one segment of
+        the found frames (:attr:`segments`).
     """
 
     points: np.ndarray
@@ -72,6 +82,20 @@ class Landmarks:
     neutral: np.ndarray | None = None
     neutral_confidence: np.ndarray | None = None
     times: np.ndarray | None = None
+    found: np.ndarray | None = None
+    segment: np.ndarray | None = None
+
+    @property
+    def found_mask(self) -> np.ndarray:
+        """``found`` (T,) bool, every frame when the file has none."""
+        return np.ones(self.n_frames, bool) if self.found is None else np.asarray(self.found, bool)
+
+    @property
+    def segments(self) -> list[tuple[int, int]]:
+        """The take's segments as half-open ``(start, stop)`` row ranges (:mod:`retarget_cli.methods.gaps`)."""
+        if self.segment is not None:
+            return segments_of(self.segment)
+        return gap_segments(self.found_mask)
 
     @property
     def source_fps(self) -> float:
@@ -135,6 +159,11 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
         if arrays["neutral"].shape != (L, 2) or arrays["neutral_confidence"].shape != (L,):
             raise ParameterError(f"neutral: expected shapes {(L, 2)} and {(L,)}, got {arrays['neutral'].shape} "
                                  f"and {arrays['neutral_confidence'].shape}")
+    for key, value, dtype in (("found", lm.found, bool), ("segment", lm.segment, np.int32)):
+        if value is not None:
+            arrays[key] = np.asarray(value, dtype=dtype)
+            if arrays[key].shape != (T,):
+                raise ParameterError(f"{key}: expected shape {(T,)}, got {arrays[key].shape}")
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)
@@ -245,6 +274,26 @@ def _frames(data: dict, path, T: int) -> np.ndarray | None:
     return frames.astype(np.int64)
 
 
+def _found(data: dict, path, T: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``found`` (T,) bool and ``segment`` (T,) int32 (-1 exactly where not found), or None where absent."""
+    found, seg = data.get("found"), data.get("segment")
+    if found is not None:
+        if found.dtype.kind not in "biu" or found.shape != (T,) or not np.isin(found, (0, 1)).all():
+            raise InputError(f"{path}: 'found' must be {T} booleans (one per row of 'points'), got {found.dtype} "
+                             f"of shape {found.shape}")
+        found = found.astype(bool)
+    if seg is not None:
+        if seg.dtype.kind not in "iu" or seg.shape != (T,):
+            raise InputError(f"{path}: 'segment' must be {T} integers (one per row of 'points'), got {seg.dtype} "
+                             f"of shape {seg.shape}")
+        seg = seg.astype(np.int32)
+        if found is not None and not np.array_equal(seg >= 0, found):
+            t = int(np.flatnonzero((seg >= 0) != found)[0])
+            raise InputError(f"{path}: frame {t}: 'segment' {int(seg[t])} disagrees with 'found' {bool(found[t])} "
+                             "(expected -1 exactly where the face was not found)")
+    return found, seg
+
+
 def _times(data: dict, path, T: int) -> np.ndarray | None:
     if "times" not in data:
         return None
@@ -327,6 +376,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     names = _names(data, path, L)
     meta = _meta(data, path)
     neutral, neutral_conf = _neutral(data, path, L)
+    found, segment = _found(data, path, T)
     return Landmarks(
         points=points,
         confidence=conf.astype(np.float32, copy=False),
@@ -341,4 +391,6 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         points_raw=None if raw is None else raw.astype(np.float32, copy=False),
         neutral=neutral,
         neutral_confidence=neutral_conf,
+        found=found,
+        segment=segment,
     )

@@ -47,6 +47,7 @@ from ..io.obj import read_obj
 from ..io.stagefiles import read_targets
 from ..io.video import VideoReader
 from ..methods.decomposition import mean_acceleration
+from ..methods.gaps import gap_summary
 from ..methods.render import Camera, MeshRenderer
 from ..run.pipeline import STAGES
 from ..run.runfiles import RunFiles
@@ -310,6 +311,8 @@ def _landmark_rows(data: RunData) -> list:
     rows = [("landmarks", f"{data.lm.n_points} points, {w}x{h} pixels")]
     if data.lm.meta.get("tracker"):
         rows.append(("tracker", str(data.lm.meta.get("tracker"))))
+    if data.lm.found is not None:
+        rows.append(("gaps", gap_summary(_gap_list(data.lm))))
     filt = data.lm.meta.get("filter")
     if isinstance(filt, dict) and filt.get("method"):
         params = ", ".join(f"{k} {v}" for k, v in filt.items() if k != "method")
@@ -431,9 +434,12 @@ def _tracking(data: RunData) -> str | None:
     frac = lost.mean(1)
     if frac.any():
         a.fill_between(t, 0, frac, color="#d33", alpha=0.3, step="mid", label="fraction lost")
+    gaps = _gap_list(lm)
+    for i, (g0, g1) in enumerate(_gap_spans(lm)):
+        a.axvspan(g0 - 0.5, g1 - 0.5, color="#888", alpha=0.25, lw=0, label="gap (no face)" if i == 0 else None)
     a.set_ylim(-0.02, 1.02)
     a.set_ylabel("confidence")
-    a.legend(loc="lower left", fontsize=8, ncol=3)
+    a.legend(loc="lower left", fontsize=8, ncol=4)
     b = ax[1, 0]
     im = b.imshow(conf.T, aspect="auto", cmap="RdYlGn", vmin=0, vmax=1, interpolation="nearest",
                   extent=(-0.5, T - 0.5, lm.n_points - 0.5, -0.5))
@@ -444,8 +450,46 @@ def _tracking(data: RunData) -> str | None:
     worst = int(np.argmin(conf.mean(1)))
     body = (f"<p>Mean confidence {conf.mean():.3f}; {n_lost} of {T} frames have a lost landmark "
             f"(confidence 0); lowest mean confidence {conf.mean(1)[worst]:.3f} at frame {worst}.</p>")
-    body += _figure_html(_png_fig(fig), "Tracking confidence per frame (top) and per landmark (bottom; red = lost).")
+    body += _gaps_html(gaps, lm)
+    body += _figure_html(_png_fig(fig), "Tracking confidence per frame (top; grey: gaps) and per landmark "
+                                        "(bottom; red = lost).")
     return _section("tracking", "Tracking confidence", body)
+
+
+def _gap_list(lm) -> list:
+    """The gaps ``track`` recorded in the landmarks' meta (``[]`` when none or not recorded)."""
+    gaps = lm.meta.get("gaps")
+    return [g for g in gaps if isinstance(g, dict)] if isinstance(gaps, list) else []
+
+
+def _gap_spans(lm) -> list:
+    """Row ranges ``(start, stop)`` of the frames without a face (landmarks.npz's ``found``)."""
+    if lm.found is None:
+        return []
+    f = np.asarray(lm.found, bool)
+    out, t = [], 0
+    while t < len(f):
+        if f[t]:
+            t += 1
+            continue
+        end = t + int(np.argmax(f[t:])) if f[t:].any() else len(f)
+        out.append((t, end))
+        t = end
+    return out
+
+
+def _gaps_html(gaps: list, lm) -> str:
+    """The take's gaps: one line, and a table of where each is, how long, and why."""
+    if lm.found is None:
+        return ""
+    if not gaps:
+        return "<p>No gaps: the face was found in every frame, and no scene cut.</p>"
+    rows = [(str(g.get("start")), str(g.get("frames")), f"{g.get('seconds', 0):.2f}" if "seconds" in g else "",
+             str(g.get("reason")), "yes" if g.get("cut") else "") for g in gaps]
+    return (f"<p>{html.escape(gap_summary(gaps))}, {int(np.sum(~np.asarray(lm.found, bool)))} of {lm.n_frames} "
+            f"frames without a face; each segment between them is tracked and smoothed on its own, and the curves "
+            f"there follow <code>apply.gaps</code>.</p>"
+            + _table(["start frame", "frames", "seconds", "why", "scene cut"], rows, num_cols=(0, 1, 2)))
 
 
 def _sheet_regions(data: RunData, keys: dict) -> dict:

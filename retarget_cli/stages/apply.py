@@ -38,6 +38,7 @@ from ..methods.blending import (
     morph_weights,
     region_weights,
 )
+from ..methods.gaps import GAP_BEHAVIOURS, fill_gaps, gap_summary
 from ..methods.rigpose import rig_curves
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _no_progress, _require, command_cache_dir
 
@@ -68,6 +69,13 @@ PARAMS = [
           "neutral mesh's bounding box).", nullable=True, validate=check_vector3),
     Param("vat", "setting", str, "offsets", "EXR texture holds offsets from the neutral or positions.",
           choices=("offsets", "positions")),
+    Param("gaps", "setting", str, "ease",
+          "The rig's curves in the gaps of a take (frames without a face, landmarks.npz's found; needs "
+          "landmarks): ease (to the rest pose and back), hold (the last pose), or omit (those rows left out of "
+          "curves.csv and livelink.csv and those keys of the glTF and USD; the OBJ/EXR meshes hold the last pose).",
+          choices=GAP_BEHAVIOURS),
+    Param("gap_ease", "setting", float, 0.4, "gaps ease: seconds of each ease, to the rest pose and back.",
+          min=0, max=60),
 ]
 
 DRIVES = ("auto", "rig", "keys")
@@ -204,8 +212,8 @@ def rig_frame_sliders(tg, rig, T: int) -> np.ndarray:
     return np.clip(out, rig.lower, rig.upper)
 
 
-def _rig_driver(regions, tg, targets, cache_dir):
-    """Rig driving: curves from the weights, meshes from the rig at the curves."""
+def _rig_driver(regions, tg, targets, cache_dir, gap_fill=None):
+    """Rig driving: curves from the weights (the gaps' frames by *gap_fill*), meshes from the rig at the curves."""
 
     rig = load_rig(tg.rig, cache_dir=cache_dir)
     if tg.curves is not None:
@@ -213,6 +221,8 @@ def _rig_driver(regions, tg, targets, cache_dir):
     else:
         S = rig_key_sliders(regions, tg, targets, rig)
         curves = rig_curves([W for _, (W, _, _) in sorted(regions.items())], S, rig.lower, rig.upper)
+    if gap_fill is not None:
+        curves = gap_fill(curves, np.clip(0.0, rig.lower, rig.upper))
 
     def positions(sl):
         return rig.evaluate(curves[sl])
@@ -225,7 +235,8 @@ def _rig_driver(regions, tg, targets, cache_dir):
 
 @validate_params(PARAMS)
 def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), head_motion="none", scale=None,
-              pivot=None, vat="offsets", drive="auto", progress=_no_progress, cache_dir=None) -> list[Path]:
+              pivot=None, vat="offsets", drive="auto", gaps="ease", gap_ease=0.4, progress=_no_progress,
+              cache_dir=None) -> list[Path]:
     """Drive the character with the weights and export the result.
 
     Writes into *output*: ``frame_%05d.obj`` (streamed, chunk by chunk),
@@ -240,6 +251,10 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         ``auto``: the rig when ``targets.yaml`` names one (``auto-pose``
         output), else the key shapes; ``keys`` blends the key OBJs with the
         region masks even when a rig is named.
+    gaps : {"ease", "hold", "omit"}
+        The rig's curves in the frames of a gap (*landmarks*' ``found``; :func:`retarget_cli.methods.gaps.fill_gaps`
+        with the rig's rest pose, eases of *gap_ease* seconds); ``omit`` also leaves those frames out of
+        ``curves.csv`` and ``livelink.csv``. ``curves.npz`` carries ``found``, ``curves.csv`` a ``found`` column.
     """
 
     weights, targets = _require(weights, "weights file"), _require(targets, "targets file")
@@ -258,8 +273,15 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
         for name in EXPORTS[f].files:
             check_not_input(out / name, [weights, targets, landmarks, *tg.files()])
     T = next(iter(regions.values()))[0].shape[0]
-    driver = _rig_driver if use_rig else _key_driver
-    positions, template, base, glb, rig_out = driver(regions, tg, targets, cache_dir if use_rig else weights)
+    found = _found_frames(landmarks, T) if use_rig else None
+    if use_rig:
+        def gap_fill(curves, rest):
+            if found is None:
+                return curves
+            return fill_gaps(curves, found, behaviour=gaps, rest=rest, ease_frames=int(round(gap_ease * fps)))
+        positions, template, base, glb, rig_out = _rig_driver(regions, tg, targets, cache_dir, gap_fill)
+    else:
+        positions, template, base, glb, rig_out = _key_driver(regions, tg, targets, weights)
     head = _head_transforms(landmarks, T, base, scale, pivot) if head_motion == "2d" else None
     out.mkdir(parents=True, exist_ok=True)
     ledger = TrackedOutputs(out, "apply")  # the output manifest of the folder: what apply wrote there
@@ -268,7 +290,7 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
                         positions=positions, head=head, regions=regions, weights=weights, targets=targets,
                         landmarks=landmarks, rig=rig, rig_file=tg.rig, curves=curves, morph_targets=glb,
                         settings={"vat": vat}, ledger=ledger, frames=frames, times=times,
-                        source_fps=meta.get("source_fps"))
+                        source_fps=meta.get("source_fps"), found=found, gaps=gaps)
     for f in formats:
         EXPORTS[f].check_context(ctx)
     exporters = [EXPORTS[f](ctx) for f in EXPORTS if f in formats]
@@ -279,6 +301,19 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     log.info("wrote %d frames of %d vertices to %s (%s; driven by %s)", T, template.n_vertices, out,
              ", ".join(formats), "the rig" if use_rig else "the key shapes")
     return ledger.written
+
+
+def _found_frames(landmarks, T: int) -> np.ndarray | None:
+    """``found`` (T,) of *landmarks* when the take has gaps (None without a file, a flag or a gap)."""
+    if landmarks is None:
+        return None
+    lm = load_landmarks(landmarks)
+    if lm.found is None or lm.found.all():
+        return None
+    if lm.n_frames != T:
+        raise InputError(f"{landmarks}: has {lm.n_frames} frames but the weights have {T}")
+    log.info("%s: %s; the curves there follow apply.gaps", landmarks, gap_summary(lm.meta.get("gaps") or []))
+    return lm.found_mask
 
 
 def _check_choice(name: str, value, allowed) -> None:
@@ -368,9 +403,9 @@ COMMAND = Command(
      Flag("formats", decls=("--format",), value="text", default="obj", metavar="LIST",
           help=f"Comma-separated exports: {formats_help()}."),
      Flag("landmarks", path="file", show_default=False,
-          help="landmarks.npz whose head motion --head-motion 2d applies."),
+          help="landmarks.npz whose head motion --head-motion 2d applies and whose gaps --gaps fills."),
      "head_motion", "scale", Flag("pivot", value="xyz", metavar="X,Y,Z", show_default=False), "vat", "drive",
-     NO_CACHE_FLAG),
+     "gaps", "gap_ease", NO_CACHE_FLAG),
     _cli_apply,
     _show_apply,
     folder_output=True,

@@ -29,6 +29,7 @@ from ..io.rig import load_rig, read_rig
 from ..io.rig.vertexmap import read_vertex_map
 from ..io.stagefiles import read_keys, write_targets
 from ..methods.editing import auto_pose
+from ..methods.neutral import find_rest_frame
 from ..methods.rigpose import (
     CONTACT_68,
     DEFAULT_RIDGE,
@@ -204,7 +205,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
     Y = lm.stabilized[:, lm_ids].astype(np.float64)
     Cf = lm.confidence[:, lm_ids].astype(np.float64)
-    posed = list(range(lm.n_frames)) if frames == "all" else key_frames
+    # frames all: each segment of the take (found frames between gaps and cuts) is posed and smoothed apart
+    posed = [list(range(a, b)) for a, b in lm.segments] if frames == "all" else [key_frames]
     if fit == "delta":
         Y0 = neutral.landmarks(lm.stabilized)[lm_ids].astype(np.float64)
         C0 = neutral.weights(lm.confidence)[lm_ids].astype(np.float64)
@@ -217,11 +219,16 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
                     if contact else None,
                     contact_weight=contact_weight, lip_closed=lip_closed, lid_closed=lid_closed,
                     smooth=smooth if frames == "all" else 0.0)
+        shots = _shot_neutrals(lm, posed, neutral.frame, (Y0, C0), lm_ids, Y, Cf, contact, lid_closed,
+                               opts["contact_refs"], keep_home=neutral.record.get("source") != "take") \
+            if frames == "all" else None
         poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, (Y0, C0), region_rows, fixed,
-                                                    rigid, opts)
+                                                    rigid, opts, shots=shots)
     else:
-        poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, posed, list(kf.regions), region_rows, fixed,
-                                                       alpha, mu)
+        poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, [f for part in posed for f in part],
+                                                       list(kf.regions), region_rows, fixed, alpha, mu)
+    if frames == "all" and len(poses) < lm.n_frames:
+        poses = _hold_gaps(poses, lm.n_frames)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
                        None if neutral is None else neutral.frame, every_frame=frames == "all")
 
@@ -289,11 +296,64 @@ def _fit_rows(kf, keys, lm_ids, L: int, skip_points, rigid_points):
     return region_rows, rigid
 
 
-def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts):
-    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*:
-    poses by frame, slider owners, sliders by region.
+def _cut_rows(lm) -> list[int]:
+    """Rows of the take where a scene cut goes from one face straight to another (``meta.gaps`` of reason
+    ``cut``, the gaps of length 0), sorted."""
+    rows = []
+    for g in lm.meta.get("gaps") or []:
+        if isinstance(g, dict) and g.get("reason") == "cut" and not g.get("frames"):
+            start = int(g["start"])
+            row = int(np.searchsorted(lm.frames, start)) if lm.frames is not None else start
+            if 0 < row < lm.n_frames:
+                rows.append(row)
+    return sorted(set(rows))
 
-    *neutral* is the neutral key's (landmarks (M, 2), confidence (M,)) among the mapped landmarks.
+
+def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contact, lid_closed, refs,
+                   keep_home: bool = False):
+    """Per part of *parts* (lists of frames), the neutral it is measured from and its contact references, or
+    None for a take without a cut from one face straight to another.
+
+    A scene cut can show another actor, or the same one from another camera: each shot (the frames between
+    two such cuts) is measured from its own rest shape (:func:`~retarget_cli.methods.neutral.find_rest_frame`
+    over its found frames), and its lips' and lids' references (:func:`contact_references`) are its own: the
+    take's rest shape found by ``neutral_frame: auto`` averages frames of every shot, two faces at once. With
+    *keep_home* (a neutral frame given, or a calibration), the shot that holds the neutral frame keeps it.
+
+    Returns
+    -------
+    list of (Y0 (M, 2), C0 (M,), contact references) or None
+    """
+    cuts = _cut_rows(lm)
+    if not cuts:
+        return None
+    bounds = [0, *cuts, lm.n_frames]
+    home = int(np.searchsorted(cuts, neutral_frame, side="right"))
+    found = lm.found_mask
+    cache, out = ({home: (neutral[0], neutral[1], refs)} if keep_home else {}), []
+    for part in parts:
+        k = int(np.searchsorted(cuts, part[0], side="right"))
+        if k not in cache:
+            rows = np.arange(bounds[k], bounds[k + 1])
+            rows = rows[found[rows]]
+            choice = find_rest_frame(lm.stabilized[rows], lm.confidence[rows])
+            y0, c0 = choice.shape[lm_ids], choice.confidence[lm_ids]
+            shot_refs = contact_references(Y[rows], contact, Cf[rows], neutral=y0, lid_closed=lid_closed) \
+                if contact else None
+            cache[k] = (y0, c0, shot_refs)
+            log.info("auto-pose: the shot of frames %d-%d (after a scene cut) is measured from its own rest shape "
+                     "(rest frame %d)", bounds[k], bounds[k + 1] - 1, int(rows[choice.frame]))
+        out.append(cache[k])
+    return out
+
+
+def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts, shots=None):
+    """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*
+    (a list of frame lists, each fitted and smoothed on its own): poses by frame, slider owners, sliders by region.
+
+    *neutral* is the neutral key's (landmarks (M, 2), confidence (M,)) among the mapped landmarks; *shots*, per
+    part of *frames*, the (landmarks, confidence, contact references) that part is measured from instead
+    (:func:`_shot_neutrals`).
     """
 
     exclusive = spec.exclusive
@@ -302,15 +362,31 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
         _, DL = rig_landmarks(r, vx)
         exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
         log.info("auto-pose: inferred exclusive pairs %s", exclusive)
-    res = delta_pose(r, vx, neutral[0], Y[frames], weights=Cf[frames], neutral_weights=neutral[1],
-                     regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **opts)
+    poses, rms = {}, []
+    for i, part in enumerate(frames):  # a list of frames per segment of the take, each smoothed on its own
+        y0, c0, o = (*neutral, opts) if shots is None else (shots[i][0], shots[i][1],
+                                                            {**opts, "contact_refs": shots[i][2]})
+        res = delta_pose(r, vx, y0, Y[part], weights=Cf[part], neutral_weights=c0,
+                         regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **o)
+        poses.update(zip(part, res["w"]))
+        rms.extend(res["rms"])
+        for f, e in zip(part, res["rms"]):
+            log.debug("frame %d: landmark displacement rms %.3f px", f, e)
     owner = res["owner"]
-    log.info("auto-pose: %d frames posed, landmark displacement rms %.3f px (median)", len(frames),
-             float(np.median(res["rms"])) if len(frames) else 0.0)
-    for f, e in zip(frames, res["rms"]):
-        log.debug("frame %d: landmark displacement rms %.3f px", f, e)
+    log.info("auto-pose: %d frames posed in %d segment(s), landmark displacement rms %.3f px (median)", len(rms),
+             len(frames), float(np.median(rms)) if rms else 0.0)
     region_sliders = {name: [r.names[j] for j in np.flatnonzero(owner == ri)] for ri, name in enumerate(res["regions"])}
-    return dict(zip(frames, res["w"])), owner, region_sliders
+    return poses, owner, region_sliders
+
+
+def _hold_gaps(poses: dict, T: int) -> dict:
+    """Every frame's pose: a frame in a gap of the take holds the last posed frame's (the first's before any);
+    ``apply.gaps`` decides what the exported curves do there."""
+    posed = np.zeros(T, bool)
+    posed[list(poses)] = True
+    last = np.maximum.accumulate(np.where(posed, np.arange(T), -1))
+    src = np.where(last >= 0, last, int(np.argmax(posed)))
+    return {t: poses[int(src[t])] for t in range(T)}
 
 
 def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):

@@ -88,7 +88,8 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
         for name, (idx, rk) in specs.items():
             X = stab[:, idx].reshape(lm.n_frames, -1)
-            keep = _usable_frames(X, name, landmarks, include, lost=(lm.confidence[:, idx] <= LOST_CONFIDENCE).all(1))
+            keep = _usable_frames(X, name, landmarks, include, lm.found_mask, rk,
+                                  lost=(lm.confidence[:, idx] <= LOST_CONFIDENCE).all(1))
             local = {int(f): i for i, f in enumerate(keep)}
             Xk = X[keep]
             inc = tuple(local[int(f)] for f in include)
@@ -132,20 +133,38 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
 
 
 
-def _usable_frames(X, name, landmarks, include, lost=None) -> np.ndarray:
-    """Frames of region *name* (rows of *X*) without lost landmarks; the frames in *include* must be among them.
+def _usable_frames(X, name, landmarks, include, found=None, k=None, lost=None) -> np.ndarray:
+    """Frames of region *name* (rows of *X*) without lost landmarks, in which the face was found (*found*,
+    (T,) bool); the frames in *include* must be among them, and at least *k* of them.
 
     Frames where a landmark of the region is lost (NaN), or all of them are (*lost*: confidence 0 in every
     point, a frame missing from an image sequence), can be neither keys nor scored by eq. 5; decompose
-    interpolates their weights later.
+    interpolates their weights later. Frames in a gap of the take (``landmarks.npz``'s ``found``) hold another
+    frame's landmarks: never a key.
     """
-    ok = np.isfinite(X).all(1)
-    keep = np.flatnonzero(ok if lost is None else ok & ~lost)
+    finite = np.isfinite(X).all(1)
+    if lost is not None:
+        finite &= ~lost
+    n_nan = int((~finite & (True if found is None else found)).sum())  # (gap frames are counted apart)
+    if found is not None and not found.all():
+        gaps = np.flatnonzero(~found)
+        bad_inc = [int(f) for f in include if not found[f]]
+        if bad_inc:
+            raise InputError(f"{landmarks}: neutral frame {bad_inc[0]} is in a gap of the take (no face found "
+                             "there); choose another neutral_frame, or auto")
+        log.info("%s: region %s: %d frames in gaps (no face; first %d) are left out of key selection", landmarks,
+                 name, gaps.size, int(gaps[0]))
+        finite &= found
+        if k is not None and finite.sum() < k:
+            raise InputError(f"{landmarks}: the face was found in {int(found.sum())} of {len(found)} frames, "
+                             f"{int(finite.sum())} of them usable for region {name!r}; key selection needs at "
+                             f"least k = {k}")
+    keep = np.flatnonzero(finite)
     if keep.size == 0:
         raise InputError(f"{landmarks}: region {name!r}: every frame has lost (NaN) landmarks")
-    if keep.size < len(X):
+    if n_nan:
         log.warning("%s: region %s: %d frames with lost landmarks are left out of key selection",
-                    landmarks, name, len(X) - keep.size)
+                    landmarks, name, n_nan)
     bad_inc = [f for f in include if f not in set(keep.tolist())]
     if bad_inc:
         raise InputError(f"{landmarks}: region {name!r}: neutral frame {bad_inc[0]} has lost (NaN) landmarks; "

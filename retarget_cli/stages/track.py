@@ -17,6 +17,7 @@ from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
 from ..io.landmarks import Landmarks, save_landmarks
 from ..io.overlay import write_overlay
+from ..methods.gaps import describe_gaps, gap_summary, segment_ids, segments_of
 from ..methods.neutral import align_shape, find_rest_frame
 from ..methods.tracking import TRACKERS, method_choices, method_help, tracker_params
 from ..methods.tracking.base import check_inside, to_gray
@@ -68,7 +69,8 @@ PARAMS = [
           "Temporal smoothing of the head track: Savitzky-Golay window in frames (0: none).",
           min=0, max=301),
     Param("keep_partial", "setting", bool, False,
-          "On a truncated video or a lost face, keep what was tracked up to then."),
+          "On a truncated video (or a face lost by a tracker that cannot find it again), keep what was tracked up "
+          "to then. Method detect keeps tracking through frames without a face (gaps in landmarks.npz's found)."),
     Param("method", "setting", str, "auto", method_help(), choices=method_choices),
     Param("fuse", "setting", bool, True,
           "Method detect: join the detections with optical flow (a Kalman filter along the flow and "
@@ -189,16 +191,18 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
             raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
                              f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
         index = _annotation_index(ann, src, (W, H), start, end, step, missing=source.missing)
-        points, conf = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings, progress=progress,
-                                    keep_partial=keep_partial, where=init_out or init or video)
+        points, conf, coverage = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings,
+                                              progress=progress, keep_partial=keep_partial,
+                                              where=init_out or init or video)
         frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
         files = source.files()
     conf = _lose_missing(conf, frame_numbers, source.missing)
     if need_auto and "detector" in spec.needs:
-        write_auto_init(init_out, points[0])
-    points, raw, fmeta = apply_filter(points, conf, fps=source.fps, settings=fset, where=str(video),
-                                      anchors=[i for i in index if i < len(points)])
-    head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+        write_auto_init(init_out, points[int(np.argmax(coverage.found))] if coverage is not None else points[0])
+    found, segment, gaps = _coverage(coverage, len(points), frame_numbers, source, video)
+    points, raw, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
+                                         anchors=[i for i in index if i < len(points)])
+    head, stab = estimate_head(points, held_confidence(conf, found), rigid_points=rigid_points)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
@@ -223,10 +227,13 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         meta["model"], meta["model_sha256"] = Path(model).name, sha256_file(model)
     if calibration is not None:
         meta["neutral"] = calibration[2]
+    if found is not None:
+        meta["gaps"], meta["segments"] = gaps, int(segment.max()) + 1
     save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
                                      frames=frame_numbers, times=source.times(frame_numbers), points_raw=raw,
                                      neutral=None if calibration is None else calibration[0],
-                                     neutral_confidence=None if calibration is None else calibration[1]))
+                                     neutral_confidence=None if calibration is None else calibration[1],
+                                     found=found, segment=segment))
     written = [Path(output)] + ([init_out] if init_out else [])
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
     if overlay:
@@ -460,9 +467,12 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
         n_expected = max(0, (last - source.start + source.step - 1) // source.step)
     track = spec.load()
     kw = {k: settings[k] for k in spec.settings} | {k: objects[k] for k in spec.needs}
+    kw |= {"gaps": True} if spec.gaps else {}
+    coverage = None
     with progress(n_expected, "track") as bar:
         try:
-            points, conf = track(frames(), index, progress=lambda t: bar.update(1), **kw)
+            points, conf, *more = track(frames(), index, progress=lambda t: bar.update(1), **kw)
+            coverage = more[0] if more else None
         except FaceLostError as exc:
             where_f = source.frames[exc.frame] if exc.frame < len(source.frames) else exc.frame
             msg = f"{source.path}: {str(exc).replace(f'frame {exc.frame}', f'frame {where_f}')}"
@@ -478,7 +488,56 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
             raise InputError(f"{stopped[0]}; rerun with --keep-partial to keep the {len(points)} frames "
                              f"tracked up to then")
         log.warning("%s; keeping the %d frames tracked (--keep-partial)", stopped[0], len(points))
-    return points, conf
+    return points, conf, coverage
+
+
+def _coverage(coverage, T: int, frame_numbers, source, video):
+    """``found``, ``segment`` and the gaps' description of a tracker's coverage (all None without one)."""
+    if coverage is None:
+        return None, None, None
+    gaps = describe_gaps(coverage.found[:T], coverage.status[:T], coverage.cuts[:T], frames=frame_numbers,
+                         fps=source.fps)
+    segment = segment_ids(coverage.found[:T], coverage.cuts[:T])
+    if gaps:
+        where = "; ".join(f"{g['reason']} at frame {g['start']}" + (f" for {g['frames']} frames" if g["frames"] else "")
+                          for g in gaps[:5])
+        log.warning("%s: %s, %d segments tracked apart (%s%s)", video, gap_summary(gaps), int(segment.max()) + 1,
+                    where, "; ..." if len(gaps) > 5 else "")
+    return coverage.found[:T].astype(bool), segment, gaps
+
+
+def filter_segments(points, conf, segment, *, fps, settings, where, anchors=()):
+    """:func:`~._landmark_filter.apply_filter` on each segment of the take apart (the whole take without
+    *segment*), so that nothing is smoothed across a gap or a scene cut; frames in gaps stay as they are.
+
+    Returns (points (T, L, 2), raw (T, L, 2) or None, meta) like ``apply_filter``.
+    """
+    if segment is None or len(segments_of(segment)) == 1 and (segment >= 0).all():
+        return apply_filter(points, conf, fps=fps, settings=settings, where=where, anchors=anchors)
+    out = np.array(points, dtype=np.float64)
+    meta = {"method": settings["filter"]}
+    for a, b in segments_of(segment):
+        out[a:b], _, meta = apply_filter(points[a:b], conf[a:b], fps=fps, settings=settings, where=where,
+                                         anchors=[i - a for i in anchors if a <= i < b])
+    raw = None if settings["filter"] == "none" else np.array(points, dtype=np.float64)
+    # a gap holds the last found frame's landmarks (after filtering), the first found frame's before any
+    found = np.asarray(segment) >= 0
+    last = np.maximum.accumulate(np.where(found, np.arange(len(out)), -1))
+    out = out[np.where(last >= 0, last, int(np.argmax(found)))]
+    return out, raw, meta
+
+
+def held_confidence(conf, found):
+    """Confidences for the head fit: a gap frame takes those of the frame whose landmarks it holds.
+
+    A gap frame keeps the last found frame's landmarks (confidence 0 in the file); fitting the head with
+    that frame's confidences gives it the same head pose instead of a fit with no weight at all.
+    """
+    if found is None or np.all(found):
+        return conf
+    f = np.asarray(found, bool)
+    last = np.maximum.accumulate(np.where(f, np.arange(len(f)), -1))
+    return np.asarray(conf)[np.where(last >= 0, last, int(np.argmax(f)))]
 
 
 def _write_track_overlay(overlay, video, points, conf, head, source, *, start, end, step, fps, progress):

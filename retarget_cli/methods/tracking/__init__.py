@@ -12,7 +12,8 @@ from .base import TrackerSpec
 TRACKERS: dict[str, TrackerSpec] = {
     "detect": TrackerSpec(
         "dlib's pretrained 68-point detector on every frame joined with optical flow; needs the extra detect",
-        "retarget_cli.methods.tracking.detect:track_detect", settings=("downscale", "fuse"), gray=True, needs=("detector",)),
+        "retarget_cli.methods.tracking.detect:track_detect", settings=("downscale", "fuse"), gray=True, needs=("detector",),
+        gaps=True),
     "lk": TrackerSpec(
         "Lucas-Kanade, one or more annotated frames",
         "retarget_cli.methods.tracking.lk:track_lk",

@@ -51,6 +51,10 @@ class TrackerSpec:
     params : tuple of Param
         Settings of its own, added to the ``track`` stage's declarations
         (YAML, CLI options, docs) when no other declares them.
+    gaps : bool
+        It keeps tracking through frames without a face: called with ``gaps=True`` it returns a third
+        value, a :class:`~retarget_cli.methods.gaps.Coverage` (which frames had a face, why not, scene cuts),
+        and raises :class:`~retarget_cli.errors.FaceLostError` only when no frame has one.
     """
 
     help: str
@@ -59,6 +63,7 @@ class TrackerSpec:
     gray: bool = False
     needs: tuple[str, ...] = ()
     params: tuple = ()
+    gaps: bool = False
 
     def load(self) -> Callable:
         """The tracker function."""

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import MissingExtraError, ShapeError
+from ..gaps import LOW_CONFIDENCE, NO_FACE, Coverage, CutDetector
 from .facemark import _from_scaled, _scaled, _to_scaled
 from .lk import FaceLostError, _Box
 
@@ -229,6 +230,13 @@ class FusionSettings:
 LID_LIP_POINTS = tuple(range(36, 48)) + tuple(range(60, 68))
 
 
+#: While no face is there (``gaps=True``), after *lost_frames* frames the whole-frame face detector runs on
+#: every this-many-th frame only (and at a scene cut), so a long gap costs little.
+SEARCH_EVERY = 5
+#: A face whose landmarks' mean confidence is below this is not trusted (``gaps=True``): the frame is a gap of
+#: reason "low confidence". On the three shared clips the lowest per-frame mean is 0.31 (d12; 0.66 on d9, 0.77 on d3).
+MIN_FOUND_CONFIDENCE = 0.05
+
 #: Variance standing for "no information" (finite so that gains stay defined).
 _NO_INFORMATION = 1e12
 
@@ -361,7 +369,9 @@ class FlowFusion:
 
 def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: Detector | None = None,
                  downscale: float = 1.0, tau: float = 0.05, max_jump: float = 0.5, max_disagreement: float = 0.08,
-                 lost_frames: int = 25, fuse: bool = True, fusion: FusionSettings | None = None, progress=None):
+                 lost_frames: int = 25, fuse: bool = True, fusion: FusionSettings | None = None, progress=None,
+                 gaps: bool = False, search_every: int = SEARCH_EVERY, min_confidence: float = MIN_FOUND_CONFIDENCE,
+                 cuts: CutDetector | None = None):
     """Landmarks on every frame by the pretrained detector, the face box following the previous frame.
 
     Per frame: the predictor fits the box of the previous frame's landmarks
@@ -398,37 +408,58 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         Noise model of the fusion.
     progress : callable, optional
         Called with the frame index after each frame.
+    gaps : bool
+        Keep tracking through frames without a face (a take with gaps): such a frame is marked not found,
+        keeps the last found frame's landmarks with confidence 0, and the face is looked for again (the
+        whole-frame detector on every frame for *lost_frames* frames, then on every *search_every*-th and
+        at every scene cut); each run of found frames (a segment, split at scene cuts found by *cuts*) is
+        fused and smoothed on its own. A face whose mean confidence is below *min_confidence* counts as
+        not found. Returns a third value, the :class:`~retarget_cli.methods.gaps.Coverage`.
+    search_every : int
+    min_confidence : float
+    cuts : CutDetector, optional
+        Scene-cut test of ``gaps=True`` (default :class:`~retarget_cli.methods.gaps.CutDetector`).
 
     Returns
     -------
     points : ndarray (T, 68, 2), float64
     confidence : ndarray (T, 68), float64
         In [0, 1]; 0 where no face was found.
+    coverage : Coverage
+        With ``gaps=True`` only.
 
     Raises
     ------
     FaceLostError
-        No face on the first frame (``frame`` 0, nothing tracked) or for *lost_frames* frames in a row.
+        No face on the first frame (``frame`` 0, nothing tracked) or for *lost_frames* frames in a row;
+        with ``gaps=True``, no face in any frame.
     """
     ann = _checked_annotations(annotations, downscale)
     det = detector or Detector()
     k = float(downscale)
-    fuser = FlowFusion(fusion) if fuse else None
-    track = _DetectTrack(det, ann, k, fuser, tau=tau, max_jump=max_jump, max_disagreement=max_disagreement,
-                         lost_frames=lost_frames)
+    track = _DetectTrack(det, ann, k, (lambda: FlowFusion(fusion)) if fuse else None, tau=tau, max_jump=max_jump,
+                         max_disagreement=max_disagreement, lost_frames=lost_frames, gaps=gaps,
+                         search_every=search_every, min_confidence=min_confidence,
+                         cuts=(cuts or CutDetector()) if gaps else None)
     for t, frame in enumerate(frames):
         track.frame(t, _scaled(_gray(frame), k))
         if progress is not None:
             progress(t)
     if not track.pts:
         raise ShapeError("frames: the sequence is empty")
-    out = np.stack(track.pts)
-    if fuser is not None:
-        out = _from_scaled(fuser.smooth(), k)
+    track.end_segment()
+    if gaps and not any(track.found):
+        raise FaceLostError(f"frame 0: no face found by the detector, nor in any of the {len(track.pts)} frames "
+                            "of the take", 0, np.zeros((0, 68, 2)), np.zeros((0, 68)))
+    out = track.points()
     for t in ann:  # annotated frames exactly as given
         if t < len(out):
             out[t] = ann[t]
-    return out, np.clip(np.stack(track.conf), 0, 1)
+    conf = np.clip(np.stack(track.conf), 0, 1)
+    if not gaps:
+        return out, conf
+    return out, conf, Coverage(np.array(track.found, bool), np.array(track.status, np.int8),
+                               np.array(track.cut, bool))
 
 
 def _checked_annotations(annotations, downscale: float) -> dict[int, np.ndarray]:
@@ -446,37 +477,87 @@ class _DetectTrack:
     """State of :func:`track_detect` between frames (face box, frames without a face) and its per-frame step.
 
     Landmarks are at the detection scale *k* inside and at full resolution in
-    :attr:`pts`; :attr:`conf` holds the confidences. Parameters as in
+    :attr:`pts`; :attr:`conf` holds the confidences. *fusion* makes a new
+    :class:`FlowFusion` (None: no fusion); each segment has its own, smoothed
+    when the segment ends (:meth:`end_segment`). Other parameters as in
     :func:`track_detect`.
     """
 
-    def __init__(self, det, ann, k, fuser, *, tau, max_jump, max_disagreement, lost_frames):
-        self.det, self.ann, self.k, self.fuser = det, ann, k, fuser
+    def __init__(self, det, ann, k, fusion, *, tau, max_jump, max_disagreement, lost_frames, gaps=False,
+                 search_every=SEARCH_EVERY, min_confidence=MIN_FOUND_CONFIDENCE, cuts=None):
+        self.det, self.ann, self.k, self.fusion = det, ann, k, fusion
         self.tau, self.max_jump, self.max_disagreement, self.lost_frames = tau, max_jump, max_disagreement, lost_frames
+        self.gaps, self.search_every, self.min_confidence, self.cuts = gaps, max(1, int(search_every)), \
+            float(min_confidence), cuts
         self.calib, self.P_prev, self.box_prev, self.missing = DEFAULT_BOX, None, None, 0
+        self.fuser, self.seg_start = (fusion() if fusion is not None else None), 0
         self.pts: list[np.ndarray] = []
         self.conf: list[np.ndarray] = []
+        self.found: list[bool] = []
+        self.status: list[int] = []
+        self.cut: list[bool] = []
 
     def frame(self, t: int, g) -> None:
         """Landmarks of frame *t* (grayscale at the detection scale) appended to :attr:`pts` and :attr:`conf`."""
-        P, c, fresh = None, None, False
+        cut = bool(self.cuts(g)) and t > 0 if self.cuts is not None else False
+        self.cut.append(cut)
+        P, c, fresh, status = None, None, False, NO_FACE
         if t in self.ann:
             P, c, fresh = _to_scaled(self.ann[t], self.k), np.ones(68), True
-        elif self.P_prev is not None and self.missing == 0:
+        elif self.P_prev is not None and self.missing == 0 and not cut:
             P, c = self._follow(t, g)
-        if P is None:
+        if P is None and self._search(cut):
             P, c = self._detect(g)
             fresh = True
+        if P is not None and self.gaps and t not in self.ann and float(np.mean(c)) < self.min_confidence:
+            log.debug("frame %d: landmarks of mean confidence %.3f not trusted", t, float(np.mean(c)))
+            P, status = None, LOW_CONFIDENCE
         if P is None:
-            self._no_face(t, g)
+            self._no_face(t, g, status)
             return
+        if self.gaps and (cut or self.missing) and t > 0:
+            self.end_segment()  # a new segment: smoothed apart from the one before
         self.missing = 0
         self.P_prev, self.box_prev = P, box_from_points(P, self.calib)
         if self.fuser is not None:
             P = self.fuser.step(g, P, c, exact=t in self.ann, reset=fresh and t not in self.ann)
         self.pts.append(_from_scaled(P, self.k))
         self.conf.append(c)
+        self.found.append(True)
+        self.status.append(0)
 
+    def _search(self, cut: bool) -> bool:
+        """Whether to run the whole-frame face detector on this frame (always, unless a long gap goes on)."""
+        if not self.gaps or cut or self.missing < self.lost_frames:
+            return True
+        return (self.missing - self.lost_frames) % self.search_every == 0
+
+    def end_segment(self) -> None:
+        """Smooth the segment that ends here (the frames fused since the last segment started) in place."""
+        fuser = self.fuser
+        if fuser is not None and fuser._xf:
+            n = len(fuser._xf)
+            found = [i for i in range(self.seg_start, len(self.pts)) if self.found[i]]
+            if len(found) == n:  # (without gaps every frame was fused, lost ones included: see _no_face)
+                smooth = _from_scaled(fuser.smooth(), self.k)
+                for row, i in enumerate(found):
+                    self.pts[i] = smooth[row]
+            else:
+                self.pts[self.seg_start:] = list(_from_scaled(fuser.smooth(), self.k))
+            self.fuser = self.fusion()
+        self.seg_start = len(self.pts)
+
+    def points(self) -> np.ndarray:
+        """Every frame's landmarks (T, 68, 2); a frame without a face holds the last found frame's (the first's
+        before any)."""
+        out = np.stack(self.pts)
+        if self.gaps:
+            found = np.array(self.found, bool)
+            last = np.maximum.accumulate(np.where(found, np.arange(len(out)), -1))
+            first = int(np.argmax(found))
+            src = np.where(last >= 0, last, first)
+            out = out[src]
+        return out
     def _follow(self, t: int, g):
         """Fit twice from the previous frame's box: (points, confidence), or (None, None) when they look lost."""
         det, calib = self.det, self.calib
@@ -505,8 +586,16 @@ class _DetectTrack:
         _, s, _ = _frame_of(again)
         return found, np.exp(-np.linalg.norm(again - found, axis=1) / (self.tau * s))
 
-    def _no_face(self, t: int, g) -> None:
-        """Frame *t* has no face: keep the previous landmarks with confidence 0, or raise :class:`FaceLostError`."""
+    def _no_face(self, t: int, g, status: int = NO_FACE) -> None:
+        """Frame *t* has no face: keep the previous landmarks with confidence 0, or raise :class:`FaceLostError`
+        (without *gaps*)."""
+        self.found.append(False)
+        self.status.append(status)
+        if self.gaps:
+            self.missing += 1
+            self.pts.append(self.pts[-1] if self.pts else np.zeros((68, 2)))
+            self.conf.append(np.zeros(68))
+            return
         if t == 0:
             raise FaceLostError("frame 0: no face found by the detector (annotate this frame by hand with --init, "
                                 "or start at another frame)", 0, np.zeros((0, 68, 2)),
@@ -519,6 +608,8 @@ class _DetectTrack:
         fuser = self.fuser
         self.pts.append(self.pts[-1] if fuser is None else _from_scaled(fuser.step(g, None, None, exact=False), self.k))
         self.conf.append(np.zeros(68))
+
+
 
 
 def eye_opening(points) -> np.ndarray:

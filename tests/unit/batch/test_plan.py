@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from retarget_cli.batch.plan import format_table, load_plan
+from retarget_cli.batch.plan import format_table, gaps_cell, load_plan
 from retarget_cli.errors import ConfigError, InputError, MissingExtraError
 
 
@@ -75,6 +75,20 @@ def test_table_has_a_row_per_shot_with_its_error():
     assert lines[0].split()[:2] == ["shot", "status"] and "track" in lines[0]
     assert lines[1].split()[:2] == ["a", "done"] and "1.25" in lines[1]
     assert lines[2].startswith("b") and lines[2].endswith("x.mp4: cannot decode")
+
+
+def test_table_shows_each_shots_gaps():
+    gaps = [{"start": 100, "frames": 60, "reason": "no face", "cut": True},
+            {"start": 300, "frames": 0, "reason": "cut", "cut": True}]
+    rows = [{"name": "a", "status": "done", "gaps": gaps, "stages": {}},
+            {"name": "b", "status": "done", "gaps": [], "stages": {}},
+            {"name": "c", "status": "failed", "stages": {}, "error": "x"}]
+    lines = format_table(rows).splitlines()
+    assert "gaps" in lines[0].split()
+    assert "2 gaps (cut 1, no face 1), 60 frames" in lines[1]
+    assert " none " in lines[2] + " " and "none" not in lines[3]
+    assert gaps_cell(gaps, detail=True).endswith(": no face at 100 (60 f); cut at 300")
+    assert gaps_cell(None) == "-"
 
 
 def test_missing_dask_is_a_one_line_error_naming_the_extra(monkeypatch):
