@@ -5,6 +5,15 @@ import pytest
 from retarget_cli.synth.take import write_take
 
 
+@pytest.fixture(autouse=True)
+def user_cache(tmp_path_factory, monkeypatch):
+    """Every test gets its own empty user rig cache ($RETARGET_CACHE_DIR), never the user's ~/.cache."""
+    d = tmp_path_factory.mktemp("user-cache")
+    monkeypatch.setenv("RETARGET_CACHE_DIR", str(d))
+    monkeypatch.delenv("RETARGET_CACHE_SIZE", raising=False)
+    return d / "rigs"
+
+
 @pytest.fixture(scope="session")
 def small_take_template(tmp_path_factory):
     """A short synthetic take (60 frames, 192x192), generated once per session."""
