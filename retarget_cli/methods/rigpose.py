@@ -195,7 +195,7 @@ def exclusive_indices(pairs, index: dict) -> np.ndarray:
 
 
 def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_SPARSITY,
-                ridge: float = DEFAULT_RIDGE, exclusive=None, free=None) -> np.ndarray:
+                ridge: float = DEFAULT_RIDGE, exclusive=None, free=None, scale_rows=None) -> np.ndarray:
     """Bounded, sparse least-squares sliders with mutually exclusive pairs.
 
     .. math::
@@ -204,7 +204,7 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
         + \\tfrac{\\mu'}{2} \\lVert w \\rVert^2
 
     with ``λ' = sparsity · h̄`` and ``μ' = ridge · h̄``, ``h̄`` the mean
-    diagonal of ``BᵀCB`` over the free sliders, so both are independent of the
+    diagonal of ``BᵀCB`` (its first *scale_rows* rows) over the free sliders, so both are independent of the
     rig's units. The L1 term applies to sliders whose lower bound is 0 or more
     (for them ``|w| = w``). Exclusive pairs: after a solve, the smaller member
     of every pair with both members above :data:`ACTIVE` is fixed at 0 and the
@@ -223,6 +223,10 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
     exclusive : ndarray of int, shape (P, 2), optional
     free : array_like of bool, shape (n,), optional
         Sliders that may move (others stay 0).
+    scale_rows : int, optional
+        ``h̄`` over the first *scale_rows* rows only (the landmarks), so that rows appended with weights of
+        their own (the contact gaps, boosted up to ``CONTACT_BOOST ** CONTACT_PASSES``) do not raise the
+        sparsity and ridge price of every slider with them. Default: every row.
 
     Returns
     -------
@@ -230,11 +234,11 @@ def fit_sliders(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_S
     """
 
     return _slider_qp(B, m, lower, upper, weights=weights, sparsity=sparsity, ridge=ridge, exclusive=exclusive,
-                      free=free)[0]
+                      free=free, scale_rows=scale_rows)[0]
 
 
 def _slider_qp(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE,
-               exclusive=None, free=None):
+               exclusive=None, free=None, scale_rows=None):
     """:func:`fit_sliders`, also returning its QP: ``(w, H, q, free)``, ``½ wᵀHw − qᵀw`` over the final *free*
     sliders (the exclusive pairs' losers removed); ``H`` is None when nothing is free."""
     B = check_array(B, "B", ndim=2)
@@ -257,7 +261,8 @@ def _slider_qp(B, m, lower, upper, *, weights=None, sparsity: float = DEFAULT_SP
     BtC = B.T * c
     H = BtC @ B
     q = BtC @ m
-    hbar = float(np.mean(np.diag(H)[free]))
+    k = r if scale_rows is None else scale_rows
+    hbar = float(np.mean(((c[:k, None] * B[:k] ** 2).sum(axis=0))[free]))
     if hbar <= 0:
         return w, None, None, np.zeros(n, dtype=bool)
     H = H + ridge * hbar * np.eye(n)
@@ -856,7 +861,7 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
     every = np.arange(T)
     h = np.ones((T, len(i)))
     cw = row_weights(h, every)
-    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free)
+    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free, scale_rows=n_lm)
     w, H, q, used = _slider_qps(A, b, rig.lower, rig.upper, cw, **qp)
     for _ in range(robust_iterations):
         e = np.linalg.norm((np.einsum("trn,tn->tr", A[:, :n_lm], w) - b[:, :n_lm]).reshape(T, -1, 2), axis=2)
@@ -887,8 +892,9 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
                        float(scale[k])) for k in range(T)]
 
 
-def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free):
-    """:func:`_slider_qp` of many frames at once: ``A`` (T, r, n), ``b`` (T, r), ``CW`` (T, r) row weights.
+def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, scale_rows=None):
+    """:func:`_slider_qp` of many frames at once: ``A`` (T, r, n), ``b`` (T, r), ``CW`` (T, r) row weights
+    (*scale_rows* as :func:`fit_sliders`'s).
 
     Every frame's QP (its own Hessian ``Aᵀ diag(c) A`` with the ridge and sparsity of :func:`fit_sliders`) is
     solved by :func:`~retarget_cli.methods.decomposition.boxqp.box_qp_weighted` with the other frames that have
@@ -914,7 +920,9 @@ def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free):
     BtC = A.transpose(0, 2, 1) * CW[:, None, :]
     Hs = BtC @ A
     q = (BtC @ b[..., None])[..., 0]
-    hbar = np.array([float(np.mean(np.diag(Hs[k])[F[k]])) if F[k].any() else 0.0 for k in range(T)])
+    kr = A.shape[1] if scale_rows is None else scale_rows
+    hbar = np.array([float(np.mean(((CW[k, :kr, None] * A[k, :kr] ** 2).sum(axis=0))[F[k]])) if F[k].any() else 0.0
+                     for k in range(T)])
     ok = hbar > 0
     F[~ok] = False
     Hs = Hs + (ridge * hbar)[:, None, None] * np.eye(n)

@@ -184,6 +184,20 @@ def test_a_closed_lip_pout_keeps_the_lips_closed_on_a_rig_whose_shapes_cross_the
     assert abs((_lip_gap(rig, wo) - rest) - opening) < 0.01
 
 
+def test_heavy_extra_rows_do_not_raise_the_sparsity_price_of_the_landmark_fit():
+    """The contact gap rows are boosted up to CONTACT_BOOST ** CONTACT_PASSES; the sparsity and ridge terms are
+    scaled by the landmark rows alone (scale_rows), or a boosted gap row on one slider prices every other slider
+    out of the fit: on d9's pursed lips the ICT pucker stayed at 0 (issue 27)."""
+    B = np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 1.0]])  # two landmark rows, then a gap row on slider 1 only
+    m = np.array([0.5, 0.0, 0.0])
+    weights = np.array([1.0, 1.0, 4.0 * 8.0**4])
+    lo, hi = np.zeros(2), np.ones(2)
+    scaled = fit_sliders(B, m, lo, hi, weights=weights, sparsity=0.01, ridge=0.0, scale_rows=2)
+    assert scaled[0] == pytest.approx(0.5 - 0.01, abs=1e-6)  # priced by the landmarks' h̄ = 1
+    everything = fit_sliders(B, m, lo, hi, weights=weights, sparsity=0.01, ridge=0.0)
+    assert everything[0] == 0.0  # h̄ over every row: the gap row's weight zeroes slider 0
+
+
 def test_lids_the_tracker_never_shuts_close_the_rig_eye():
     n = source_neutral()
     V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
@@ -328,11 +342,12 @@ def test_batched_slider_qps_match_one_frame_at_a_time():
     free = np.ones(n, bool)
     free[5] = False
     pairs = np.array([[1, 2], [3, 4], [2, 6]])
-    w, H, q, F = _slider_qps(A, b, lo, hi, CW, sparsity=0.01, ridge=0.001, exclusive=pairs, free=free)
+    w, H, q, F = _slider_qps(A, b, lo, hi, CW, sparsity=0.01, ridge=0.001, exclusive=pairs, free=free,
+                             scale_rows=20)
     dropped = 0
     for k in range(T):
         wk, Hk, qk, Fk = _slider_qp(A[k], b[k], lo, hi, weights=CW[k], sparsity=0.01, ridge=0.001, exclusive=pairs,
-                                    free=free)
+                                    free=free, scale_rows=20)
         np.testing.assert_allclose(w[k], wk, rtol=0, atol=1e-10)
         assert np.array_equal(F[k], Fk) and (H[k] is None) == (Hk is None)
         if Hk is not None:
