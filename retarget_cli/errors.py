@@ -23,6 +23,10 @@ class InputError(RetargetError, ValueError):
     """An input file is missing, unreadable or does not follow its contract."""
 
 
+class OutputError(RetargetError, OSError):
+    """A file could not be written (a full disk, no permission); the message names the file and the stage."""
+
+
 class ConfigError(RetargetError, ValueError):
     """A configuration file or option is invalid: a usage error, exit status 2 as for a bad command-line value."""
 

@@ -30,6 +30,7 @@ import fnmatch
 import math
 import re
 import shlex
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -73,14 +74,24 @@ class Shot:
     output_dir: Path | None = None
     stages: list = field(default_factory=list)
 
-    def command(self, *, force: bool = False, program: str = "retarget") -> str:
-        """The shell command that runs this shot alone (shell-quoted, self-contained: absolute paths)."""
-        args = [program, "run", str(self.config)]
+    def command(self, *, force: bool = False, program=None) -> str:
+        """The shell command that runs this shot alone (shell-quoted, self-contained: absolute paths).
+
+        *program*: the command's words before ``run``; default the ``retarget`` that is running
+        (:func:`running_program`: this interpreter with ``-m retarget_cli``), so the line needs nothing on ``PATH``.
+        """
+        args = [*(running_program() if program is None else [program] if isinstance(program, str) else program),
+                "run", str(self.config)]
         for o in self.overrides:
             args += ["--set", o]
         if force:
             args.append("--force")
         return " ".join(shlex.quote(a) for a in args)
+
+
+def running_program() -> list[str]:
+    """The words that start the ``retarget`` now running: its interpreter (absolute) and ``-m retarget_cli``."""
+    return [str(Path(sys.executable).absolute()), "-m", "retarget_cli"]
 
 
 @dataclass

@@ -5,6 +5,8 @@ Formats are documented in the README's "Rig editing" section.
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import os
 from pathlib import Path
@@ -30,7 +32,7 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
     CSV: a header with ``frame``, optionally ``time``, and one column per
     slider; frames are strictly increasing integers. NPZ: ``curves`` (T, E)
     and ``names`` (E,) (what ``retarget synth`` writes as ``truth.npz``),
-    optionally ``frames`` (T,); other members are ignored.
+    optionally ``frames`` (T,) and ``times`` (T,); other members are ignored.
 
     Returns
     -------
@@ -51,20 +53,13 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
         if W.ndim != 2 or W.shape[1] != len(names):
             raise InputError(f"{path}: 'curves' must be (T, {len(names)}) for {len(names)} names, got {W.shape}")
         frames = np.asarray(data.get("frames", np.arange(len(W))), dtype=np.int64)
+        if "times" in data:
+            times = np.asarray(data["times"], dtype=np.float64)
+            if times.shape != (len(W),):
+                raise InputError(f"{path}: 'times' must be ({len(W)},), one per row, got {times.shape}")
     elif path.suffix.lower() == ".csv":
 
-        lines = [ln for ln in read_text(path, "animation CSV").splitlines() if ln.strip()]
-        if not lines:
-            raise InputError(f"{path}: empty CSV")
-        header = [h.strip() for h in lines[0].split(",")]
-        if "frame" not in header:
-            raise InputError(f"{path}: the header needs a 'frame' column, got {','.join(header)}")
-        try:
-            rows = np.array([[float(x) for x in ln.split(",")] for ln in lines[1:]], dtype=np.float64)
-        except ValueError as exc:
-            raise InputError(f"{path}: expected numbers after the header ({exc})") from exc
-        if rows.ndim != 2 or rows.shape[1] != len(header) or not len(rows):
-            raise InputError(f"{path}: every row needs {len(header)} values (one per header column)")
+        header, rows = _csv_table(path, read_text(path, "animation CSV"))
         fcol = rows[:, header.index("frame")]
         if np.any(fcol % 1 != 0):
             raise InputError(f"{path}: 'frame' values must be integers")
@@ -85,6 +80,43 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
     return names, W, frames, times
 
 
+def _csv_table(path: Path, text: str) -> tuple[list, np.ndarray]:
+    """The header (stripped names; quoted as CSV quotes them) and the numbers of an animation CSV.
+
+    Raises
+    ------
+    InputError
+        Naming the file and the line of a row that is short, long or holds something that is not a number.
+    """
+    numbered = [(i + 1, ln) for i, ln in enumerate(text.splitlines()) if ln.strip()]
+    if not numbered:
+        raise InputError(f"{path}: empty CSV")
+    header = [h.strip() for h in next(csv.reader([numbered[0][1]]))]
+    if "frame" not in header:
+        raise InputError(f"{path}: the header needs a 'frame' column, got {','.join(header)}")
+    rows = []
+    for lineno, ln in numbered[1:]:
+        cells = ln.split(",")
+        if len(cells) != len(header):
+            raise InputError(f"{path}:{lineno}: {len(cells)} values, expected {len(header)} (one per header column)")
+        try:
+            rows.append([float(x) for x in cells])
+        except ValueError:
+            bad = next(x for x in cells if not _is_number(x))
+            raise InputError(f"{path}:{lineno}: {bad.strip()[:40]!r} is not a number") from None
+    if not rows:
+        raise InputError(f"{path}: no rows after the header")
+    return header, np.array(rows, dtype=np.float64)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, meta: dict | None = None) -> None:
     """Write rig weights over time, CSV or NPZ by the file's extension (the formats of :func:`read_animation`)."""
     path = Path(path)
@@ -92,12 +124,16 @@ def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, me
     if path.suffix.lower() == ".npz":
         arrays = {"curves": W, "names": np.asarray(names, dtype=str), "frames": np.asarray(frames, dtype=np.int64),
                   "meta": np.array(json.dumps({"version": __version__, **(meta or {})}, sort_keys=True))}
+        if times is not None:
+            arrays["times"] = np.asarray(times, dtype=np.float64)
         savez(path, arrays)
         return
     if path.suffix.lower() != ".csv":
         raise InputError(f"{path}: expected a .csv or .npz output")
     head = ["frame"] + (["time"] if times is not None else []) + list(names)
-    out = [",".join(head)]
+    line = io.StringIO()
+    csv.writer(line, lineterminator="").writerow(head)  # a name holding a comma or a quote is quoted
+    out = [line.getvalue()]
     for t, f in enumerate(frames):
         cells = [str(int(f))] + ([f"{times[t]:.6f}"] if times is not None else []) + [f"{v:.6f}" for v in W[t]]
         out.append(",".join(cells))
@@ -122,9 +158,10 @@ def _int(value, where, minimum=None):
 
 
 def _num(value, where, minimum=None):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or (minimum is not None and value < minimum):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) \
+            or (minimum is not None and value < minimum):
         more = f" >= {minimum:g}" if minimum is not None else ""
-        raise InputError(f"{where}: expected a number{more}, got {value!r}")
+        raise InputError(f"{where}: expected a finite number{more}, got {value!r}")
     return float(value)
 
 

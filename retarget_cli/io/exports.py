@@ -79,6 +79,12 @@ class ExportContext:
         ``apply``'s settings (``vat``, ...).
     ledger : TrackedOutputs
         The folder's output manifest (an exporter of many files plans them there).
+    frames : ndarray, shape (T,), int64, optional
+        Each frame's source frame number (``weights.npz`` ``frame``); default 0 … T−1.
+    times : ndarray, shape (T,), float64, optional
+        Each frame's time in seconds in the source (``weights.npz`` ``time``); default ``frames / fps``.
+    source_fps : float, optional
+        The source's own frame rate (frame numbers over it are times); default *fps*.
     """
 
     out: Path
@@ -99,6 +105,27 @@ class ExportContext:
     morph_targets: Callable
     settings: dict
     ledger: Any
+    frames: np.ndarray | None = None
+    times: np.ndarray | None = None
+    source_fps: float | None = None
+
+    def timing(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Source frame numbers (T,), their times in seconds (T,) and the source's rate, defaults filled."""
+        return timing(self)
+
+
+def timing(ctx) -> tuple[np.ndarray, np.ndarray, float]:
+    """:meth:`ExportContext.timing` of *ctx*, or of any object with ``fps`` and ``n_frames`` or ``curves``
+    (rows 0 … T−1)."""
+    rate = float(getattr(ctx, "source_fps", None) or ctx.fps)
+    frames = getattr(ctx, "frames", None)
+    if frames is None:
+        n = getattr(ctx, "n_frames", None)
+        frames = np.arange(len(ctx.curves) if n is None else n, dtype=np.int64)
+    frames = np.asarray(frames)
+    times = getattr(ctx, "times", None)
+    times = frames / rate if times is None else np.asarray(times, dtype=np.float64)
+    return frames, times, rate
 
 
 class Exporter:
@@ -165,7 +192,8 @@ class CsvExport(Exporter):
 
     def finish(self):
         path = self.ctx.out / self.files[0]
-        write_text(path, weights_csv(self.ctx.regions, self.ctx.fps))
+        frames, times, _ = timing(self.ctx)
+        write_text(path, weights_csv(self.ctx.regions, self.ctx.fps, frames, times))
         return [path]
 
 
@@ -197,7 +225,8 @@ class GlbExport(Exporter):
         mt, names, mw = c.morph_targets()
         path = c.out / self.files[0]
         write_glb(path, base=c.base, faces=None, targets=mt, target_names=names, weights=mw,
-                  fps=c.fps, node_transforms=c.head, name=c.template.path.stem, surface=obj_surface(c.template))
+                  fps=c.fps, node_transforms=c.head, name=c.template.path.stem, surface=obj_surface(c.template),
+                  times=timing(c)[1])
         return [path]
 
 
@@ -208,11 +237,12 @@ class CurvesExport(Exporter):
 
     def finish(self):
         c = self.ctx
-        frames = np.arange(c.n_frames)
+        frames, times, rate = timing(c)
         csv, npz = (c.out / f for f in self.files)
-        write_animation(csv, c.rig.names, c.curves, frames, frames / c.fps)
-        write_animation(npz, c.rig.names, c.curves, frames,
-                        meta={"fps": c.fps, "rig": Path(c.rig_file).name, "weights": Path(c.weights).name})
+        write_animation(csv, c.rig.names, c.curves, frames, times)
+        write_animation(npz, c.rig.names, c.curves, frames, times,
+                        meta={"fps": c.fps, "source_fps": rate, "rig": Path(c.rig_file).name,
+                              "weights": Path(c.weights).name})
         return [csv, npz]
 
 
@@ -223,7 +253,8 @@ class LiveLinkExport(Exporter):
 
     def finish(self):
         c = self.ctx
-        return [write_livelink(c.out / self.files[0], c.rig, c.curves, c.fps, landmarks=c.landmarks)]
+        frames, _, rate = timing(c)
+        return [write_livelink(c.out / self.files[0], c.rig, c.curves, rate, landmarks=c.landmarks, frames=frames)]
 
 
 class UsdExport(Exporter):
@@ -236,8 +267,9 @@ class UsdExport(Exporter):
 
     def finish(self):
         c = self.ctx
-        return [write_usd(c.out / self.files[0], c.template, c.base, c.positions, c.n_frames, c.fps,
-                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.head)]
+        frames, _, rate = timing(c)
+        return [write_usd(c.out / self.files[0], c.template, c.base, c.positions, c.n_frames, rate,
+                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.head, frames=frames)]
 
 
 class SameExport(Exporter):
@@ -288,10 +320,11 @@ class SameExport(Exporter):
         if missing:
             log.warning("%s: %d slider(s) are not sliders or morph targets of the file and are not in %s: %s",
                         src.name, len(missing), glb.name, ", ".join(missing))
+        times = timing(c)[1]
         written = [write_animated_copy(glb, src, c.curves, names, c.fps, groups, lower=c.rig.lower,
-                                       upper=c.rig.upper)]
+                                       upper=c.rig.upper, times=times)]
         if is_vrm(src):
-            path = write_vrma(vrma, src, c.curves, names, c.fps, lower=c.rig.lower, upper=c.rig.upper)
+            path = write_vrma(vrma, src, c.curves, names, c.fps, lower=c.rig.lower, upper=c.rig.upper, times=times)
             written += [path] if path is not None else []
         return written
 
@@ -337,7 +370,7 @@ def head_rotation(landmarks, T: int):
     return head_rotation_from_similarity(lm.head)
 
 
-def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None) -> Path:
+def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None, frames=None) -> Path:
     """Write the rig's curves as a Live Link Face CSV (:func:`retarget_cli.io.livelink.livelink_csv`).
 
     Parameters
@@ -347,13 +380,15 @@ def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks
     curves : ndarray, shape (T, n)
     landmarks : path-like, optional
         ``landmarks.npz``: HeadRoll from its head motion; without it the head columns are 0.
+    fps, frames
+        The source's rate and each row's source frame number: the timecodes (:func:`~.livelink.livelink_csv`).
     """
 
     rot = head_rotation(landmarks, len(curves))
     if rot is None:
         log.info("Live Link Face CSV: no landmarks file, so the head rotation columns are 0")
     names = rig.spec.names if rig.spec is not None else {}
-    write_text(path, livelink_csv(curves, rig.names, fps, names=names, head_rotation=rot))
+    write_text(path, livelink_csv(curves, rig.names, fps, names=names, head_rotation=rot, frames=frames))
     return path
 
 
@@ -390,7 +425,7 @@ def rig_shapes(rig, curves: np.ndarray) -> tuple[np.ndarray, list[str], np.ndarr
 
 
 def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: float, *, morph_targets=None,
-              head=None) -> Path:
+              head=None, frames=None) -> Path:
     """Write ``animation.usd``: a UsdSkel character with a rig, else a point cache.
 
     Parameters
@@ -405,11 +440,14 @@ def write_usd(path: Path, template, base: np.ndarray, positions, T: int, fps: fl
         ``morph_targets()`` -> (shapes, names, weights) of the rig (:func:`rig_shapes`); without it a point cache.
     head : ndarray, shape (T, 3, 4), optional
         Head motion, the time-sampled transform of ``/Character``.
+    frames : ndarray, shape (T,), optional
+        Each frame's source frame number, its time code (*fps* is then the source's rate).
     """
 
     surf = obj_surface(template)
     uv = (surf.uv, surf.vt) if surf.has_uv else None
-    common = dict(counts=surf.counts, corners=surf.v, fps=fps, uv=uv, transforms=head, name=Path(template.path).stem)
+    common = dict(counts=surf.counts, corners=surf.v, fps=fps, uv=uv, transforms=head, name=Path(template.path).stem,
+                  frames=frames)
     if morph_targets is not None:
         shapes, names, weights = morph_targets()
         write_usd_skel(path, points=base, shapes=shapes, names=names, weights=weights, **common)

@@ -3,9 +3,16 @@
 A source is a video file read with OpenCV, or an image sequence given as a
 printf pattern (``shots/face_%05d.png``) or a glob pattern
 (``shots/*.exr``). PNG and JPEG frames are read with OpenCV; EXR frames with
-OpenEXR (linear light, converted to 8-bit sRGB for tracking). Frames are
-numbered 0, 1, ... in reading order (sequence files sorted by the number in
-their name); ``start``/``end``/``step`` select a range.
+OpenEXR (linear light, converted to 8-bit sRGB for tracking). A video's frames
+are numbered 0, 1, ... in decoding order; a sequence's by the number in each
+file's name, counted from the first file's (frame 0), so a number missing from
+the sequence is a missing frame: it keeps its place in time and is reported
+(:attr:`FrameSource.missing`) for the tracker to mark lost. ``start``/``end``/``step``
+select a range of these frame numbers.
+
+A frame rate that is missing (0, NaN) is replaced by 30 with a warning; one
+outside :data:`FPS_RANGE` (a remuxed clip claiming 2344 fps) is refused unless
+the caller gives the rate (``track.fps``).
 
 A video that stops decoding before the frame count its container announces
 is reported (:class:`TruncatedInputError`) with the file and the last frame
@@ -30,6 +37,12 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 _PRINTF = re.compile(r"%(0?\d*)d")
 
+#: Frame rates taken as plausible from a container or a setting, frames per second (both ends included).
+FPS_RANGE = (1.0, 480.0)
+
+#: The rate assumed when the source gives none.
+DEFAULT_FPS = 30.0
+
 
 
 
@@ -47,21 +60,78 @@ def sequence_files(pattern) -> list[Path]:
     InputError
         If nothing matches or a match has an unsupported suffix.
     """
+    return [f for _, f in numbered_sequence(pattern)]
+
+
+_LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+
+
+def numbered_sequence(pattern) -> list[tuple[int, Path]]:
+    """Files matching a printf or glob *pattern* with the frame number of each, in frame order.
+
+    A printf pattern's number is the one ``%d`` stands for; a glob's is the
+    last number in each file's name when every file has one and no two share
+    it, else the file's place in natural order. Numbers count from the first
+    file's (frame 0), so a gap in the numbering is a gap in the frames.
+
+    Raises
+    ------
+    InputError
+        If nothing matches, a match has an unsupported suffix, or two files
+        of a printf pattern carry the same number (``img_7.png``, ``img_007.png``).
+    """
     pattern = str(pattern)
     if _PRINTF.search(pattern):
         rx = _printf_regex(pattern)
         cands = _glob.glob(_PRINTF.sub("*", pattern))
-        files = sorted(((int(m.group(1)), Path(c)) for c in cands if (m := rx.match(c))), key=lambda x: x[0])
-        files = [f for _, f in files]
+        numbered = sorted(((int(m.group(1)), Path(c)) for c in cands if (m := rx.match(c))), key=lambda x: x[0])
+        for (a, fa), (b, fb) in zip(numbered, numbered[1:]):
+            if a == b:
+                raise InputError(f"{fb}: frame number {a} again (also {fa.name}); one file per frame number")
     else:
         files = [Path(p) for p in sorted(_glob.glob(pattern), key=_natural_key)]
+        found = [_LAST_NUMBER.search(f.name) for f in files]
+        numbers = [int(m.group(1)) for m in found if m]
+        if len(numbers) == len(files) and len(set(numbers)) == len(numbers) and numbers == sorted(numbers):
+            numbered = list(zip(numbers, files))
+        else:
+            numbered = list(enumerate(files))
+    files = [f for _, f in numbered]
     if not files:
         raise InputError(f"{pattern}: no image file matches this pattern")
     bad = [f for f in files if f.suffix.lower() not in IMAGE_SUFFIXES]
     if bad:
         raise InputError(f"{bad[0]}: unsupported image type {bad[0].suffix!r}; expected one of "
                          f"{', '.join(IMAGE_SUFFIXES)}")
-    return files
+    first = numbered[0][0]
+    return [(n - first, f) for n, f in numbered]
+
+
+def plausible_fps(fps, where, given=None) -> float:
+    """The frame rate to use: *given* (a setting) if any, else the source's *fps* when plausible.
+
+    A missing rate (None, 0, NaN) becomes :data:`DEFAULT_FPS` with a warning naming *where*.
+
+    Raises
+    ------
+    InputError
+        If the source's rate lies outside :data:`FPS_RANGE` and none is given, or *given* does.
+    """
+    lo, hi = FPS_RANGE
+    if given is not None:
+        given = float(given)
+        if not (lo <= given <= hi):
+            raise InputError(f"{where}: fps {given:g} is outside {lo:g}-{hi:g}")
+        return given
+    rate = float(fps) if fps is not None else 0.0
+    if not np.isfinite(rate) or rate <= 0:
+        log.warning("%s: no frame rate in the file; using %g fps (set track.fps, --fps, to the true rate)", where,
+                    DEFAULT_FPS)
+        return DEFAULT_FPS
+    if not (lo <= rate <= hi):
+        raise InputError(f"{where}: the file claims {rate:g} fps, outside the plausible {lo:g}-{hi:g} "
+                         "(a remuxed or damaged file?); give the true rate with track.fps (--fps)")
+    return rate
 
 
 def _printf_regex(pattern: str) -> re.Pattern:
@@ -126,9 +196,12 @@ class FrameSource:
     start, end, step : int
         Frames ``start, start + step, ...`` below ``end`` (``None``: to the last).
     fps : float, optional
-        Frame rate of an image sequence (videos report their own); default 30.
+        Frame rate: an image sequence's (default 30), or a video's instead of the container's
+        (:func:`plausible_fps`).
     gray : bool
         Yield grayscale frames (H, W); a video's are converted in its decoding thread.
+    warn_missing : bool
+        Warn once about numbers missing from a sequence (a second reader of the same frames says nothing).
 
     Attributes
     ----------
@@ -140,24 +213,34 @@ class FrameSource:
         Frames in the source (0 if unknown).
     frames : list of int
         Source numbers of the frames yielded so far.
+    missing : list of int
+        Frame numbers an image sequence lacks (gaps in its numbering); such a frame yields the image before it
+        again, and the caller marks its row lost.
+    source_fps : float
+        The source's own rate (frame ``n`` is at ``n / source_fps`` seconds).
     """
 
     def __init__(self, spec, *, start: int = 0, end: int | None = None, step: int = 1, fps: float | None = None,
-                 gray: bool = False):
+                 gray: bool = False, warn_missing: bool = True):
         if start < 0 or step < 1 or (end is not None and end <= start):
             raise InputError(f"frame range: expected 0 <= start < end and step >= 1, got start={start}, "
                              f"end={end}, step={step}")
         self.spec, self.start, self.end, self.step = str(spec), start, end, step
         self.frames: list[int] = []
+        self.missing: list[int] = []
         self.gray = bool(gray)
         if is_sequence(spec):
-            self._files = sequence_files(spec)
+            numbered = numbered_sequence(spec)
+            self._files = dict(numbered)
             self._video = None
-            first = read_image(self._files[0])
+            first = read_image(numbered[0][1])
             self.frame_size = (first.shape[1], first.shape[0])
-            self.frame_count = len(self._files)
-            base_fps = fps or 30.0
+            self.frame_count = numbered[-1][0] + 1
+            self.missing = sorted(set(range(self.frame_count)) - set(self._files))
+            base_fps = plausible_fps(fps, self.spec) if fps is not None else DEFAULT_FPS
             self.path = Path(self.spec)
+            if warn_missing:
+                self._warn_missing(numbered)
         else:
             p = Path(spec)
             if p.suffix.lower() in IMAGE_SUFFIXES:
@@ -170,34 +253,63 @@ class FrameSource:
             self._files = None
             self.frame_size = self._video.frame_size
             self.frame_count = self._video.frame_count
-            base_fps = self._video.fps
+            base_fps = plausible_fps(self._video.fps, p, given=fps)
             self.path = p
+        #: The source's frame rate (frame n is at time n / source_fps).
+        self.source_fps = base_fps
         self.fps = base_fps / step
         last = (self.frame_count - 1) if self.frame_count else None
         if last is not None and start > last:
             raise InputError(f"{self.spec}: --start {start} is past the last frame ({last})")
 
+    def _warn_missing(self, numbered) -> None:
+        """One warning line for the numbers missing from the sequence (lost frames)."""
+        if not self.missing:
+            return
+        m = self.missing
+        runs = [f"{m[0]}" if len(m) == 1 else f"{m[0]}-{m[-1]}" if m[-1] - m[0] == len(m) - 1 else
+                ", ".join(map(str, m[:5])) + (", ..." if len(m) > 5 else "")]
+        log.warning("%s: %d frame(s) missing from the numbering (frame %s, counted from %s); kept as lost frames "
+                    "(confidence 0) at their time", self.spec, len(m), runs[0], numbered[0][1].name)
+
+    def times(self, frames) -> np.ndarray:
+        """Time in seconds of source frame numbers *frames*: ``frame / source_fps``; shape (T,), float64."""
+        return np.asarray(frames, dtype=np.float64) / self.source_fps
+
     def files(self) -> list[Path]:
         """The files read: the video, or every image of the sequence."""
-        return list(self._files) if self._files is not None else [self.path]
+        return list(self._files.values()) if self._files is not None else [self.path]
 
     def _wanted(self, i: int) -> bool:
         return i >= self.start and (i - self.start) % self.step == 0
 
+    def _sequence(self):
+        """The sequence's frames; a missing number yields the frame before it again (its row is lost)."""
+        stop = self.frame_count if self.end is None else min(self.end, self.frame_count)
+        held = None
+        for i in range(self.start, stop, self.step):
+            f = self._files.get(i)
+            if f is None:
+                if held is None:  # the range starts in a gap: the nearest earlier file stands in
+                    held = self._check(max(n for n in self._files if n < i))
+                img = held
+            else:
+                img = held = self._check(i)
+            self.frames.append(i)
+            yield to_gray(img) if self.gray else img
+
+    def _check(self, i: int) -> np.ndarray:
+        f = self._files[i]
+        img = read_image(f)
+        if (img.shape[1], img.shape[0]) != self.frame_size:
+            raise InputError(f"{f}: frame {i} is {img.shape[1]}x{img.shape[0]}, the sequence is "
+                             f"{self.frame_size[0]}x{self.frame_size[1]}")
+        return img
+
     def __iter__(self):
         end = self.end
         if self._files is not None:
-            for i, f in enumerate(self._files):
-                if end is not None and i >= end:
-                    return
-                if not self._wanted(i):
-                    continue
-                img = read_image(f)
-                if (img.shape[1], img.shape[0]) != self.frame_size:
-                    raise InputError(f"{f}: frame {i} is {img.shape[1]}x{img.shape[0]}, the sequence is "
-                                     f"{self.frame_size[0]}x{self.frame_size[1]}")
-                self.frames.append(i)
-                yield to_gray(img) if self.gray else img
+            yield from self._sequence()
             return
         decoded = self._video.decoded()  # decoded ahead in a background thread
         i = -1
@@ -231,4 +343,5 @@ class FrameSource:
         self.close()
 
 
-__all__ = ["FrameSource", "TruncatedInputError", "is_sequence", "sequence_files", "read_image", "IMAGE_SUFFIXES"]
+__all__ = ["FrameSource", "TruncatedInputError", "is_sequence", "sequence_files", "numbered_sequence", "read_image",
+           "plausible_fps", "IMAGE_SUFFIXES", "FPS_RANGE"]

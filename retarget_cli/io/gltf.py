@@ -264,7 +264,7 @@ def _container(doc: dict, b: _Bin) -> bytes:
 
 
 def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_transforms=None,
-              name: str = "character", surface=None) -> bytes:
+              name: str = "character", surface=None, times=None) -> bytes:
     """A complete ``.glb`` file.
 
     The mesh at frame ``t`` is ``base + Σ_m weights[t, m] targets[m]`` (glTF
@@ -281,7 +281,7 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
     target_names : sequence of str, length M
         Stored in ``mesh.extras.targetNames``.
     weights : ndarray, shape (T, M)
-        Morph weights per frame; keyed at ``t / fps`` seconds.
+        Morph weights per frame; keyed at ``t / fps`` seconds, or at *times*.
     fps : float
     node_transforms : ndarray, shape (T, 3, 4), optional
         Per-frame similarity ``X' = s R X + t`` (rotation, uniform scale,
@@ -291,6 +291,8 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
         (:func:`~retarget_cli.io.objsurface.obj_surface`); replaces *faces*
         and adds ``TEXCOORD_0``, ``NORMAL`` and materials (see the module
         docstring).
+    times : ndarray, shape (T,), optional
+        Each frame's time in seconds (the source's timestamps: a take tracked from frame 100 starts at 100 / fps).
     """
     base = np.asarray(base, dtype=np.float32)
     D = np.asarray(targets, dtype=np.float32)
@@ -306,7 +308,9 @@ def glb_bytes(*, base, faces, targets, target_names, weights, fps: float, node_t
         attributes, groups, materials, D = _surface_mesh(b, surface, base, D, N)
     targets = [{"POSITION": b.add(d, kind="VEC3", target=_ARRAY_BUFFER, bounds=True)} for d in D]
     prims = _primitives(b, groups, attributes, targets)
-    times = (np.arange(T) / fps).astype(np.float32)
+    times = (np.arange(T) / fps if times is None else np.asarray(times, dtype=np.float64)).astype(np.float32)
+    if times.shape != (T,) or np.any(np.diff(times) <= 0):
+        raise ShapeError(f"times: expected {T} increasing seconds, got shape {times.shape}")
     t_acc = b.add(times, kind="SCALAR", bounds=True)
     samplers = [{"input": t_acc, "output": b.add(W.reshape(-1), kind="SCALAR"), "interpolation": "LINEAR"}]
     channels = [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]

@@ -118,6 +118,16 @@ def copy_groups(rig: GltfRig, names) -> tuple[dict, list[str]]:
     return groups, missing
 
 
+def _times(times, T: int, fps: float) -> np.ndarray:
+    """Keyframe times in seconds: *times* (each frame's source timestamp) checked, else ``t / fps``."""
+    if times is None:
+        return np.arange(T) / float(fps)
+    t = np.asarray(times, dtype=np.float64)
+    if t.shape != (T,) or not np.isfinite(t).all() or np.any(np.diff(t) <= 0):
+        raise ParameterError(f"times: expected {T} increasing seconds, got shape {t.shape}")
+    return t
+
+
 def _curves(curves, names, fps: float, lower, upper) -> np.ndarray:
     """(T, E) float64 curves, checked, each clipped to its slider's ``[lower, upper]``."""
     C = np.asarray(curves, dtype=np.float64)
@@ -287,7 +297,7 @@ def _glb(f: GltfFile, doc: dict, binary: bytes, *, sort_keys: bool = False) -> b
     return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
-def animated_copy_bytes(source, curves, names, fps: float, groups: dict, *, lower=None, upper=None,
+def animated_copy_bytes(source, curves, names, fps: float, groups: dict, *, lower=None, upper=None, times=None,
                         name: str = ANIMATION_NAME) -> bytes:
     """The bytes of :func:`write_animated_copy` (see the module docstring).
 
@@ -317,7 +327,7 @@ def animated_copy_bytes(source, curves, names, fps: float, groups: dict, *, lowe
     base = _base_buffer(f, doc)
     _embed_external(f, doc)
     out = _Appender(doc, base + b"\0" * (-len(base) % 4))
-    times = out.floats((np.arange(len(C)) / float(fps))[:, None], "SCALAR", bounds=True)
+    times = out.floats(_times(times, len(C), fps)[:, None], "SCALAR", bounds=True)
     channels, samplers = [], []
     for node, W in sorted(weights.items()):
         samplers.append({"input": times, "interpolation": "LINEAR", "output": out.floats(W.reshape(-1, 1), "SCALAR")})
@@ -327,10 +337,11 @@ def animated_copy_bytes(source, curves, names, fps: float, groups: dict, *, lowe
     return _glb(f, doc, bytes(out.data))
 
 
-def write_animated_copy(path: str | os.PathLike, source, curves, names, fps: float, groups: dict, *, lower=None,
+def write_animated_copy(path: str | os.PathLike, source, curves, names, fps: float, groups: dict, *, times=None,
+                        lower=None,
                         upper=None) -> Path:
     """Write an animated copy of *source* to *path* (a GLB), atomically; see :func:`animated_copy_bytes`."""
-    write_bytes(path, animated_copy_bytes(source, curves, names, fps, groups, lower=lower, upper=upper))
+    write_bytes(path, animated_copy_bytes(source, curves, names, fps, groups, lower=lower, upper=upper, times=times))
     return Path(path)
 
 
@@ -444,7 +455,7 @@ def _expression_tracks(f: GltfFile, C: np.ndarray, names) -> list[tuple[str, str
     return tracks
 
 
-def vrma_bytes(source, curves, names, fps: float, *, lower=None, upper=None) -> bytes | None:
+def vrma_bytes(source, curves, names, fps: float, *, lower=None, upper=None, times=None) -> bytes | None:
     """The bytes of :func:`write_vrma`, or None when no slider is a VRM expression of *source*."""
     f = GltfFile(source)
     C = _curves(curves, names, fps, lower, upper)
@@ -455,7 +466,7 @@ def vrma_bytes(source, curves, names, fps: float, *, lower=None, upper=None) -> 
     doc = {"asset": {"version": "2.0", "generator": f"retarget {__version__}"}, "scene": 0, "nodes": nodes,
            "extensionsUsed": ["VRMC_vrm_animation"]}
     out = _Appender(doc, b"")
-    times = out.floats((np.arange(len(C)) / float(fps))[:, None], "SCALAR", bounds=True)
+    times = out.floats(_times(times, len(C), fps)[:, None], "SCALAR", bounds=True)
     expressions: dict[str, dict] = {}
     channels, samplers = [], []
     for section, expr, w in tracks:
@@ -475,7 +486,8 @@ def vrma_bytes(source, curves, names, fps: float, *, lower=None, upper=None) -> 
     return _glb(f, doc, bytes(out.data), sort_keys=True)
 
 
-def write_vrma(path: str | os.PathLike, source, curves, names, fps: float, *, lower=None, upper=None) -> Path | None:
+def write_vrma(path: str | os.PathLike, source, curves, names, fps: float, *, lower=None, upper=None,
+               times=None) -> Path | None:
     """Write the VRM Animation of the sliders that are VRM expressions of *source* (atomically), or nothing.
 
     Parameters
@@ -497,7 +509,7 @@ def write_vrma(path: str | os.PathLike, source, curves, names, fps: float, *, lo
     Path or None
         *path*, or None (nothing written) when no slider is a VRM expression of *source*.
     """
-    data = vrma_bytes(source, curves, names, fps, lower=lower, upper=upper)
+    data = vrma_bytes(source, curves, names, fps, lower=lower, upper=upper, times=times)
     if data is None:
         log.info("%s: no slider is a VRM expression of the file; no .vrma written", Path(source).name)
         return None

@@ -45,6 +45,9 @@ class Landmarks:
     meta : dict
     frames : ndarray, shape (T,), int, optional
         Source frame number of each row (when a range or step was tracked).
+    times : ndarray, shape (T,), float64, optional
+        Time of each row in seconds, from its source frame number and the source's frame rate
+        (``track`` writes it; :meth:`timing` fills it in for files without it).
     points_raw : ndarray, shape (T, L, 2), float32, optional
         The tracker's points before the landmark filter (``track.filter``);
         ``points`` are then the filtered ones.
@@ -68,6 +71,25 @@ class Landmarks:
     points_raw: np.ndarray | None = None
     neutral: np.ndarray | None = None
     neutral_confidence: np.ndarray | None = None
+    times: np.ndarray | None = None
+
+    @property
+    def source_fps(self) -> float:
+        """The source's frame rate: ``fps`` times the ``step`` tracked (from ``meta``), when rows are numbered."""
+        step = (self.meta.get("parameters") or {}).get("step", 1) if isinstance(self.meta, dict) else 1
+        step = step if isinstance(step, int) and not isinstance(step, bool) and step >= 1 else 1
+        return float(self.fps * (step if self.frames is not None else 1))
+
+    def timing(self) -> tuple[np.ndarray, np.ndarray]:
+        """Source frame number (int64) and time in seconds (float64) of each row, shapes (T,).
+
+        Without ``frames`` the rows are frames 0 … T−1; without ``times`` a frame's time is its number over
+        the source's rate (``fps`` × the ``step`` tracked, from ``meta``).
+        """
+        frames = np.arange(self.n_frames, dtype=np.int64) if self.frames is None else np.asarray(self.frames, np.int64)
+        if self.times is not None:
+            return frames, np.asarray(self.times, dtype=np.float64)
+        return frames, frames / self.source_fps
 
     @property
     def n_frames(self) -> int:
@@ -98,6 +120,10 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
         arrays["frames"] = np.asarray(lm.frames, dtype=np.int64)
         if arrays["frames"].shape != (T,):
             raise ParameterError(f"frames: expected shape {(T,)}, got {arrays['frames'].shape}")
+    if lm.times is not None:
+        arrays["times"] = np.asarray(lm.times, dtype=np.float64)
+        if arrays["times"].shape != (T,):
+            raise ParameterError(f"times: expected shape {(T,)}, got {arrays['times'].shape}")
     if lm.points_raw is not None:
         arrays["points_raw"] = np.asarray(lm.points_raw, dtype=np.float32)
         if arrays["points_raw"].shape != (T, L, 2):
@@ -219,6 +245,16 @@ def _frames(data: dict, path, T: int) -> np.ndarray | None:
     return frames.astype(np.int64)
 
 
+def _times(data: dict, path, T: int) -> np.ndarray | None:
+    if "times" not in data:
+        return None
+    t = _numeric(data, "times", path)
+    if t.shape != (T,) or not np.isfinite(t).all() or np.any(np.diff(t) <= 0):
+        raise InputError(f"{path}: 'times' must be {T} finite increasing seconds (one per row of 'points'), got "
+                         f"shape {t.shape}")
+    return t.astype(np.float64)
+
+
 def _names(data: dict, path, L: int) -> np.ndarray | None:
     names = data.get("names")
     if names is not None and (names.dtype.kind not in "US" or names.shape != (L,)):
@@ -287,6 +323,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     fps = _fps(data, path)
     frame_size = _frame_size(data, path)
     frames = _frames(data, path, T)
+    times = _times(data, path, T)
     names = _names(data, path, L)
     meta = _meta(data, path)
     neutral, neutral_conf = _neutral(data, path, L)
@@ -299,6 +336,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         frame_size=frame_size,
         names=names,
         frames=frames,
+        times=times,
         meta=meta,
         points_raw=None if raw is None else raw.astype(np.float32, copy=False),
         neutral=neutral,

@@ -211,11 +211,13 @@ def livelink_table(curves, sliders, *, names=None, head_rotation=None) -> tuple[
     return values, unmapped
 
 
-def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None) -> str:
+def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None, frames=None) -> str:
     """A Live Link Face CSV (text) of slider curves; see the module docstring for the layout.
 
-    Parameters are those of :func:`livelink_table`, plus *fps*, the take's
-    frame rate (timecodes). Unmapped ARKit columns are listed in one warning.
+    Parameters are those of :func:`livelink_table`, plus *fps*, the source's
+    frame rate (timecodes), and *frames*, each row's source frame number (the
+    timecode of row t is ``timecode(frames[t], fps)``; default 0 … T−1).
+    Unmapped ARKit columns are listed in one warning.
     """
     if not fps > 0:
         raise ShapeError(f"fps: expected > 0, got {fps}")
@@ -223,10 +225,13 @@ def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None)
     if unmapped:
         log.warning("Live Link Face CSV: no rig slider maps to %d ARKit columns (written as 0): %s; "
                     "map them with 'names:' in rig.yaml", len(unmapped), ", ".join(unmapped))
+    numbers = range(len(values)) if frames is None else [int(f) for f in frames]
+    if len(numbers) != len(values):
+        raise ShapeError(f"frames: expected {len(values)} frame numbers, got {len(numbers)}")
     lines = [",".join(COLUMNS)]
     for t, row in enumerate(values):
         cells = [f"{v:.6f}" for v in row]
-        lines.append(f"{timecode(t, fps)},{BLENDSHAPE_COUNT}," + ",".join(c if c != "-0.000000" else "0.000000"
+        lines.append(f"{timecode(numbers[t], fps)},{BLENDSHAPE_COUNT}," + ",".join(c if c != "-0.000000" else "0.000000"
                                                                         for c in cells))
     return "\n".join(lines) + "\n"
 

@@ -627,7 +627,23 @@ def read_obj(path: str | os.PathLike) -> ObjMesh:
     path = Path(path)
     data = _read_bytes(path)
     mesh = _parse_fast(path, data)
-    return mesh if mesh is not None else _parse_lines(path, data)
+    mesh = mesh if mesh is not None else _parse_lines(path, data)
+    check_coordinates(path, mesh.vertices)
+    return mesh
+
+
+#: Largest vertex coordinate magnitude read from an OBJ: beyond it a coordinate is a broken file, not a model
+#: (a 1e308 passes the finite check, then overflows float32 exports and squared distances).
+MAX_COORDINATE = 1e12
+
+
+def check_coordinates(path, vertices: np.ndarray) -> None:
+    """Raise when a vertex coordinate's magnitude exceeds :data:`MAX_COORDINATE` (the file and vertex named)."""
+    big = np.abs(vertices) > MAX_COORDINATE
+    if big.any():
+        i, k = (int(v) for v in np.argwhere(big)[0])
+        raise InputError(f"{path}: vertex {i} ('v' line {i + 1}) has {'xyz'[k]} = {vertices[i, k]:g}, beyond "
+                         f"±{MAX_COORDINATE:g}; expected coordinates of a model")
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -671,10 +687,11 @@ def read_vertices_like(path: str | os.PathLike, like: ObjMesh) -> np.ndarray:
     path = Path(path)
     data = _read_bytes(path)
     vertices = _vertices_like(data, like)
-    if vertices is not None:
-        return vertices
-    mesh = _parse_fast(path, data)
-    return (mesh if mesh is not None else _parse_lines(path, data)).vertices
+    if vertices is None:
+        mesh = _parse_fast(path, data)
+        vertices = (mesh if mesh is not None else _parse_lines(path, data)).vertices
+    check_coordinates(path, vertices)
+    return vertices
 
 
 def _vertices_like(data: bytes, like: ObjMesh) -> np.ndarray | None:

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import InputError
 from .atomic import write_bytes, write_json, write_text
-from .video import VideoReader
+from .frames import FrameSource
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,8 @@ def write_curve_plot(path: str | os.PathLike, rows_by_region: dict[str, list[dic
 
 
 def write_contact_sheet(path: str | os.PathLike, video: str | os.PathLike, points: np.ndarray,
-                        keys: dict[str, tuple[list[int], list[int]]], *, tile: int = 200, columns: int = 6) -> None:
+                        keys: dict[str, tuple[list[int], list[int]]], *, tile: int = 200, columns: int = 6,
+                        source_frames=None, fps=None) -> None:
     """Key frames cropped from *video* with their landmarks, labelled with frame number and region.
 
     Parameters
@@ -91,21 +92,27 @@ def write_contact_sheet(path: str | os.PathLike, video: str | os.PathLike, point
     tile : int
         Side of each square tile in pixels.
     columns : int
+    source_frames : ndarray, shape (T,), optional
+        The source frame number of each row of *points* (``landmarks.npz`` ``frames``); default the row.
+    fps : float, optional
+        The source's frame rate (a video's own when None).
     """
     import cv2
 
 
-    wanted = sorted({f for _, frames in keys.values() for f in frames})
+    rows = sorted({f for _, frames in keys.values() for f in frames})
+    number = (lambda f: int(f)) if source_frames is None else (lambda f: int(source_frames[f]))
+    wanted = {number(f): f for f in rows}
     images = {}
-    with VideoReader(video) as reader:
-        for t, img in enumerate(reader):
-            if t in wanted:
-                images[t] = img
-            if t >= wanted[-1]:
-                break
-    missing = [f for f in wanted if f not in images]
+    with FrameSource(video, end=max(wanted) + 1, fps=fps, warn_missing=False) as reader:
+        for img in reader:
+            n = reader.frames[-1]
+            if n in wanted and n not in reader.missing:
+                images[wanted[n]] = img
+    missing = [f for f in rows if f not in images]
     if missing:
-        raise InputError(f"{video}: key frame {missing[0]} is beyond the end of the video ({len(images) and max(images) + 1} frames read)")
+        raise InputError(f"{video}: key frame {missing[0]} (source frame {number(missing[0])}) is beyond the end "
+                         "of the video or missing from the sequence")
     tiles = []
     for region, (ids, frames) in keys.items():
         for f in frames:

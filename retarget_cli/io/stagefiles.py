@@ -112,8 +112,11 @@ def _neutral_record(data: dict, path: Path) -> dict | None:
 #: Per-region keys of ``weights.npz`` besides the weights themselves (``<region><suffix>``).
 WEIGHT_SUFFIXES = ("_frames", "_residual", "_cardinality", "_lost")
 
+#: Top-level arrays of ``weights.npz`` that are no region: each row's source frame number and time (seconds).
+TIMING_KEYS = ("frame", "time")
 
-def save_weights(path, regions: dict, meta: dict, extras: dict | None = None) -> None:
+
+def save_weights(path, regions: dict, meta: dict, extras: dict | None = None, *, frames=None, times=None) -> None:
     """Write ``weights.npz``.
 
     Parameters
@@ -125,12 +128,20 @@ def save_weights(path, regions: dict, meta: dict, extras: dict | None = None) ->
     extras : dict, optional
         Region name to ``{"cardinality": int (T,), "lost": bool (T,)}``,
         stored as ``<region>_cardinality`` and ``<region>_lost``.
+    frames, times : ndarray, shape (T,), optional
+        Each row's source frame number (int64) and time in seconds (float64), stored as ``frame`` and ``time``.
     """
     arrays = {}
-    for name, (w, frames, res) in regions.items():
+    for name, (w, kframes, res) in regions.items():
+        if name in TIMING_KEYS:
+            raise ParameterError(f"region {name!r}: the name is taken by weights.npz's per-frame {name} column")
         arrays[name] = np.asarray(w, dtype=np.float64)
-        arrays[f"{name}_frames"] = np.asarray(frames, dtype=np.int64)
+        arrays[f"{name}_frames"] = np.asarray(kframes, dtype=np.int64)
         arrays[f"{name}_residual"] = np.asarray(res, dtype=np.float64)
+    if frames is not None:
+        arrays["frame"] = np.asarray(frames, dtype=np.int64)
+    if times is not None:
+        arrays["time"] = np.asarray(times, dtype=np.float64)
     for name, ex in (extras or {}).items():
         if "cardinality" in ex:
             arrays[f"{name}_cardinality"] = np.asarray(ex["cardinality"], dtype=np.int64)
@@ -142,7 +153,7 @@ def save_weights(path, regions: dict, meta: dict, extras: dict | None = None) ->
     savez(path, arrays, compress=False)
 
 
-def load_weights(path) -> tuple[dict, dict]:
+def load_weights(path, *, timing: bool = False) -> tuple:
     """Read ``weights.npz``.
 
     Returns
@@ -150,9 +161,13 @@ def load_weights(path) -> tuple[dict, dict]:
     regions : dict
         Region name to ``(weights (T, K), frames (K,), residual (T,))``.
     meta : dict
+    frames, times : ndarray, shape (T,)
+        With *timing* only: each row's source frame number and time in seconds (``frame`` and ``time``;
+        without them frames 0 … T−1 at ``meta['fps']``, default 30).
     """
     path = Path(path)
     data = load_npz(path)
+    stored = {k: data.pop(k) for k in TIMING_KEYS if k in data}
     meta = {}
     if "meta" in data:
         m = data.pop("meta")
@@ -189,20 +204,44 @@ def load_weights(path) -> tuple[dict, dict]:
     T = {w.shape[0] for w, _, _ in regions.values()}
     if len(T) != 1:
         raise InputError(f"{path}: regions have different frame counts {sorted(T)}")
-    return regions, meta
+    if not timing:
+        return regions, meta
+    return (regions, meta, *_timing(stored, path, T.pop(), float(meta.get("fps") or 30.0)))
 
 
-def weights_csv(regions: dict, fps: float) -> str:
-    """CSV text: ``frame,time`` then one column per ``region:keyframe``."""
+def _timing(stored: dict, path, T: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """``frame`` and ``time`` of ``weights.npz`` checked (T increasing values), or frames 0 … T−1 at *fps*."""
+    frames = stored.get("frame")
+    if frames is None:
+        frames = np.arange(T, dtype=np.int64)
+    elif frames.dtype.kind not in "iu" or frames.shape != (T,) or np.any(np.diff(frames) <= 0):
+        raise InputError(f"{path}: 'frame' must be {T} increasing integers (one per row), got {frames.dtype} of "
+                         f"shape {frames.shape}")
+    times = stored.get("time")
+    if times is None:
+        times = frames / fps
+    elif times.dtype.kind not in "iuf" or times.shape != (T,) or not np.isfinite(times).all() \
+            or np.any(np.diff(times) <= 0):
+        raise InputError(f"{path}: 'time' must be {T} finite increasing seconds (one per row), got {times.dtype} "
+                         f"of shape {times.shape}")
+    return frames.astype(np.int64), times.astype(np.float64)
+
+
+def weights_csv(regions: dict, fps: float, frames=None, times=None) -> str:
+    """CSV text: ``frame,time`` then one column per ``region:keyframe``.
+
+    *frames*, *times*: each row's source frame number and time in seconds (default: rows 0 … T−1 at *fps*).
+    """
     names = sorted(regions)
     T = regions[names[0]][0].shape[0]
     header = ["frame", "time"] + [f"{n}:{int(f)}" for n in names for f in regions[n][1]]
     cols = np.concatenate([regions[n][0] for n in names], axis=1).astype(np.float64)
     # one %-format per row (the same text as f"{v:.6f}" per value, about 4x faster)
     row = "%d,%.6f" + ",%.6f" * cols.shape[1]
-    times = [t / fps for t in range(T)]
+    frames = list(range(T)) if frames is None else [int(f) for f in frames]
+    times = [f / fps for f in frames] if times is None else [float(t) for t in times]
     lines = [",".join(header)]
-    lines += [row % (t, times[t], *vals) for t, vals in enumerate(cols.tolist())]
+    lines += [row % (frames[t], times[t], *vals) for t, vals in enumerate(cols.tolist())]
     return "\n".join(lines) + "\n"
 
 

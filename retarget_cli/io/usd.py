@@ -74,8 +74,10 @@ def _matrices(transforms):
 
 
 @contextlib.contextmanager
-def _new_stage(path: Path, fps: float, T: int):
-    """A new stage written to a temporary ``.usd`` beside *path*, renamed onto *path* when complete."""
+def _new_stage(path: Path, fps: float, codes):
+    """A new stage written to a temporary ``.usd`` beside *path*, renamed onto *path* when complete.
+
+    *codes*: the time codes sampled (the source frame numbers), first and last the stage's start and end."""
     from pxr import Usd, UsdGeom
 
     path = Path(path)
@@ -87,8 +89,8 @@ def _new_stage(path: Path, fps: float, T: int):
         stage = Usd.Stage.CreateNew(tmp)
         stage.SetTimeCodesPerSecond(fps)
         stage.SetFramesPerSecond(fps)
-        stage.SetStartTimeCode(0)
-        stage.SetEndTimeCode(max(T - 1, 0))
+        stage.SetStartTimeCode(float(codes[0]))
+        stage.SetEndTimeCode(float(codes[-1]))
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
         yield stage
         stage.GetRootLayer().Save()
@@ -129,8 +131,16 @@ def _check(points, counts, corners, T_weights=None):
     return P
 
 
+def _codes(frames, T: int) -> list:
+    """Time codes of the *T* samples: the source frame numbers *frames* (default 0 … T−1), checked."""
+    codes = np.arange(T) if frames is None else np.asarray(frames)
+    if codes.shape != (T,) or np.any(np.diff(codes) <= 0):
+        raise ShapeError(f"frames: expected {T} increasing frame numbers, got shape {codes.shape}")
+    return [float(c) for c in codes]
+
+
 def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps: float, uv=None,
-                   transforms=None, name: str = "face") -> None:
+                   transforms=None, name: str = "face", frames=None) -> None:
     """Write a UsdSkel character: neutral mesh, one BlendShape per shape, time-sampled weights.
 
     At time code ``t`` the mesh is ``points + Σ_m weights[t, m] shape_m``
@@ -156,6 +166,9 @@ def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps
         Face-varying texture coordinates: values and per-corner indices.
     transforms : ndarray, shape (T, 3, 4), optional
         Per-frame similarity of the character (head motion).
+    frames : ndarray, shape (T,), optional
+        The source frame number of each row, its time code (so time code / *fps* is the source's time);
+        default 0 … T−1.
     """
     require_pxr()
     from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
@@ -170,14 +183,15 @@ def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps
     if not fps > 0:
         raise ShapeError(f"fps: expected > 0, got {fps}")
     T = len(W)
+    codes = _codes(frames, T)
     tokens = [str(n) for n in names]
-    with _new_stage(path, fps, T) as stage:
+    with _new_stage(path, fps, codes) as stage:
         root = UsdSkel.Root.Define(stage, "/Character")
         stage.SetDefaultPrim(root.GetPrim())
         if transforms is not None:
             op = UsdGeom.Xformable(root).AddTransformOp()
             for t, M in enumerate(_matrices(transforms)):
-                op.Set(M, Usd.TimeCode(t))
+                op.Set(M, Usd.TimeCode(codes[t]))
         skel = UsdSkel.Skeleton.Define(stage, "/Character/Skel")
         skel.CreateJointsAttr(["root"])
         skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
@@ -190,7 +204,7 @@ def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps
         anim.CreateBlendShapesAttr(tokens)
         attr = anim.CreateBlendShapeWeightsAttr()
         for t in range(T):
-            attr.Set(Vt.FloatArray.FromNumpy(W[t].astype(np.float32)), Usd.TimeCode(t))
+            attr.Set(Vt.FloatArray.FromNumpy(W[t].astype(np.float32)), Usd.TimeCode(codes[t]))
         UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
         mesh_path = f"/Character/{_valid_names([name])[0]}"
         mesh = _mesh(stage, mesh_path, P, counts, corners, uv)
@@ -214,14 +228,14 @@ def write_usd_skel(path, *, points, counts, corners, shapes, names, weights, fps
 
 
 def write_usd_points(path, *, positions, counts, corners, fps: float, uv=None, transforms=None,
-                     name: str = "face") -> None:
+                     name: str = "face", frames=None) -> None:
     """Write a point cache: a mesh whose ``points`` are time-sampled at every frame.
 
     Parameters
     ----------
     positions : ndarray, shape (T, N, 3)
         The mesh at every frame (``points`` at time code ``t``).
-    counts, corners, fps, uv, transforms
+    counts, corners, fps, uv, transforms, frames
         As :func:`write_usd_skel`.
     """
     require_pxr()
@@ -233,19 +247,20 @@ def write_usd_points(path, *, positions, counts, corners, fps: float, uv=None, t
     _check(X[0], counts, corners)
     if not fps > 0:
         raise ShapeError(f"fps: expected > 0, got {fps}")
-    with _new_stage(path, fps, len(X)) as stage:
+    codes = _codes(frames, len(X))
+    with _new_stage(path, fps, codes) as stage:
         root = UsdGeom.Xform.Define(stage, "/Character")
         stage.SetDefaultPrim(root.GetPrim())
         if transforms is not None:
             op = root.AddTransformOp()
             for t, M in enumerate(_matrices(transforms)):
-                op.Set(M, Usd.TimeCode(t))
+                op.Set(M, Usd.TimeCode(codes[t]))
         mesh = _mesh(stage, f"/Character/{_valid_names([name])[0]}", X[0], counts, corners, uv)
         pts, ext = mesh.GetPointsAttr(), mesh.GetExtentAttr()
         for t, x in enumerate(X):
             arr = Vt.Vec3fArray.FromNumpy(x.astype(np.float32))
-            pts.Set(arr, Usd.TimeCode(t))
-            ext.Set(UsdGeom.PointBased.ComputeExtent(arr), Usd.TimeCode(t))
+            pts.Set(arr, Usd.TimeCode(codes[t]))
+            ext.Set(UsdGeom.PointBased.ComputeExtent(arr), Usd.TimeCode(codes[t]))
 
 
 __all__ = ["MISSING", "require_pxr", "write_usd_points", "write_usd_skel"]

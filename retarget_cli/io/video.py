@@ -121,6 +121,8 @@ class VideoReader:
     Attributes
     ----------
     fps : float
+        The container's rate as OpenCV reports it (0 or NaN when it gives none; see
+        :func:`retarget_cli.io.frames.plausible_fps`).
     frame_size : tuple of int
         ``(width, height)``.
     frame_count : int
@@ -143,7 +145,7 @@ class VideoReader:
         self._cap = cv2.VideoCapture(str(self.path))
         if not self._cap.isOpened():
             raise InputError(f"{self.path}: OpenCV cannot open this video (corrupt file or unsupported codec)")
-        self.fps = float(self._cap.get(cv2.CAP_PROP_FPS)) or 30.0
+        self.fps = float(self._cap.get(cv2.CAP_PROP_FPS))  # as the container says (0 or NaN: none)
         self.frame_size = (
             int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
             int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),

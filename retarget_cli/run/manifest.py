@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .. import __version__
+from ..errors import InputError
 from ..io.atomic import sha256_file, write_json
 
 
@@ -50,19 +51,46 @@ def matches(path: Path, rec: dict) -> bool:
     return sha256_file(path) == rec.get("sha256")
 
 
+def record_inputs(inputs) -> dict:
+    """Each input's :func:`record`, taken before a stage reads them (:func:`check_unchanged` after it)."""
+    return {Path(p): record(Path(p)) for p in inputs}
+
+
+def check_unchanged(records: dict, stage: str) -> None:
+    """Raise if an input of *stage* differs from its record taken when the stage started.
+
+    A file replaced or edited while the stage ran may have been read in either
+    state, so the stage's outputs cannot be vouched for: the stage fails and
+    no manifest is written (the next run reruns it).
+
+    Raises
+    ------
+    InputError
+        Naming the file and the stage.
+    """
+    for p, rec in records.items():
+        if not matches(p, rec):
+            raise InputError(f"{p}: changed while stage '{stage}' ran; its outputs may mix the old and the new "
+                             "file, so no manifest is written: run again")
+
+
 def write_manifest(path: Path, stage: str, *, settings: dict, inputs, outputs, base: Path, seconds: float,
                    results: dict | None = None) -> None:
     """Write a stage's manifest atomically; paths are recorded relative to *base* (the config's folder).
 
+    *inputs*: paths, or the records of :func:`record_inputs` taken when the stage started (so the manifest
+    vouches for the bytes the stage read, not for what lies there when it ends).
     *results*: what the stage found that is no setting (e.g. ``neutral``: the frame ``neutral_frame: auto``
     chose, and why); recorded for reports, not part of the up-to-date check.
     """
+    recs = inputs if isinstance(inputs, dict) else record_inputs(inputs)
     doc = {
         "stage": stage,
         "version": __version__,
         "code": code_fingerprint(),
         "settings": settings,
-        "inputs": {os.path.relpath(p, base): record(p) for p in inputs},
+        "base": os.path.abspath(base),  # where the relative paths start (preview/report find the video by it)
+        "inputs": {os.path.relpath(p, base): rec for p, rec in recs.items()},
         "outputs": {os.path.relpath(p, base): record(p) for p in outputs},
         "seconds": seconds,
     }

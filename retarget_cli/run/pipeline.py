@@ -16,11 +16,11 @@ from pathlib import Path
 
 from .. import stages
 from ..config import REQUIRED, Command, Config, Flag, Param, load_config
-from ..errors import ConfigError, InputError, RetargetError
+from ..errors import ConfigError, InputError, OutputError, RetargetError
 from ..io.atomic import folder_lock, guard_writes, remove_stale_parts
 from ..io.rig.cache import cache_limit, rig_cache_dir
 from ..stages._common import Stage, collect_results
-from .manifest import manifest_matches, write_manifest
+from .manifest import check_unchanged, manifest_matches, record_inputs, write_manifest
 
 log = logging.getLogger(__name__)
 
@@ -162,6 +162,10 @@ def cache_dir(cfg: Config) -> Path:
 def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = True) -> list[Path]:
     """Run one stage and write its manifest after its outputs.
 
+    The inputs are hashed before the stage starts and checked unchanged when it ends
+    (:func:`~retarget_cli.run.manifest.check_unchanged`): an input replaced while the stage ran fails it, and
+    no manifest vouches for bytes the stage did not read.
+
     The manifest also records the stage's wall-clock run time (``seconds``,
     for reports; not part of the up-to-date check) and what the stage reported
     finding (``results``, e.g. the neutral frame ``neutral_frame: auto`` chose). Stages that load a rig
@@ -169,7 +173,7 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = Tru
     and not an output).
     """
     stage = STAGES[name]
-    inputs = _inputs(stage, kw)
+    inputs = record_inputs(_inputs(stage, kw))  # hashed before the stage reads them
     call = dict(kw)
     if stage.uses_progress and progress is not None:
         call["progress"] = progress
@@ -177,8 +181,15 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = Tru
         call["cache_dir"] = cache_dir(cfg) if cache else None
     t0 = time.perf_counter()
     with collect_results() as results:
-        outputs = stage.runner(**call)
+        try:
+            outputs = stage.runner(**call)
+        except OSError as exc:
+            if isinstance(exc, RetargetError) or not exc.errno:
+                raise
+            where = f"{exc.filename}: " if exc.filename else ""
+            raise OutputError(f"stage '{name}': {where}{exc.strerror or exc} (errno {exc.errno})") from exc
     seconds = round(time.perf_counter() - t0, 3)
+    check_unchanged(inputs, name)
     write_manifest(manifest_path(cfg, name), name, settings=_settings(stage, kw, cfg), inputs=inputs,
                    outputs=outputs, base=cfg.base_dir, seconds=seconds, results=results)
     return outputs

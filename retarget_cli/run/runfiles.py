@@ -19,6 +19,7 @@ import numpy as np
 from ..config import load_config
 from ..errors import InputError
 from ..io.atomic import load_npz
+from ..io.frames import is_sequence, sequence_files
 from ..io.obj import FRAME_RE
 from .pipeline import ORDER, resolve, stage_params
 
@@ -130,13 +131,28 @@ def _video_from_manifests(root: Path, manifests: dict, landmarks: Path | None) -
     video = (track.get("settings") or {}).get("video")
     if not isinstance(video, str):
         return None
+    base = track.get("base")
+    if isinstance(base, str) and _source_exists(Path(base) / video):
+        return Path(base) / video
     for rel in (track.get("outputs") or {}):
         known = (root / Path(rel).name) if landmarks is None else landmarks
         if Path(rel).name == known.name:
             cand = _rebase(rel, known, video)
-            if cand is not None and cand.is_file():
+            if cand is not None and _source_exists(cand):
                 return cand
+    log.warning("%s: the source video the track manifest names (%s) was not found from here; the source panel "
+                "is blank: give it with --video", root, video)
     return None
+
+
+def _source_exists(path: Path) -> bool:
+    """Whether *path* is a video file or an image-sequence pattern that matches files."""
+    if is_sequence(path):
+        try:
+            return bool(sequence_files(path))
+        except InputError:
+            return False
+    return path.is_file()
 
 
 def locate_run(path, *, video=None) -> RunFiles:
@@ -172,8 +188,8 @@ def locate_run(path, *, video=None) -> RunFiles:
         rf.manifests = _read_manifests(path)
         rf.video = _video_from_manifests(path, rf.manifests, rf.landmarks)
     if video is not None:
-        if not Path(video).is_file():
-            raise InputError(f"{video}: video file not found")
+        if not _source_exists(Path(video)):
+            raise InputError(f"{video}: video file or image sequence not found")
         rf.video = Path(video)
     if rf.frames is not None and not rf.frames.is_dir():
         rf.frames = None
@@ -197,6 +213,12 @@ def _from_config(path: Path) -> RunFiles:
         return None
 
     rf.video = first(("track", "video"))
+    if rf.video is None and "track" in kw and is_sequence(kw["track"]["video"]) \
+            and _source_exists(Path(kw["track"]["video"])):
+        rf.video = Path(kw["track"]["video"])
+    elif rf.video is None and "track" in kw:
+        log.warning("%s: track.video (%s) was not found; the source panel is blank: give it with --video", path,
+                    kw["track"]["video"])
     rf.landmarks = first(("track", "output"), ("select", "landmarks"), ("decompose", "landmarks"))
     rf.keys = first(("select", "output"), ("decompose", "keys"))
     rf.weights = first(("decompose", "output"), ("apply", "weights"))

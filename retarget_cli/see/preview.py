@@ -16,11 +16,12 @@ import numpy as np
 from ..errors import InputError, ParameterError
 from ..io.atomic import check_not_input, write_bytes
 from ..io.editfiles import read_animation
+from ..io.frames import FrameSource as SourceFrames
 from ..io.landmarks import load_landmarks
 from ..io.obj import read_obj, read_vertices_like
 from ..io.rig import load_rig
 from ..io.stagefiles import read_targets
-from ..io.video import VideoReader, atomic_video_writer
+from ..io.video import atomic_video_writer
 from ..methods.render import Camera, MeshRenderer
 from ..run.runfiles import RunFiles, read_run_weights
 
@@ -155,35 +156,45 @@ def draw_weight_bars(size: tuple[int, int], weights: dict, vmax: dict, *, curren
 
 
 class FrameSource:
-    """Source video frames in order, or blank canvases when there is no video."""
+    """Source frames by row of the landmarks, or blank canvases when there is no video.
 
-    def __init__(self, video: Path | None, frame_size: tuple[int, int]):
+    *numbers*: each row's source frame number (``landmarks.npz`` ``frames``: a run from frame 100, every 2nd,
+    or an image sequence with gaps); default the row itself. A video or an image sequence
+    (:class:`retarget_cli.io.frames.FrameSource`).
+    """
+
+    def __init__(self, video: Path | None, frame_size: tuple[int, int], numbers=None):
         self.video = video
         self.frame_size = frame_size
+        self.numbers = None if numbers is None else [int(n) for n in numbers]
         self._reader = None
         self._it = None
         self._pos = 0
+        self._at = -1
+        self._frame = None
         if video is not None:
-
-            self._reader = VideoReader(video)
+            self._reader = SourceFrames(video, warn_missing=False)
             self.frame_size = self._reader.frame_size
             self._it = iter(self._reader)
 
     def get(self, t: int) -> np.ndarray | None:
-        """Frame *t* (BGR); frames must be requested in increasing order. ``None`` past the end or without video."""
+        """Row *t*'s frame (BGR); rows must be requested in increasing order. ``None`` past the end or without video."""
         if self._it is None:
             return None
         if t < self._pos:
             raise ParameterError(f"frames must be requested in order: asked {t} after {self._pos}")
-        frame = None
+        self._pos = t
+        want = t if self.numbers is None else (self.numbers[t] if t < len(self.numbers) else None)
+        if want is None:
+            return None
         try:
-            while self._pos <= t:
-                frame = next(self._it)
-                self._pos += 1
+            while self._at < want:
+                self._frame = next(self._it)
+                self._at = self._reader.frames[-1]
         except (StopIteration, InputError):
             self._it = None
             return None
-        return frame
+        return self._frame if self._at == want else None
 
     def close(self):
         if self._reader is not None:
@@ -271,6 +282,13 @@ class RunData:
         self.fps = float(fps) if fps else 30.0
         self._mesh = None
 
+    def source_time(self, t: int) -> tuple[int, float]:
+        """Row *t*'s source frame number and its time in seconds (the landmarks' timing, else ``t / fps``)."""
+        if self.lm is not None and t < self.lm.n_frames:
+            frames, times = self.lm.timing()
+            return int(frames[t]), float(times[t])
+        return t, t / self.fps
+
     @property
     def frame_size(self) -> tuple[int, int]:
         if self.lm is not None and np.all(self.lm.frame_size > 0):
@@ -343,7 +361,7 @@ def preview_frames(data: RunData, frames: range, *, height: int = 360, camera=No
 
 
     camera = camera or Camera()
-    src = FrameSource(data.run.video, data.frame_size)
+    src = FrameSource(data.run.video, data.frame_size, None if data.lm is None else data.lm.frames)
     sw, sh = src.frame_size
     scale = height / sh
     left_w = max(int(round(sw * scale)), 16)
@@ -369,7 +387,8 @@ def preview_frames(data: RunData, frames: range, *, height: int = 360, camera=No
                 draw_landmarks(left, data.lm.points[t], data.lm.confidence[t], scale=left_w / sw,
                                radius=max(1, round(height / 150)))
                 put_text(left, f"confidence {float(np.mean(data.lm.confidence[t])):.2f}", (8, height - 10), 0.42)
-            put_text(left, f"frame {t}  {t / data.fps:6.2f}s", (8, 18), 0.5)
+            number, seconds = data.source_time(t)
+            put_text(left, f"frame {number}  {seconds:6.2f}s", (8, 18), 0.5)
             out[:height, :left_w] = left
             if renderer is not None and t < data.n_character_frames:
                 out[:height, left_w:left_w + mesh_w] = renderer.render(data.frame_vertices(t))

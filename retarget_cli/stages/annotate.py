@@ -67,13 +67,17 @@ def write_pts_once(path, points, *, own: dict | None = None) -> Path:
     return path
 
 
-def detect_frame(gray, *, detector, where: str) -> np.ndarray:
-    """The 68 detected landmarks (68, 2) of one frame; *where* names the frame in the error when no face is found."""
+#: What to do when the detector finds no face on the first tracked frame (``track``'s options).
+TRACK_HINT = "annotate this frame by hand with --init, or start at another frame with --start"
+
+
+def detect_frame(gray, *, detector, where: str, hint: str = TRACK_HINT) -> np.ndarray:
+    """The 68 detected landmarks (68, 2) of one frame; *where* names the frame in the error when no face is found,
+    *hint* says what to do (in terms of the options of the command that asked)."""
 
     points, _ = detect_landmarks(gray, detector=detector)
     if points is None:
-        raise InputError(f"{where}: no face found by the detector (annotate this frame by hand with --init, "
-                         f"or start at another frame)")
+        raise InputError(f"{where}: no face found by the detector ({hint})")
     return points
 
 
@@ -103,10 +107,17 @@ def run_annotate(*, video, frames, output, fps=None) -> list[Path]:
         for t in targets:
             check_not_input(t, source.files())
         wanted = set(frames)
+        gone = [f for f in frames if f in set(source.missing)]
+        if gone:
+            raise InputError(f"{source.path}: frame {gone[0]} is missing from the image sequence (a gap in its "
+                             "numbering)")
         try:
-            for i, img in enumerate(source):
+            for img in source:
+                i = source.frames[-1]
                 if i in wanted:
-                    found[i] = detect_frame(img, detector=detector, where=f"{source.path}: frame {i}")
+                    found[i] = detect_frame(img, detector=detector, where=f"{source.path}: frame {i}",
+                                            hint="choose other --frames, or place this frame's points by hand in "
+                                                 "an iBUG .pts file")
         except TruncatedInputError as exc:
             missing = [f for f in frames if f not in found]
             raise InputError(f"{exc}; frame {missing[0]} could not be read") from None

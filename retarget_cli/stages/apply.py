@@ -247,7 +247,7 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     _check_choice("head_motion", head_motion, ("none", "2d"))
     _check_choice("vat", vat, ("offsets", "positions"))
     _check_choice("drive", drive, DRIVES)
-    regions, meta = load_weights(weights)
+    regions, meta, frames, times = load_weights(weights, timing=True)
     fps = float(meta.get("fps") or 30.0)
     tg = read_targets(targets)
     use_rig = _check_drive(regions, tg, targets, weights, formats, drive)
@@ -267,7 +267,8 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     ctx = ExportContext(out=out, fps=fps, n_frames=T, n_vertices=template.n_vertices, template=template, base=base,
                         positions=positions, head=head, regions=regions, weights=weights, targets=targets,
                         landmarks=landmarks, rig=rig, rig_file=tg.rig, curves=curves, morph_targets=glb,
-                        settings={"vat": vat}, ledger=ledger)
+                        settings={"vat": vat}, ledger=ledger, frames=frames, times=times,
+                        source_fps=meta.get("source_fps"))
     for f in formats:
         EXPORTS[f].check_context(ctx)
     exporters = [EXPORTS[f](ctx) for f in EXPORTS if f in formats]

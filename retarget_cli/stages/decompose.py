@@ -64,6 +64,11 @@ PARAMS = [
 ]
 
 
+#: Row weight given to a frame without one measured landmark, so its solve stays defined (its weights are then
+#: interpolated from its neighbours).
+BLANK_WEIGHT = 1e-6
+
+
 @validate_params(PARAMS)
 def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formulation="whole", alpha=None, upper=None,
                   neutral_frame="auto", confidence=True, lost_fraction=0.5, smooth_space="shape",
@@ -100,11 +105,13 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formu
             "robust": robust if solver == "temporal" else None,
             "neutral_frame": None if neutral is None else neutral.frame,
             "neutral": None if neutral is None else neutral.record, "confidence": confidence,
-            "fps": lm.fps, "landmarks": Path(landmarks).name, "diagnostics": diagnostics}
-    save_weights(output, regions, meta, extras)
+            "fps": lm.fps, "source_fps": lm.source_fps, "landmarks": Path(landmarks).name,
+            "diagnostics": diagnostics}
+    frames, times = lm.timing()
+    save_weights(output, regions, meta, extras, frames=frames, times=times)
     written = [Path(output)]
     if csv:
-        write_text(csv, weights_csv(regions, lm.fps))
+        write_text(csv, weights_csv(regions, lm.fps, frames, times))
         written.append(Path(csv))
     return written
 
@@ -158,6 +165,8 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     del P
     weight = np.repeat(np.where(lost_pt, 0.0, C if confidence else 1.0), 2, axis=1)
     del C
+    blank = ~weight.any(1)  # a frame with no measurement at all (a gap in an image sequence): interpolated below;
+    weight[blank] = BLANK_WEIGHT  # a vanishing weight keeps the per-frame solves defined without pulling a neighbour
     kw = {}
     K = X[frames]
     if formulation == "delta":

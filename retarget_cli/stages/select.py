@@ -10,7 +10,8 @@ import numpy as np
 from ..config import TOP_LEVEL, Command, Flag, Param, check_regions, output_flag, validate_params
 from ..errors import InputError
 from ..io.atomic import check_not_input, write_json, write_text
-from ..io.landmarks import load_landmarks
+from ..io.frames import is_sequence, sequence_files
+from ..io.landmarks import LOST_CONFIDENCE, load_landmarks
 from ..io.select_plots import curve_csv, write_contact_sheet, write_curve_plot
 from ..io.stagefiles import write_keys, write_targets
 from ..methods.regions import region_specs
@@ -87,7 +88,7 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
         for name, (idx, rk) in specs.items():
             X = stab[:, idx].reshape(lm.n_frames, -1)
-            keep = _usable_frames(X, name, landmarks, include)
+            keep = _usable_frames(X, name, landmarks, include, lost=(lm.confidence[:, idx] <= LOST_CONFIDENCE).all(1))
             local = {int(f): i for i, f in enumerate(keep)}
             Xk = X[keep]
             inc = tuple(local[int(f)] for f in include)
@@ -121,21 +122,25 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
         written += _write_evaluation(evaluate, plot, curves, chosen_k, result, method)
     if contact_sheet:
 
-        video = _require(video, "video file")
+        if not is_sequence(video):
+            video = _require(video, "video file")
         write_contact_sheet(contact_sheet, video, lm.points,
-                            {n: (r["points"], r["frames"]) for n, r in result.items()})
+                            {n: (r["points"], r["frames"]) for n, r in result.items()}, source_frames=lm.frames,
+                            fps=lm.source_fps)
         written.append(Path(contact_sheet))
     return written
 
 
 
-def _usable_frames(X, name, landmarks, include) -> np.ndarray:
+def _usable_frames(X, name, landmarks, include, lost=None) -> np.ndarray:
     """Frames of region *name* (rows of *X*) without lost landmarks; the frames in *include* must be among them.
 
-    Frames where a landmark of the region is lost (NaN) can be neither keys
-    nor scored by eq. 5; decompose interpolates their weights later.
+    Frames where a landmark of the region is lost (NaN), or all of them are (*lost*: confidence 0 in every
+    point, a frame missing from an image sequence), can be neither keys nor scored by eq. 5; decompose
+    interpolates their weights later.
     """
-    keep = np.flatnonzero(np.isfinite(X).all(1))
+    ok = np.isfinite(X).all(1)
+    keep = np.flatnonzero(ok if lost is None else ok & ~lost)
     if keep.size == 0:
         raise InputError(f"{landmarks}: region {name!r}: every frame has lost (NaN) landmarks")
     if keep.size < len(X):
@@ -175,6 +180,7 @@ STAGE = Stage(
     "Choose key frames per region (Chuang & Bregler §4.2) and evaluate the methods by E (eq. 5).",
     PARAMS,
     run_select,
+    expand_input=lambda name, path: sequence_files(path) if name == "video" and is_sequence(path) else [path],
     uses_seed=True,
     uses_progress=True,
 )

@@ -60,7 +60,9 @@ PARAMS = [
     Param("downscale", "setting", float, 1.0,
           "Track on frames scaled by this factor (coordinates stay at full resolution).",
           min=0.05, max=1.0),
-    Param("fps", "setting", float, None, "Frame rate of an image sequence (default 30).",
+    Param("fps", "setting", float, None,
+          "Frame rate: of an image sequence (default 30), or of a video instead of its container's (which is "
+          "refused outside 1-480 fps, e.g. a remux claiming 2344; a missing one is taken as 30 with a warning).",
           min=0.01, nullable=True),
     Param("smooth_head", "setting", int, 0,
           "Temporal smoothing of the head track: Savitzky-Golay window in frames (0: none).",
@@ -186,11 +188,12 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         if start not in ann and "detector" not in spec.needs:
             raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
                              f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
-        index = _annotation_index(ann, src, (W, H), start, end, step)
+        index = _annotation_index(ann, src, (W, H), start, end, step, missing=source.missing)
         points, conf = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings, progress=progress,
                                     keep_partial=keep_partial, where=init_out or init or video)
         frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
         files = source.files()
+    conf = _lose_missing(conf, frame_numbers, source.missing)
     if need_auto and "detector" in spec.needs:
         write_auto_init(init_out, points[0])
     points, raw, fmeta = apply_filter(points, conf, fps=source.fps, settings=fset, where=str(video),
@@ -221,7 +224,7 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     if calibration is not None:
         meta["neutral"] = calibration[2]
     save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
-                                     frames=frame_numbers, points_raw=raw,
+                                     frames=frame_numbers, times=source.times(frame_numbers), points_raw=raw,
                                      neutral=None if calibration is None else calibration[0],
                                      neutral_confidence=None if calibration is None else calibration[1]))
     written = [Path(output)] + ([init_out] if init_out else [])
@@ -405,15 +408,31 @@ def _auto_annotate(it, source, start, detector, init_out, ann, src):
     return frame
 
 
-def _annotation_index(ann, src, size, start, end, step) -> dict:
-    """Annotated frames as ``{row of the tracked sequence: (L, 2)}``, each checked against the frame size."""
+def _lose_missing(conf, frame_numbers, missing):
+    """Confidence 0 (lost) on every point of the rows whose frame the image sequence lacks."""
+    lost = np.isin(frame_numbers, np.asarray(missing, dtype=np.int64))
+    if lost.any():
+        conf = np.array(conf, copy=True)
+        conf[lost] = 0.0
+    return conf
+
+
+def _annotation_index(ann, src, size, start, end, step, missing=()) -> dict:
+    """Annotated frames as ``{row of the tracked sequence: (L, 2)}``, each checked against the frame size.
+
+    An annotation of a frame the image sequence lacks (*missing*) is refused: there is no image under it.
+    """
 
     index = {}
+    gone = set(missing)
     for f, P in ann.items():
         try:
             check_inside(P, size, f"frame {f}")
         except ValueError as exc:
             raise InputError(f"{src[f]}: {exc}") from None
+        if f in gone:
+            raise InputError(f"{src[f]}: annotates frame {f}, which the image sequence lacks (a gap in its "
+                             "numbering)")
         if f < start or (end is not None and f >= end):
             log.info("%s: frame %d is outside the tracked range, ignored", src[f], f)
         elif (f - start) % step:
@@ -465,7 +484,7 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
 def _write_track_overlay(overlay, video, points, conf, head, source, *, start, end, step, fps, progress):
     """The overlay video: the frames decoded again with the landmarks and the head frame drawn."""
 
-    with FrameSource(video, start=start, end=end, step=step, fps=fps) as again, \
+    with FrameSource(video, start=start, end=end, step=step, fps=fps, warn_missing=False) as again, \
             progress(len(points), "overlay") as bar:
         def upto():
             try:
@@ -500,6 +519,9 @@ def run_train_tracker(*, video, annotations, output, fps=None, rigid_points=None
             if source.frame_count and f >= source.frame_count:
                 raise InputError(f"{src[f]}: frame {f} is past the last frame of {source.path} "
                                  f"({source.frame_count - 1})")
+            if f in source.missing:
+                raise InputError(f"{src[f]}: annotates frame {f}, which the image sequence lacks (a gap in its "
+                                 "numbering)")
             try:
                 check_inside(P, (W, H), f"frame {f}")
             except ValueError as exc:

@@ -212,9 +212,19 @@ def test_report_adds_curve_and_rig_sections_when_their_data_exists(ran_take, tmp
     result = CliRunner().invoke(main, ["report", str(run), "-o", str(out)])
     assert result.exit_code == 0, result.output
     c = check_html(out.read_text(encoding="utf-8"))
-    # the copied run does not find its video, so neither the truth beside it
+    # the copied run finds its video where its config's folder (the manifests' base) still has it, and the truth
+    # beside it
     assert c.sections == {"summary": 1, "tracking": 1, "rest": 1, "keys": 1, "curve": 1, "weights": 1,
-                          "residuals": 1, "rig": 1}
+                          "residuals": 1, "rig": 1, "truth": 1}
+    (ran_take / "face.mp4").rename(ran_take / "face.moved.mp4")  # gone from there too: neither
+    try:
+        result = CliRunner().invoke(main, ["report", str(run), "-o", str(out)])
+    finally:
+        (ran_take / "face.moved.mp4").rename(ran_take / "face.mp4")
+    assert result.exit_code == 0, result.output
+    assert "was not found" in result.stderr and "--video" in result.stderr
+    assert check_html(out.read_text(encoding="utf-8")).sections == {
+        "summary": 1, "tracking": 1, "rest": 1, "keys": 1, "curve": 1, "weights": 1, "residuals": 1, "rig": 1}
 
 
 def test_report_of_weights_alone_omits_what_is_missing(ran_take, tmp_path):

@@ -48,7 +48,7 @@ import numpy as np
 
 from ...errors import InputError, ParameterError
 from ..atomic import guard_writes, remove_stale_parts, savez
-from ..obj import ObjMesh, check_same_topology, count_vertices, read_obj
+from ..obj import ObjMesh, check_coordinates, check_same_topology, count_vertices, read_obj
 
 log = logging.getLogger(__name__)
 
@@ -386,6 +386,8 @@ def load_rig_meshes(rig_path, entries, *, extra_files=(), cache_dir=None, check=
         if file.is_file():
             hit = _read_cache(file, key, len(paths), paths[0])
             if hit is not None:
+                for p, v in zip(paths, hit[1]):  # a cache written before the coordinate check
+                    check_coordinates(p, v)
                 if check is not None:
                     check(hit[1].shape[1])
                 _touch(file)

@@ -182,11 +182,14 @@ def _rig_landmarks(path: Path, data: dict) -> list | Path | None:
     landmarks = data.get("landmarks")
     if isinstance(landmarks, str):
         return path.parent / landmarks
-    if landmarks is not None and (
-            not isinstance(landmarks, list) or not landmarks
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in landmarks)):
+    if landmarks is None:
+        return None
+    if not isinstance(landmarks, list) or not landmarks:
         raise InputError(f"{path}: landmarks: expected a list of vertex ids (one per landmark, >= 0) or a map "
                          f"file, got {str(landmarks)[:60]!r}")
+    for i, v in enumerate(landmarks):
+        if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+            raise InputError(f"{path}: landmarks[{i}] = {str(v)[:40]!r}: expected a vertex id (an integer >= 0)")
     return landmarks
 
 

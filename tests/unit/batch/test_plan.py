@@ -1,6 +1,8 @@
 """Shot-list parsing and validation (retarget_cli.batch.plan): no Dask, nothing runs."""
 
 import shlex
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -27,7 +29,9 @@ def test_base_form_paths_are_absolute_and_outputs_by_name(listed, tmp_path):
     assert f"track.video={(tmp_path / 'take' / 'face.mp4').resolve()}" in s1.overrides
     assert "select.k=5" in s1.overrides and s2.overrides == []
     args = shlex.split(s1.command())
-    assert args[:3] == ["retarget", "run", str((tmp_path / "take" / "config.yaml").resolve())]
+    # the retarget that is running, by absolute path (a farm host need not have `retarget` on PATH)
+    assert args[:5] == [str(Path(sys.executable).absolute()), "-m", "retarget_cli", "run",
+                        str((tmp_path / "take" / "config.yaml").resolve())]
 
 
 def test_csv_form_equals_yaml_form(listed):
@@ -74,8 +78,6 @@ def test_table_has_a_row_per_shot_with_its_error():
 
 
 def test_missing_dask_is_a_one_line_error_naming_the_extra(monkeypatch):
-    import sys
-
     from retarget_cli.batch import engine
 
     monkeypatch.setitem(sys.modules, "distributed", None)
