@@ -8,8 +8,14 @@ made-up curves (a jaw-open ramp up and down, a blink), the copy written by
 and BIN bytes unchanged, the largest difference between the animation's morph weights (as pygltflib reads them)
 and the curves times the bind weights, and the ``.vrma``'s expression tracks against the curves. ``--out DIR``
 keeps the files and renders, with :mod:`retarget_cli.methods.render`, frames of the written copy posed at the
-animation's own weights (``<stem>_frames.png``: frame 0, the jaw-open peak, the blink). Without
-``../shared/realdata`` it prints a skip line and exits 0. Nothing is written outside ``--out`` (default: a
+animation's own weights (``<stem>_frames.png``: frame 0, the jaw-open peak, the blink).
+
+USD (with usd-core): the ICT FaceKit (``sample_data/ict``, unpacked to ``build/ict-facekit``) written as a UsdSkel
+character by ``apply --format usd``'s writer, then its copy by ``apply --format same``'s
+(:func:`retarget_cli.io.usd_animation.write_animated_usd`, the rig's 57 sliders): prims and meshes against the
+source, the weights UsdSkel's own queries give each mesh at every frame against the curves, the copy read back
+through ``read_usd_rig``, the wall time; with ``--out``, frames rendered from the copy's points after
+``UsdSkel.BakeSkinning``. Without ``../shared/realdata`` it prints a skip line and exits 0. Nothing is written outside ``--out`` (default: a
 temporary folder, removed).
 
 Run: ``python bench/animated_copy.py [--out DIR]``.
@@ -181,6 +187,77 @@ def run_godette(folder: Path, png: bool) -> None:
                [(0, "neutral"), (JAW_PEAK, "a 1"), (BLINK_PEAK, "blink 1")])
 
 
+def run_ict_usd(folder: Path, png: bool) -> None:
+    import subprocess
+    import time
+
+    import cv2
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from retarget_cli.io.exports import rig_shapes
+    from retarget_cli.io.rig import load_rig
+    from retarget_cli.io.rig.usd import read_usd_rig
+    from retarget_cli.io.usd import write_usd_skel
+    from retarget_cli.io.usd_animation import target_weights, write_animated_usd
+    from retarget_cli.methods.render import Camera, MeshRenderer
+
+    ict = ROOT / "build" / "ict-facekit" / "rig.yaml"
+    if not ict.is_file():
+        subprocess.run(["make", str(ict.relative_to(ROOT))], cwd=ROOT, check=True, capture_output=True)
+    objs = load_rig(ict)
+    shapes, names, W0 = rig_shapes(objs, np.zeros((1, objs.n_sliders)))
+    faces = objs.template.faces()
+    src = folder / "ict.usd"
+    write_usd_skel(src, points=objs.neutral, counts=[len(f) for f in faces], corners=[i for f in faces for i in f],
+                   shapes=shapes, names=names, weights=W0, fps=FPS)
+    rig = load_rig(src)
+    C = made_up_curves(list(rig.names), "jawOpen", ["eyeBlink_L", "eyeBlink_R"])
+    t0 = time.perf_counter()
+    W = target_weights(C, rig.names, rig.spec.sliders, rig.spec.outline.target_names, lower=rig.lower,
+                       upper=rig.upper)
+    out = write_animated_usd(folder / "ict_animated.usd", src, W, rig.spec.outline.target_names, FPS)
+    secs = time.perf_counter() - t0
+    a, b = Usd.Stage.Open(str(src)), Usd.Stage.Open(str(out))
+    prims = lambda st: {str(p.GetPath()) for p in st.Traverse()}  # noqa: E731
+    meshes = lambda st: sum(p.IsA(UsdGeom.Mesh) for p in st.Traverse())  # noqa: E731
+    print(f"\n## the ICT FaceKit as USD ({len(rig.names)} sliders, {rig.n_vertices} vertices): {out.name}, "
+          f"{out.stat().st_size} bytes (source {src.stat().st_size}), written in {secs:.1f} s")
+    print(f"- prims: source {len(prims(a))}, copy {len(prims(b))}, the same: {prims(a) == prims(b)}; meshes "
+          f"{meshes(a)} / {meshes(b)}; timeCodesPerSecond {b.GetTimeCodesPerSecond():g}, time codes "
+          f"{b.GetStartTimeCode():g}-{b.GetEndTimeCode():g}")
+    cache = UsdSkel.Cache()
+    root = UsdSkel.Root(b.GetDefaultPrim())
+    cache.Populate(root, Usd.PrimDefaultPredicate)
+    (binding,) = cache.ComputeSkelBindings(root, Usd.PrimDefaultPredicate)
+    anim = cache.GetSkelQuery(binding.GetSkeleton()).GetAnimQuery()
+    (target,) = binding.GetSkinningTargets()
+    order = [str(n) for n in target.GetBlendShapeOrder()]
+    got = np.array([list(target.GetBlendShapeMapper().Remap(anim.ComputeBlendShapeWeights(Usd.TimeCode(t))))
+                    for t in range(T)])
+    want = np.clip(C, rig.lower, rig.upper)[:, [list(rig.names).index(n) for n in order]]
+    back, first = read_usd_rig(out), read_usd_rig(src)
+    print(f"- UsdSkel's weights of the mesh vs the curves, {got.size} values: max |diff| "
+          f"{np.abs(got - want).max():.2e}; read_usd_rig of the copy: neutral and deltas equal the source's: "
+          f"{np.array_equal(back.neutral, first.neutral) and np.array_equal(back.deltas, first.deltas)}")
+    if png:
+        assert UsdSkel.BakeSkinning(b.Traverse())
+        mesh = UsdGeom.Mesh(b.GetPrimAtPath(str(target.GetPrim().GetPath())))
+        face = np.flatnonzero(objs.neutral[:, 1] > objs.neutral[:, 1].min() + 0.35 * np.ptp(objs.neutral[:, 1]))
+        tris = first.faces
+        ren = MeshRenderer(tris[np.isin(tris, face).all(1)], rig.neutral, camera=Camera(fov=20), size=(360, 360),
+                           frame=rig.neutral[face])
+        imgs = []
+        for frame, label in [(0, "neutral"), (JAW_PEAK, "jawOpen 1"), (BLINK_PEAK, "eyes closed")]:
+            pts = np.asarray(mesh.GetPointsAttr().Get(Usd.TimeCode(frame)), np.float64)
+            err = np.abs(pts - rig.evaluate(np.clip(C[frame], rig.lower, rig.upper))).max()
+            img = ren.render(pts)
+            cv2.putText(img, f"frame {frame}: {label}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 1)
+            imgs.append(img)
+            print(f"  frame {frame}: baked points vs the rig posed at the curves: max |diff| {err:.1e} cm")
+        cv2.imwrite(str(folder / "ict_usd_frames.png"), np.hstack(imgs))
+        print(f"  rendered from the written file: {folder / 'ict_usd_frames.png'}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, help="Keep the copies here and render <stem>_frames.png.")
@@ -200,6 +277,12 @@ def main(argv=None) -> int:
         folder.mkdir(parents=True, exist_ok=True)
         run_valid(folder, args.out is not None)
         run_godette(folder, args.out is not None)
+        try:
+            import pxr  # noqa: F401
+        except ImportError:
+            print("SKIP bench/animated_copy.py, USD part: needs usd-core (pip install -e '.[usd]')")
+            return 0
+        run_ict_usd(folder, args.out is not None)
     return 0
 
 

@@ -72,6 +72,25 @@ def sheet(lmap, path: Path, title: str) -> None:
     print(f"wrote {path}", file=sys.stderr)
 
 
+def brow_heights() -> None:
+    """Each brow point's height above the outer eye corners' line (IOD) on the shared clips' frame-0 annotations."""
+    from retarget_cli.io.annotations import read_pts
+    from retarget_cli.methods import landmark_map as lm
+
+    rows = []
+    for pts in sorted((DATA / "videos").glob("*_00000.pts")):
+        P = np.asarray(read_pts(pts), np.float64)
+        axis = P[45] - P[36]
+        up = np.array([axis[1], -axis[0]]) / np.linalg.norm(axis)
+        rows.append((P[17:27] - (P[36] + P[45]) / 2) @ up / np.linalg.norm(axis))
+        print(f"brow heights of {pts.name}: " + " ".join(f"{h:.3f}" for h in rows[-1]) + f" (mean {rows[-1].mean():.3f})")
+    if rows:
+        mean = np.mean(rows, axis=0)
+        mirrored = (mean + mean[::-1]) / 2
+        print("mean, mirror pairs averaged (BROW_HEIGHT_68): " + " ".join(f"{h:.3f}" for h in mirrored)
+              + f"; in the code: {' '.join(f'{h:.3f}' for h in lm.BROW_HEIGHT_68)}\n")
+
+
 def ict(det, png) -> Path:
     from retarget_cli.io.rig import load_rig
     from retarget_cli.methods import landmark_map as lm
@@ -180,6 +199,8 @@ def main(argv=None) -> int:
         print("SKIP bench/landmark_map.py: needs the detector (pip install 'retarget[detect]')")
         return 0
     det = Detector()
+    if (DATA / "videos").is_dir():
+        brow_heights()
     auto_map = ict(det, args.png)
     if not (VALID.is_file() and GODETTE.is_file()):
         print(f"SKIP bench/landmark_map.py parts 2-3: {VALID if not VALID.is_file() else GODETTE} not found "

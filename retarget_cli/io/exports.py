@@ -38,8 +38,10 @@ from .obj import read_obj, write_obj
 from .objsurface import obj_surface
 from .rig.gltf import read_gltf_rig
 from .rig.inverse import parse_correctives
+from .rig.usd import USD_EXTS
 from .stagefiles import weights_csv
 from .usd import require_pxr, write_usd_points, write_usd_skel
+from .usd_animation import copy_name, target_weights, write_animated_usd
 
 log = logging.getLogger(__name__)
 
@@ -273,16 +275,19 @@ class UsdExport(Exporter):
 
 
 class SameExport(Exporter):
-    """The rig's own glTF/GLB/VRM file back, animated (:mod:`retarget_cli.io.gltf_animation`).
+    """The rig's own glTF/GLB/VRM or USD file back, animated (:mod:`retarget_cli.io.gltf_animation`,
+    :mod:`retarget_cli.io.usd_animation`).
 
     ``<stem>_animated.glb``: a copy of the source with the curves as a morph-weight animation; for a VRM
-    also ``<stem>_animated.vrma``, a VRM Animation of the sliders that are VRM expressions.
+    also ``<stem>_animated.vrma``, a VRM Animation of the sliders that are VRM expressions. For a USD
+    source ``<stem>_animated.<its suffix>``: the stage flattened, with the curves as time-sampled UsdSkel
+    ``blendShapeWeights``.
     """
 
-    help = ("<stem>_animated.glb (+ .vrma for VRM): the rig's own glTF/GLB/VRM file with the curves as "
-            "morph-weight animation")
+    help = ("<stem>_animated.glb (+ .vrma for VRM) or .usd*: the rig's own glTF/GLB/VRM or USD file with the "
+            "curves as morph-weight or UsdSkel blend-shape animation")
     needs_rig = True
-    suffixes = (".glb", ".gltf", ".vrm")
+    suffixes = (".glb", ".gltf", ".vrm", *USD_EXTS)
 
     @classmethod
     def source(cls, ctx) -> Path | None:
@@ -295,7 +300,9 @@ class SameExport(Exporter):
         return src if src.is_absolute() or ctx.rig_file is None else Path(ctx.rig_file).parent / src
 
     @classmethod
-    def outputs(cls, ctx, source: Path) -> tuple[Path, Path]:
+    def outputs(cls, ctx, source: Path) -> tuple[Path, ...]:
+        if source.suffix.lower() in USD_EXTS:
+            return (ctx.out / copy_name(source),)
         return ctx.out / f"{source.stem}_animated.glb", ctx.out / f"{source.stem}_animated.vrma"
 
     @classmethod
@@ -303,14 +310,18 @@ class SameExport(Exporter):
         src = cls.source(ctx)
         if src is None or src.suffix.lower() not in cls.suffixes:
             where = f"{ctx.rig_file}: " if ctx.rig_file is not None else ""
-            raise InputError(f"{where}apply.formats: same needs a rig read from a .glb/.gltf/.vrm file "
-                             "(rig.yaml source:)")
+            raise InputError(f"{where}apply.formats: same needs a rig read from a .glb/.gltf/.vrm or "
+                             ".usd/.usda/.usdc/.usdz file (rig.yaml source:)")
+        if src.suffix.lower() in USD_EXTS:
+            require_pxr()
         for path in cls.outputs(ctx, src):
             check_not_input(path, [src, ctx.weights, ctx.targets, ctx.landmarks, ctx.rig_file])
 
     def finish(self):
         c = self.ctx
         src = self.source(c)
+        if src.suffix.lower() in USD_EXTS:
+            return [self._usd(src)]
         glb, vrma = self.outputs(c, src)
         names = list(c.rig.names)
         groups, missing = copy_groups(read_gltf_rig(src), names)
@@ -327,6 +338,16 @@ class SameExport(Exporter):
             path = write_vrma(vrma, src, c.curves, names, c.fps, lower=c.rig.lower, upper=c.rig.upper, times=times)
             written += [path] if path is not None else []
         return written
+
+
+    def _usd(self, src: Path) -> Path:
+        c, spec = self.ctx, self.ctx.rig.spec
+        names = list(c.rig.names)
+        W = target_weights(c.curves, names, spec.sliders, spec.outline.target_names, lower=c.rig.lower,
+                           upper=c.rig.upper)
+        frames, _, rate = timing(c)
+        return write_animated_usd(self.outputs(c, src)[0], src, W, spec.outline.target_names, rate,
+                                  meshes=spec.meshes, targets=spec.targets, frames=frames)
 
 
 #: Export formats by name, in the order ``--format`` lists them.

@@ -128,8 +128,8 @@ def _times(times, T: int, fps: float) -> np.ndarray:
     return t
 
 
-def _curves(curves, names, fps: float, lower, upper) -> np.ndarray:
-    """(T, E) float64 curves, checked, each clipped to its slider's ``[lower, upper]``."""
+def clipped_curves(curves, names, lower=None, upper=None) -> np.ndarray:
+    """(T, E) float64 curves, checked (shape, finite), each clipped to its slider's ``[lower, upper]``."""
     C = np.asarray(curves, dtype=np.float64)
     names = list(names)
     if C.ndim != 2 or C.shape[1] != len(names) or len(C) == 0:
@@ -137,11 +137,21 @@ def _curves(curves, names, fps: float, lower, upper) -> np.ndarray:
                              f"got shape {C.shape}")
     if not np.isfinite(C).all():
         raise ParameterError("curves: values that are not finite")
-    if not (isinstance(fps, int | float) and np.isfinite(fps) and fps > 0):
-        raise ParameterError(f"fps: expected a positive number, got {fps!r}")
     lo = np.full(len(names), -np.inf) if lower is None else np.asarray(lower, dtype=np.float64)
     hi = np.full(len(names), np.inf) if upper is None else np.asarray(upper, dtype=np.float64)
     return np.clip(C, lo, hi)
+
+
+def check_fps(fps) -> None:
+    """A :class:`ParameterError` unless *fps* is a positive finite number."""
+    if not (isinstance(fps, int | float) and np.isfinite(fps) and fps > 0):
+        raise ParameterError(f"fps: expected a positive number, got {fps!r}")
+
+
+def _curves(curves, names, fps: float, lower, upper) -> np.ndarray:
+    C = clipped_curves(curves, names, lower, upper)
+    check_fps(fps)
+    return C
 
 
 def _n_targets(f: GltfFile, mesh: int, where: str) -> int:
@@ -523,5 +533,5 @@ def is_vrm(source) -> bool:
     return isinstance(ext, dict) and (isinstance(ext.get("VRM"), dict) or isinstance(ext.get("VRMC_vrm"), dict))
 
 
-__all__ = ["ANIMATION_NAME", "animated_copy_bytes", "copy_groups", "is_vrm", "morph_nodes", "target_weights",
+__all__ = ["ANIMATION_NAME", "animated_copy_bytes", "check_fps", "clipped_curves", "copy_groups", "is_vrm", "morph_nodes", "target_weights",
            "vrm_expressions", "vrma_bytes", "write_animated_copy", "write_vrma"]

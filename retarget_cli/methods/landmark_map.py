@@ -74,6 +74,14 @@ TEMPLATE_68 = np.array([
     [-0.248, 0.776], [-0.112, 0.755], [0.0, 0.758], [0.112, 0.755], [0.248, 0.776], [0.12, 0.764], [0.0, 0.766],
     [-0.12, 0.764]])
 
+#: Each brow point's (17-26) least height above the line through the outer eye corners (36, 45), in inter-ocular
+#: distances: where the detector places eyebrows on real faces. The mean of the three shared clips' frame-0
+#: annotations (``../shared/realdata/videos/d{3,9,12}_00000.pts``, a pretrained 68-point detector's; per face
+#: 0.206, 0.256 and 0.276 on average), each mirror pair averaged (``python bench/landmark_map.py`` prints it).
+#: On an untextured render the detector marks the brow ridge's crest (0.199 on the ICT FaceKit's neutral), below
+#: the hair that it marks on a face.
+BROW_HEIGHT_68 = np.array([0.170, 0.266, 0.298, 0.278, 0.218, 0.218, 0.278, 0.298, 0.266, 0.170])
+
 #: The fallback's eye: the vertices a blink moves at least this share of its most moved one.
 EYE_SHARE = 0.25
 
@@ -178,7 +186,8 @@ class LandmarkMap:
     points : ndarray (68, 2), float64
         Each landmark in :attr:`render`'s image (pixels): where it was placed.
     source : list of str
-        Per landmark: ``detector``, ``sliders:blink``, ``sliders:jaw``,
+        Per landmark: ``detector``, ``detector:brow height`` (a brow point
+        :func:`raise_brows` moved up), ``sliders:blink``, ``sliders:jaw``,
         ``sliders:smile``, ``sliders:brow``, ``template`` or ``user``.
     render : FaceRender
         The picture the points were placed on.
@@ -467,6 +476,41 @@ def detect_face(render: FaceRender, detector):
     return np.asarray(detector.landmarks(gray, box), np.float64)
 
 
+def raise_brows(points, heights=BROW_HEIGHT_68) -> tuple[np.ndarray, np.ndarray]:
+    """Brow points (17-26) moved up to at least *heights* above the eye-corner line, across it.
+
+    The detector, run on an untextured render, finds the brows on the brow ridge's crest, where the shading
+    turns; on a face it marks the eyebrow hair above it. The mesh has no hair to show, so each brow point
+    the render places lower than real faces carry theirs (:data:`BROW_HEIGHT_68`) is moved up, perpendicular
+    to the line through the outer eye corners 36-45, to that height; a brow placed higher stays.
+
+    Parameters
+    ----------
+    points : ndarray (68, 2)
+        Image pixels (y down).
+    heights : ndarray (10,)
+        Least height of points 17-26, in inter-ocular distances.
+
+    Returns
+    -------
+    points : ndarray (68, 2), float64
+    moved : ndarray (68,), bool
+    """
+    P = np.array(points, np.float64)
+    axis = P[45] - P[36]
+    iod = float(np.linalg.norm(axis))
+    moved = np.zeros(len(P), bool)
+    if not iod > 0:
+        return P, moved
+    up = np.array([axis[1], -axis[0]]) / iod  # perpendicular, toward the brows (image y points down)
+    brows = np.arange(17, 27)
+    height = (P[brows] - (P[36] + P[45]) / 2) @ up / iod
+    lift = np.maximum(np.asarray(heights, np.float64) - height, 0.0)
+    P[brows] += lift[:, None] * iod * up
+    moved[brows] = lift > 0
+    return P, moved
+
+
 def find_landmark_map(vertices, faces, deltas, names, *, detector=None, yaw: float | None = None,
                       styles=STYLES) -> LandmarkMap:
     """Find the rig vertex of each of the 68 landmarks on the rig's neutral.
@@ -516,9 +560,11 @@ def find_landmark_map(vertices, faces, deltas, names, *, detector=None, yaw: flo
             tried.append(style.name)
             if pts is not None:
                 log.info("landmark map: the detector found the face on the %r render (yaw %.0f)", style.name, yaw)
+                pts, raised = raise_brows(pts)
                 skin = skin_vertices(render, tris, pts)
                 vx = part_closed_lips(lift_landmarks(pts, render, skin), pts, render, skin, V, D, names)
-                return LandmarkMap(vx, pts, ["detector"] * N_POINTS, render, skin, style.name, tried)
+                source = ["detector:brow height" if r else "detector" for r in raised]
+                return LandmarkMap(vx, pts, source, render, skin, style.name, tried)
         log.info("landmark map: no face found on the %s renders; placing the points from the sliders",
                  ", ".join(tried))
     render = render_face(V, tris, region, yaw, styles[0])
@@ -959,7 +1005,7 @@ def map_quality(vertices, vx, *, yaw: float = 0.0, source=None) -> dict:
 
 
 #: Sheet colours (BGR) of each source of a point.
-SOURCE_COLORS = {"detector": (60, 200, 60), "user": (255, 140, 40), "template": (40, 40, 230), "outline": (40, 40, 230)}
+SOURCE_COLORS = {"detector": (60, 200, 60), "detector:brow height": (60, 200, 160), "user": (255, 140, 40), "template": (40, 40, 230), "outline": (40, 40, 230)}
 _SLIDER_COLOR = (0, 170, 255)
 #: The contact sheet is the render at this scale (``--points`` pixels are the sheet's).
 SHEET_SCALE = 2
@@ -969,7 +1015,7 @@ def draw_sheet(lmap: LandmarkMap, title: str = "") -> np.ndarray:
     """The render with the 68 numbered points drawn on it, at :data:`SHEET_SCALE`; (H, W, 3) uint8 BGR.
 
     Each point is drawn where its vertex projects, coloured by its source
-    (detector green, sliders orange, template/outline red, user blue), its
+    (detector green, brows raised teal, sliders orange, template/outline red, user blue), its
     number beside it; a line at the top says how the map was found.
     """
     import cv2
@@ -1001,6 +1047,6 @@ def map_distance(vertices, vx, reference) -> tuple[float, float]:
 
 
 __all__ = ["MIRROR_68", "N_POINTS", "REGIONS_68", "STYLES", "TEMPLATE_68", "FaceRender", "LandmarkMap",
-           "RenderStyle", "SHEET_SCALE", "correct", "detect_face", "draw_sheet", "points_from_sheet", "face_region", "find_landmark_map", "front_yaw", "lift",
-           "lift_landmarks", "part_closed_lips",
+           "RenderStyle", "SHEET_SCALE", "BROW_HEIGHT_68", "correct", "detect_face", "draw_sheet", "points_from_sheet", "face_region", "find_landmark_map", "front_yaw", "lift",
+           "lift_landmarks", "part_closed_lips", "raise_brows",
            "map_distance", "map_quality", "motion_weights", "render_face", "skin_vertices", "slider_landmarks"]

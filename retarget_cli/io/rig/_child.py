@@ -1,8 +1,9 @@
 """``python -m retarget_cli.io.rig._child KIND REQUEST``: one character reader run here, for :mod:`._isolated`.
 
-*KIND* is ``usd`` or ``fbx``; *REQUEST* is JSON ``{"path", "meshes", "targets", "out"}``. The rig goes to *out*
-(:func:`~retarget_cli.io.rig._isolated.write_result`); the reader's one-line error to ``out/result.json`` with exit
-status 3 (4 for a missing extra, 5 for memory), its log records with either.
+*KIND* is ``usd`` or ``fbx`` (a reader), or ``usd-copy`` (the animated copy of a USD character,
+:mod:`._usd_copy`); *REQUEST* is JSON ``{"path", "meshes", "targets", "out", ...}``. A rig goes to *out*
+(:func:`~retarget_cli.io.rig._isolated.write_result`), a copy to ``out/copy.<suffix>``; the one-line error to
+``out/result.json`` with exit status 3 (4 for a missing extra, 5 for memory), the log records with either.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import sys
 from pathlib import Path
 
 from ...errors import InputError, MissingExtraError
-from . import fbx, usd
+from . import _usd_copy, fbx, usd
 from ._isolated import EXIT_EXTRA, EXIT_INPUT, EXIT_MEMORY, write_result
 
 READERS = {"usd": usd.read_usd_here, "fbx": fbx.read_fbx_here}
@@ -39,6 +40,10 @@ def main(argv: list[str]) -> int:
     top.setLevel(logging.DEBUG)
     top.propagate = False
     try:
+        if kind == "usd-copy":
+            _usd_copy.animate_here(request["path"], request, out)
+            (out / "result.json").write_text(json.dumps({"done": True, "log": keep.records}))
+            return 0
         rig = READERS[kind](request["path"], meshes=request["meshes"], targets=request["targets"])
     except (InputError, MissingExtraError, MemoryError) as exc:
         status = EXIT_MEMORY if isinstance(exc, MemoryError) else EXIT_EXTRA if isinstance(

@@ -11,6 +11,7 @@ logged again here under their own logger names.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -62,23 +63,29 @@ def _crash(path: Path, library: str, code: int, stderr: str) -> InputError:
                       "or hostile file")
 
 
-def read_isolated(kind: str, path: Path, library: str, rig_class, *, meshes=None, targets=None):
-    """``rig_class`` read by :mod:`._child`'s reader *kind* (``"usd"``, ``"fbx"``) of *path*, in a child process.
+@contextlib.contextmanager
+def run_isolated(kind: str, path: Path, library: str, request: dict, *, arrays: dict | None = None):
+    """Run :mod:`._child`'s task *kind* on *path* in a child process; yield its output folder.
+
+    *request* (JSON) goes to the task with ``path`` and ``out`` added; *arrays* are saved as ``NAME.npy`` in the
+    folder first. The folder is removed when the ``with`` block ends.
 
     Raises
     ------
     InputError
-        The reader's own one-line error, or one line for a crash, a runaway allocation or a time-out.
+        The task's own one-line error, or one line for a crash, a runaway allocation or a time-out.
     MissingExtraError
-        As the reader raised it.
+        As the task raised it.
     """
     package = Path(__file__).resolve().parents[3]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(package), *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
     with tempfile.TemporaryDirectory(prefix="retarget-rig-") as out:
-        request = json.dumps({"path": str(path), "meshes": meshes, "targets": targets, "out": out})
+        for name, value in (arrays or {}).items():
+            np.save(Path(out) / f"{name}.npy", value)
+        message = json.dumps({**request, "path": str(path), "out": out})
         try:
-            proc = subprocess.run([sys.executable, "-m", "retarget_cli.io.rig._child", kind, request],
+            proc = subprocess.run([sys.executable, "-m", "retarget_cli.io.rig._child", kind, message],
                                   capture_output=True, text=True, errors="replace", timeout=CHILD_TIMEOUT, env=env,
                                   preexec_fn=_limit, stdin=subprocess.DEVNULL)
         except subprocess.TimeoutExpired:
@@ -92,17 +99,31 @@ def read_isolated(kind: str, path: Path, library: str, rig_class, *, meshes=None
             raise MissingExtraError(meta.get("error") or f"{path.name}: an optional extra is missing")
         if proc.returncode == EXIT_MEMORY:
             raise InputError(f"{path.name}: reading it needs more than {MAX_CHILD_BYTES >> 30} GiB of memory")
-        if proc.returncode != 0 or "rig" not in meta:
+        if proc.returncode != 0 or not meta.get("done"):
             raise _crash(path, library, proc.returncode, proc.stderr)
-        fields = dict(meta["rig"])
-        fields.update({name: np.load(Path(out) / f"{name}.npy") for name in _ARRAYS})
-        fields["mesh_ranges"] = [tuple(r) for r in fields["mesh_ranges"]]
-        fields["target_refs"] = [tuple(r) for r in fields["target_refs"]]
-        for key in ("groups", "raw_groups"):
-            fields[key] = {k: [(int(j), float(w)) for j, w in v] for k, v in fields[key].items()}
-        if "layers" in fields and fields["layers"] is not None:
-            fields["layers"] = [Path(p) for p in fields["layers"]]
-        return rig_class(**fields)
+        yield Path(out)
+
+
+def read_isolated(kind: str, path: Path, library: str, rig_class, *, meshes=None, targets=None):
+    """``rig_class`` read by :mod:`._child`'s reader *kind* (``"usd"``, ``"fbx"``) of *path*, in a child process.
+
+    Raises
+    ------
+    InputError
+        The reader's own one-line error, or one line for a crash, a runaway allocation or a time-out.
+    MissingExtraError
+        As the reader raised it.
+    """
+    with run_isolated(kind, path, library, {"meshes": meshes, "targets": targets}) as out:
+        fields = dict(json.loads((out / "result.json").read_text())["rig"])
+        fields.update({name: np.load(out / f"{name}.npy") for name in _ARRAYS})
+    fields["mesh_ranges"] = [tuple(r) for r in fields["mesh_ranges"]]
+    fields["target_refs"] = [tuple(r) for r in fields["target_refs"]]
+    for key in ("groups", "raw_groups"):
+        fields[key] = {k: [(int(j), float(w)) for j, w in v] for k, v in fields[key].items()}
+    if "layers" in fields and fields["layers"] is not None:
+        fields["layers"] = [Path(p) for p in fields["layers"]]
+    return rig_class(**fields)
 
 
 def write_result(rig, out: Path, records: list):
@@ -112,7 +133,7 @@ def write_result(rig, out: Path, records: list):
     fields = {k: v for k, v in vars(rig).items() if k not in _ARRAYS}
     if fields.get("layers") is not None:
         fields["layers"] = [str(p) for p in fields["layers"]]
-    (out / "result.json").write_text(json.dumps({"rig": fields, "log": records}))
+    (out / "result.json").write_text(json.dumps({"rig": fields, "log": records, "done": True}))
 
 
-__all__ = ["CHILD_TIMEOUT", "MAX_CHILD_BYTES", "read_isolated", "write_result"]
+__all__ = ["CHILD_TIMEOUT", "MAX_CHILD_BYTES", "read_isolated", "run_isolated", "write_result"]

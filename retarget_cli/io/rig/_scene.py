@@ -22,7 +22,8 @@ from fnmatch import fnmatchcase
 
 import numpy as np
 
-from ...errors import InputError, ParameterError
+from ...errors import InputError
+from ._names import filter_targets, patterns, slider_keys, unique_names
 from .gltf import MAX_DENSE_BYTES, GltfOutline, GltfRig
 
 log = logging.getLogger(__name__)
@@ -56,19 +57,12 @@ class SceneMesh:
     aliases: tuple = ()
 
 
-def _patterns(value, what: str) -> list[str]:
-    pats = [value] if isinstance(value, str) else list(value)
-    if not pats or not all(isinstance(p, str) and p for p in pats):
-        raise ParameterError(f"{what}: expected glob patterns (non-empty strings), got {value!r}")
-    return pats
-
-
-def _choose(name: str, meshes: list[SceneMesh], patterns) -> list[SceneMesh]:
+def _choose(name: str, meshes: list[SceneMesh], mesh_patterns) -> list[SceneMesh]:
     """The meshes *patterns* name (each must match one), or every mesh with blend shapes."""
-    if patterns is None:
+    if mesh_patterns is None:
         return [m for m in meshes if m.labels]
     chosen = set()
-    for pat in _patterns(patterns, "meshes"):
+    for pat in patterns(mesh_patterns, "meshes"):
         hits = {i for i, m in enumerate(meshes) if any(fnmatchcase(s, pat) for s in (m.name, *m.aliases))}
         if not hits:
             shown = ", ".join(m.name for m in meshes[:20]) or "none"
@@ -78,65 +72,19 @@ def _choose(name: str, meshes: list[SceneMesh], patterns) -> list[SceneMesh]:
     return [m for i, m in enumerate(meshes) if i in chosen]
 
 
-def _unique_names(chosen: list[SceneMesh], table: list) -> list[str]:
-    """The target's name, ``mesh/name`` where it occurs on several meshes, ``~2`` ... for repeats."""
-    owners: dict[str, set] = {}
-    for i, k in table:
-        owners.setdefault(chosen[i].labels[k], set()).add(i)
-    out, used = [], set()
-    for i, k in table:
-        label = chosen[i].labels[k] or f"#{k}"
-        name = label if len(owners.get(chosen[i].labels[k], ())) == 1 else f"{chosen[i].name}/{label}"
-        base, n = name, 2
-        while name in used:
-            name, n = f"{base}~{n}", n + 1
-        used.add(name)
-        out.append(name)
-    return out
-
-
-def _filter(name: str, chosen, table, unique, targets) -> list[int]:
-    if targets is None:
-        return list(range(len(table)))
-    keep = set()
-    for pat in _patterns(targets, "targets"):
-        hits = {j for j, (i, k) in enumerate(table)
-                if fnmatchcase(unique[j], pat) or fnmatchcase(chosen[i].labels[k], pat)
-                or fnmatchcase(f"{chosen[i].name}/{chosen[i].labels[k]}", pat)}
-        if not hits:
-            shown = ", ".join(unique[:12]) + (f", ... ({len(unique)} in all)" if len(unique) > 12 else "")
-            raise InputError(f"{name}: targets: {pat!r} matches no blend shape; the blend shapes: {shown}")
-        keep |= hits
-    return sorted(keep)
-
-
 def _slider_keys(name: str, chosen: list[SceneMesh], table: list) -> list[str]:
-    """The name each kept target is grouped under: ``X.X`` as ``X``, rule (1) common ``prefix.`` dropped, rule (2) ``t_X``."""
-    per_mesh: dict[int, list[int]] = {}
+    """The name each kept target is grouped under (:func:`._names.slider_keys`, with ``X.X`` read as ``X``)."""
+    rows: dict[int, list[int]] = {}
     for j, (i, _) in enumerate(table):
-        per_mesh.setdefault(i, []).append(j)
-    keys = [chosen[i].labels[k] for i, k in table]
-    for j, key in enumerate(keys):  # rule (0): a channel named as its own deformer (Blender, Assimp's exporter)
-        head, dot, tail = key.partition(".")
-        if dot and head == tail:
-            keys[j] = head
-    for i, rows in per_mesh.items():
-        labels = [keys[j] for j in rows]
-        heads = {lab.split(".", 1)[0] for lab in labels if "." in lab}
-        if len(heads) == 1 and all("." in lab and lab.split(".", 1)[1] for lab in labels):
-            log.info("%s: mesh '%s': blend shape names compared without their common prefix '%s.'", name,
-                     chosen[i].name, heads.pop())
-            for j in rows:
-                keys[j] = keys[j].split(".", 1)[1]
-    for i, rows in per_mesh.items():
-        mine = {keys[j] for j in rows}
-        others = {keys[j] for r, js in per_mesh.items() if r != i for j in js}
-        for j in rows:
-            if keys[j].startswith("t_") and keys[j][2:] in others and keys[j][2:] not in mine:
-                log.info("%s: mesh '%s': blend shape %s joins slider %s (t_X rule)", name, chosen[i].name,
-                         keys[j], keys[j][2:])
-                keys[j] = keys[j][2:]
-    return keys
+        rows.setdefault(i, []).append(j)
+    meshes = list(rows)
+    keys = slider_keys(name, [[chosen[i].labels[table[j][1]] for j in rows[i]] for i in meshes],
+                       [chosen[i].name for i in meshes], same_as_deformer=True, noun="blend shape")
+    out = [""] * len(table)
+    for i, own in zip(meshes, keys):
+        for j, key in zip(rows[i], own):
+            out[j] = key
+    return out
 
 
 def _plan(name: str, meshes: list[SceneMesh], mesh_patterns, targets):
@@ -146,8 +94,10 @@ def _plan(name: str, meshes: list[SceneMesh], mesh_patterns, targets):
         shown = ", ".join(m.name for m in (chosen if mesh_patterns else meshes)[:20]) or "none in the file"
         raise InputError(f"{name}: no blend shapes in {'the chosen meshes' if mesh_patterns else 'any mesh'} "
                          f"(meshes: {shown})")
-    unique = _unique_names(chosen, table)
-    keep = _filter(name, chosen, table, unique, targets)
+    labels, names = [[lab or None for lab in m.labels] for m in chosen], [m.name for m in chosen]
+    unique = unique_names(table, labels, names)
+    keep = filter_targets(table, unique, labels, names, targets, noun="blend shape",
+                          fail=lambda message: InputError(f"{name}: {message}"))
     return chosen, [table[j] for j in keep], [unique[j] for j in keep]
 
 

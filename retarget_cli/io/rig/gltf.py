@@ -68,8 +68,8 @@ from fnmatch import fnmatchcase
 
 import numpy as np
 
-from ...errors import ParameterError
 from ._gltfdata import GltfFile, draco_available
+from ._names import filter_targets, patterns, slider_keys, unique_names
 
 log = logging.getLogger(__name__)
 
@@ -237,8 +237,9 @@ def _prepare(f: GltfFile, meshes, targets):
     if not table:
         names = ", ".join(inst.name for inst in (instances if meshes else scene)) or "none in the scene"
         raise f.error(f"no morph targets in {'the chosen meshes' if meshes else 'any mesh'} (meshes: {names})")
-    unique = _unique_names(instances, table)
-    keep = _filter_targets(f, instances, table, unique, targets)
+    labels, names = [inst.target_labels for inst in instances], [inst.name for inst in instances]
+    unique = unique_names(table, labels, names)
+    keep = filter_targets(table, unique, labels, names, targets, fail=f.error)
     return instances, [table[j] for j in keep], [unique[j] for j in keep]
 
 
@@ -362,13 +363,6 @@ def _name(f: GltfFile, obj: dict, default: str) -> str:
     return name if isinstance(name, str) and name else default
 
 
-def _patterns(value, what: str) -> list[str]:
-    pats = [value] if isinstance(value, str) else list(value)
-    if not pats or not all(isinstance(p, str) and p for p in pats):
-        raise ParameterError(f"{what}: expected glob patterns (non-empty strings), got {value!r}")
-    return pats
-
-
 def _targets_of(f: GltfFile, mesh: int, where: str = "a node") -> int:
     """The number of morph targets of mesh *mesh* (the most of any primitive)."""
     prims = f.field(f.item("meshes", mesh, where), "primitives", f"mesh {mesh}", list)
@@ -385,7 +379,7 @@ def _choose(f: GltfFile, instances: list[_Instance], meshes) -> list[_Instance]:
     if meshes is None:
         return [inst for inst in instances if _targets_of(f, inst.mesh)]
     chosen = set()
-    for pat in _patterns(meshes, "meshes"):
+    for pat in patterns(meshes, "meshes"):
         hits = {i for i, inst in enumerate(instances)
                 if fnmatchcase(inst.name, pat) or fnmatchcase(inst.mesh_name, pat) or fnmatchcase(inst.node_name, pat)}
         if not hits:
@@ -451,41 +445,6 @@ def _target_labels(f: GltfFile, mesh: dict, prims: list, n: int, where: str) -> 
     if len(names) != n:
         log.warning("%s: %s names %d targets, it has %d", f.name, where, len(names), n)
     return [names[k] if k < len(names) and names[k] else None for k in range(n)]
-
-
-def _unique_names(instances: list[_Instance], table: list) -> list[str]:
-    """Unique target names: the name, ``mesh/name`` where it occurs on several meshes, ``mesh/#k`` if unnamed."""
-    owners: dict[str, set] = {}
-    for i, k in table:
-        label = instances[i].target_labels[k]
-        if label is not None:
-            owners.setdefault(label, set()).add(i)
-    out, used = [], set()
-    for i, k in table:
-        label, mesh = instances[i].target_labels[k], instances[i].name
-        name = f"{mesh}/#{k}" if label is None else label if len(owners[label]) == 1 else f"{mesh}/{label}"
-        base, n = name, 2
-        while name in used:
-            name, n = f"{base}~{n}", n + 1
-        used.add(name)
-        out.append(name)
-    return out
-
-
-def _filter_targets(f: GltfFile, instances, table, unique, targets) -> list[int]:
-    """Indices into *table* of the targets the *targets* patterns keep (all when None)."""
-    if targets is None:
-        return list(range(len(table)))
-    keep = set()
-    for pat in _patterns(targets, "targets"):
-        hits = {j for j, (i, k) in enumerate(table)
-                if fnmatchcase(unique[j], pat) or fnmatchcase(instances[i].target_labels[k] or "", pat)
-                or fnmatchcase(f"{instances[i].name}/{instances[i].target_labels[k]}", pat)}
-        if not hits:
-            names = ", ".join(unique[:12]) + (f", ... ({len(unique)} in all)" if len(unique) > 12 else "")
-            raise f.error(f"targets: {pat!r} matches no morph target; the targets: {names}")
-        keep |= hits
-    return sorted(keep)
 
 
 # ---------------------------------------------------------------------- placement (nodes, skins)
@@ -654,31 +613,8 @@ def _groups(f: GltfFile, instances: list[_Instance], table: list, unique: list[s
     return "gltf", _name_groups(f, instances, table, unique)
 
 
-def _slider_keys(f: GltfFile, instances: list[_Instance]) -> list[list]:
-    """Per instance, the name each target is grouped under (None when unnamed): rules (1) and (2)."""
-    keys = []
-    for inst in instances:
-        labels = inst.target_labels
-        heads = {lab.split(".", 1)[0] for lab in labels if lab is not None and "." in lab}
-        if labels and None not in labels and len(heads) == 1 and all("." in lab and lab.split(".", 1)[1]
-                                                                     for lab in labels):
-            log.info("%s: mesh '%s': target names compared without their common prefix '%s.'",
-                     f.name, inst.name, heads.pop())
-            labels = [lab.split(".", 1)[1] for lab in labels]
-        keys.append(list(labels))
-    for i, own in enumerate(keys):
-        others = {k for j, ks in enumerate(keys) if j != i for k in ks if k is not None}
-        mine = set(own)
-        for k, key in enumerate(own):
-            if key and key.startswith("t_") and key[2:] in others and key[2:] not in mine:
-                log.info("%s: mesh '%s': target %s joins slider %s (t_X rule)", f.name, instances[i].name, key,
-                         key[2:])
-                own[k] = key[2:]
-    return keys
-
-
 def _name_groups(f: GltfFile, instances: list[_Instance], table: list, unique: list[str]) -> dict:
-    keys = _slider_keys(f, instances)
+    keys = slider_keys(f.name, [inst.target_labels for inst in instances], [inst.name for inst in instances])
     groups: dict[str, list] = {}
     for j, (i, k) in enumerate(table):
         key = keys[i][k]

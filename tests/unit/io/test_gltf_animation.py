@@ -481,7 +481,7 @@ def test_same_export_needs_a_rig_from_a_gltf_file(tmp_path):
         with pytest.raises(InputError) as info:
             SameExport.check_context(ctx)
         assert str(info.value) == (f"{tmp_path / 'rig' / 'rig.yaml'}: apply.formats: same needs a rig read from a "
-                                   ".glb/.gltf/.vrm file (rig.yaml source:)")
+                                   ".glb/.gltf/.vrm or .usd/.usda/.usdc/.usdz file (rig.yaml source:)")
     assert not any((tmp_path / "out").iterdir())
 
 
@@ -508,7 +508,7 @@ def test_apply_format_same_with_a_rig_of_objs_is_an_error_before_any_frame(tmp_p
     save_weights(tmp_path / "weights.npz", {"face": (W, np.array([0, 3]), np.zeros(3))}, {"fps": FPS})
     out = tmp_path / "out"
     with pytest.raises(InputError, match=r"rig.yaml: apply.formats: same needs a rig read from a "
-                                         r"\.glb/\.gltf/\.vrm file \(rig.yaml source:\)"):
+                                         r"\.glb/\.gltf/\.vrm or \.usd/\.usda/\.usdc/\.usdz file \(rig.yaml source:\)"):
         run_apply(weights=tmp_path / "weights.npz", targets=t / "targets.yaml", output=out, formats=["obj", "same"])
     assert not list(out.glob("*.obj")) and not list(out.glob("*.glb"))
 

@@ -174,11 +174,16 @@ def test_rig_yaml_source_with_filters_and_sliders(tmp_path):
     assert len(list(cache.glob("rig-*.npz"))) == 1
 
 
-def test_apply_format_same_refuses_a_usd_rig(tmp_path):
+def test_apply_format_same_takes_a_usd_rig(tmp_path):
     P, quads, D, names = _synthetic()
     rig = load_rig(_write(tmp_path / "char.usd", P, quads, D, names))
-    ctx = SimpleNamespace(rig=rig, rig_file=tmp_path / "char.usd", out=tmp_path / "out")
-    with pytest.raises(InputError, match="same needs a rig read from a .glb/.gltf/.vrm file"):
+    ctx = SimpleNamespace(rig=rig, rig_file=tmp_path / "char.usd", out=tmp_path / "out", weights=None, targets=None,
+                          landmarks=None)
+    SameExport.check_context(ctx)  # the copy itself: tests/unit/io/test_usd_animation.py
+    assert SameExport.outputs(ctx, tmp_path / "char.usd") == (tmp_path / "out" / "char_animated.usd",)
+    ctx.out = tmp_path
+    with pytest.raises(InputError, match="char_animated.usd"):  # not over an input of the run
+        ctx.rig_file = tmp_path / "char_animated.usd"
         SameExport.check_context(ctx)
 
 
