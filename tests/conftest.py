@@ -1,8 +1,35 @@
+import os
 import shutil
+from pathlib import Path
 
 import pytest
 
 from retarget_cli.synth.take import write_take
+
+
+@pytest.fixture(autouse=True, scope="session")
+def session_user_cache(tmp_path_factory):
+    """A temporary user rig cache for the whole session, set before any other session fixture runs a pipeline
+    (``tiny_run``): no test ever writes into the user's ~/.cache."""
+    keys = ("RETARGET_CACHE_DIR", "RETARGET_CACHE_SIZE")
+    old = {k: os.environ.get(k) for k in keys}
+    os.environ["RETARGET_CACHE_DIR"] = str(tmp_path_factory.mktemp("session-user-cache"))
+    os.environ.pop("RETARGET_CACHE_SIZE", None)
+    yield Path(os.environ["RETARGET_CACHE_DIR"]) / "rigs"
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+@pytest.fixture(autouse=True)
+def user_cache(session_user_cache, tmp_path_factory, monkeypatch):
+    """Every test gets its own empty user rig cache ($RETARGET_CACHE_DIR), never the user's ~/.cache."""
+    d = tmp_path_factory.mktemp("user-cache")
+    monkeypatch.setenv("RETARGET_CACHE_DIR", str(d))
+    monkeypatch.delenv("RETARGET_CACHE_SIZE", raising=False)
+    return d / "rigs"
 
 
 @pytest.fixture(scope="session")

@@ -24,6 +24,7 @@ from ..batch import command as batch_command
 from ..config import UNSET, Command, Flag, Param, show_paths
 from ..errors import RetargetError, UsageError, stop_cause, stop_message
 from ..io.atomic import guard_writes, remove_stale_parts
+from ..run import cache as cache_command
 from ..run import pipeline
 from ..see import commands as see_commands
 from ..stages import annotate, apply, auto_pose, decompose, edit, map_landmarks, pose, select, solve_rig, track
@@ -36,7 +37,7 @@ log = logging.getLogger("retarget_cli")
 DECLARED: list[Command] = [
     *track.COMMANDS, annotate.COMMAND, select.COMMAND, decompose.COMMAND, pose.COMMAND, apply.COMMAND,
     edit.COMMAND, auto_pose.COMMAND, map_landmarks.COMMAND, solve_rig.COMMAND, pipeline.COMMAND, batch_command.COMMAND,
-    *see_commands.COMMANDS, take.COMMAND,
+    *see_commands.COMMANDS, take.COMMAND, cache_command.COMMAND,
 ]
 
 _TYPES = {int: click.INT, float: click.FLOAT, str: click.STRING}

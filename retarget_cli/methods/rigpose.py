@@ -43,6 +43,7 @@ from .._validate import check_array
 from ..errors import InputError, ParameterError, ShapeError
 from .blas import small_blas
 from .decomposition import box_qp
+from .decomposition.boxqp import box_qp_weighted
 from .decomposition.temporal import _second_difference, event_terms, sparse_box_qp
 from .editing import fit_orthographic
 
@@ -713,20 +714,14 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     cnt = np.zeros(K)
     fits = [[] for _ in ids]
     with small_blas():  # many small solves: BLAS threads only add overhead (methods/blas.py)
-        for k in range(K):
-            if rig_ids is None:
-                sk, Rk, tk = s, R, t
-            else:
-                ck = np.minimum(C[k, rig_ids], c0[rig_ids])
-                sk, Rk, tk = fit_orthographic(X0[rig_ids], Y[k, rig_ids] - e0[rig_ids], ck if np.count_nonzero(ck) >= 3
-                                              else None)
-            rest_k = sk * X0 @ Rk[:2].T + tk + (sk / s) * e0  # the neutral face in frame k's pose
-            frame = _Frame(Y[k], rest_k, X0 @ Rk[:2].T, project(DL, Rk), np.minimum(C[k], c0), sk, P0n, Bn)
+        for k0 in range(0, K, _BATCH):  # frames in batches: their QPs are solved together
+            frames = [_frame(Y[k], C[k], c0, X0, DL, e0, (s, R, t), rig_ids, P0n, Bn)
+                      for k in range(k0, min(K, k0 + _BATCH))]
             for ri, (i, sr) in enumerate(zip(ids, scales)):
                 free = owner == ri
                 if not free.any():
                     continue
-                fits[ri].append(_fit_region(rig, frame, i, sr, free, groups[ri], **opts))
+                fits[ri] += _fit_region_frames(rig, frames, i, sr, free, groups[ri], **opts)
     B0 = project(DL, R)
     for ri, i in enumerate(ids):
         if not fits[ri]:
@@ -760,6 +755,20 @@ class _Frame:
     Bn: np.ndarray
 
 
+def _frame(Yk, Ck, c0, X0, DL, e0, camera, rig_ids, P0n, Bn) -> _Frame:
+    """Target frame *Yk* (L, 2) with confidences *Ck* (L,) as :func:`_fit_region_frames` needs it: seen through
+    its own camera fitted on the *rig_ids* landmarks (the neutral frame's *camera* ``(s, R, t)`` without them)."""
+    s, R, t = camera
+    if rig_ids is None:
+        sk, Rk, tk = s, R, t
+    else:
+        ck = np.minimum(Ck[rig_ids], c0[rig_ids])
+        sk, Rk, tk = fit_orthographic(X0[rig_ids], Yk[rig_ids] - e0[rig_ids], ck if np.count_nonzero(ck) >= 3
+                                      else None)
+    rest_k = sk * X0 @ Rk[:2].T + tk + (sk / s) * e0  # the neutral face in frame k's pose
+    return _Frame(Yk, rest_k, X0 @ Rk[:2].T, project(DL, Rk), np.minimum(Ck, c0), sk, P0n, Bn)
+
+
 def _region_contacts(contact, refs, ids, L: int) -> list:
     """Per region, ``(group, references)`` of the contact groups all of whose pairs' landmarks lie in it."""
     out = [[] for _ in ids]
@@ -775,9 +784,14 @@ def _region_contacts(contact, refs, ids, L: int) -> list:
     return out
 
 
-def _fit_region(rig, fr: _Frame, i, sr, free, groups, *, sparsity, ridge, exclusive, robust_iterations,
-                contact_weight, contact_tol, lid_closed, lip_closed):
-    """One region of one frame: sliders (n,), the weighted squared residual (pixels²) and its weight."""
+#: Frames of :func:`delta_pose` whose per-frame QPs are solved together (bounds the memory of a long take).
+_BATCH = 256
+
+
+def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_closed, lip_closed):
+    """The rows of one region of one frame: ``A`` (r, n), ``b`` (r,) (the landmark coordinates' displacements,
+    then a row per contact pair), and per pair its landmark weight, tolerance and closed gap, and the frame's
+    pixels per rig unit."""
     n = rig.n_sliders
     scale = fr.s * sr
     m = ((fr.Y[i] - fr.rest[i]) / scale)  # (|i|, 2) the delta fit's displacements, rig units
@@ -804,47 +818,140 @@ def _fit_region(rig, fr: _Frame, i, sr, free, groups, *, sparsity, ridge, exclus
         g_tol += [contact_tol * float(np.linalg.norm(fr.P0n[c.corners[1]] - fr.P0n[c.corners[0]]))] * len(c.pairs)
     A = Br.reshape(-1, n)
     b = m.ravel()
-    cl = fr.c[i]
     if G_rows:
         A = np.vstack([A, *G_rows])
         b = np.concatenate([b, *g_t])
-    n_lm = 2 * len(i)
+    closed = np.concatenate(g_closed) if g_closed else np.zeros(0)
+    return A, b, np.asarray(g_c, dtype=np.float64), np.asarray(g_tol, dtype=np.float64), closed, scale
 
-    boost = np.ones(len(g_c))
 
-    def row_weights(h):
-        cw = np.repeat(cl * h, 2)
-        if len(b) > n_lm:
-            hp = [min(h[pos[up]], h[pos[lo]]) for c, _ in groups for up, lo in c.pairs]
-            cw = np.concatenate([cw, contact_weight * boost * np.asarray(g_c) * np.asarray(hp)])
+def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exclusive, robust_iterations,
+                       contact_weight, contact_tol, lid_closed, lip_closed) -> list:
+    """One region of each of *frames*: a :class:`_RegionFit` per frame.
+
+    Per frame, the sliders of :func:`fit_sliders` on the region's rows (:func:`_region_rows`), then
+    ``robust_iterations`` Huber reweightings per landmark (a point the tracker lost, tens of pixels off, must not
+    pose the face: the threshold is ROBUST_PX pixels, or twice the median residual when that is larger), then up
+    to CONTACT_PASSES passes where a gap that crosses (below the closed one by more than *contact_tol* of its
+    feature's width), or that is not closed where the actor's is, weighs CONTACT_BOOST times more, until none
+    is. Each step's QPs are solved for every frame at once (:func:`_slider_qps`).
+    """
+    rows = [_region_rows(rig, fr, i, sr, groups, free, contact_tol=contact_tol, lid_closed=lid_closed,
+                         lip_closed=lip_closed) for fr in frames]
+    A = np.stack([r[0] for r in rows])
+    b = np.stack([r[1] for r in rows])
+    g_c = np.stack([r[2] for r in rows])
+    tol = np.stack([r[3] for r in rows])
+    closed = np.stack([r[4] for r in rows])
+    scale = np.array([r[5] for r in rows])
+    cl = np.stack([fr.c[i] for fr in frames])
+    T, n_lm = len(frames), 2 * len(i)
+    pos = {int(p): j for j, p in enumerate(i)}
+    ups = np.array([pos[up] for c, _ in groups for up, _ in c.pairs], dtype=np.int64)
+    los = np.array([pos[lo] for c, _ in groups for _, lo in c.pairs], dtype=np.int64)
+    boost = np.ones(g_c.shape)
+
+    def row_weights(h, k):
+        cw = np.repeat(cl[k] * h[k], 2, axis=1)
+        if len(ups):
+            hp = np.minimum(h[k][:, ups], h[k][:, los])
+            cw = np.concatenate([cw, contact_weight * boost[k] * g_c[k] * hp], axis=1)
         return cw
 
-    h = np.ones(len(i))
-    cw = row_weights(h)
-    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free, scale_rows=2 * len(i))
-    w, H, q, used = _slider_qp(A, b, rig.lower, rig.upper, weights=cw, **qp)
+    every = np.arange(T)
+    h = np.ones((T, len(i)))
+    cw = row_weights(h, every)
+    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free, scale_rows=n_lm)
+    w, H, q, used = _slider_qps(A, b, rig.lower, rig.upper, cw, **qp)
     for _ in range(robust_iterations):
-        # Huber reweighting per landmark: a point the tracker lost (tens of pixels off) must not pose the
-        # face. The threshold is ROBUST_PX pixels, or twice the median residual when that is larger.
-        e = np.linalg.norm((A[:n_lm] @ w - b[:n_lm]).reshape(-1, 2), axis=1) * scale
-        thr = max(ROBUST_PX, 2.0 * float(np.median(e)))
-        h = np.minimum(1.0, thr / np.maximum(e, 1e-12))
-        cw = row_weights(h)
-        w, H, q, used = _slider_qp(A, b, rig.lower, rig.upper, weights=cw, **qp)
-    tol = np.asarray(g_tol)
-    closed = np.concatenate(g_closed) if g_closed else np.zeros(0)
-    shut = b[n_lm:] <= closed + tol  # the actor's feature is closed: contact
-    for _ in range(CONTACT_PASSES if len(b) > n_lm else 0):
-        # a gap that crosses (below the closed one by more than contact_tol of its feature's width), or that is
-        # not closed where the actor's is, weighs CONTACT_BOOST times more, until none is
-        g = A[n_lm:] @ w
-        off = (g < closed - tol) | (shut & (np.abs(g - b[n_lm:]) > tol))
-        if not off.any():
+        e = np.linalg.norm((np.einsum("trn,tn->tr", A[:, :n_lm], w) - b[:, :n_lm]).reshape(T, -1, 2), axis=2)
+        e *= scale[:, None]
+        thr = np.maximum(ROBUST_PX, 2.0 * np.median(e, axis=1))
+        h = np.minimum(1.0, thr[:, None] / np.maximum(e, 1e-12))
+        cw = row_weights(h, every)
+        w, H, q, used = _slider_qps(A, b, rig.lower, rig.upper, cw, **qp)
+    shut = b[:, n_lm:] <= closed + tol  # the actor's feature is closed: contact
+    todo = every if len(ups) else every[:0]
+    for _ in range(CONTACT_PASSES):
+        if not todo.size:
             break
-        boost[off] *= CONTACT_BOOST
-        cw = row_weights(h)
-        w, H, q, used = _slider_qp(A, b, rig.lower, rig.upper, weights=cw, **qp)
-    return _RegionFit(w, H, q, used, A, b, cw, n_lm, scale)
+        g = np.einsum("trn,tn->tr", A[todo, n_lm:], w[todo])
+        off = (g < closed[todo] - tol[todo]) | (shut[todo] & (np.abs(g - b[todo, n_lm:]) > tol[todo]))
+        more = off.any(axis=1)
+        todo, off = todo[more], off[more]
+        if not todo.size:
+            break
+        bt = boost[todo]
+        bt[off] *= CONTACT_BOOST
+        boost[todo] = bt
+        cw[todo] = row_weights(h, todo)
+        w[todo], Ht, q[todo], used[todo] = _slider_qps(A[todo], b[todo], rig.lower, rig.upper, cw[todo], **qp)
+        for j, k in enumerate(todo):
+            H[k] = Ht[j]
+    return [_RegionFit(w[k], H[k], q[k] if H[k] is not None else None, used[k], A[k], b[k], cw[k], n_lm,
+                       float(scale[k])) for k in range(T)]
+
+
+def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, scale_rows=None):
+    """:func:`_slider_qp` of many frames at once: ``A`` (T, r, n), ``b`` (T, r), ``CW`` (T, r) row weights
+    (*scale_rows* as :func:`fit_sliders`'s).
+
+    Every frame's QP (its own Hessian ``Aᵀ diag(c) A`` with the ridge and sparsity of :func:`fit_sliders`) is
+    solved by :func:`~retarget_cli.methods.decomposition.boxqp.box_qp_weighted` with the other frames that have
+    the same free sliders; a frame where both sliders of an exclusive pair are active loses the weaker one and is
+    solved again, as :func:`_slider_qp` does.
+
+    Returns
+    -------
+    w : ndarray, shape (T, n)
+    H : list of (ndarray (n, n) or None)
+        None where nothing is free (or the frame's rows weigh nothing).
+    q : ndarray, shape (T, n)
+    free : ndarray of bool, shape (T, n)
+    """
+    T, _, n = A.shape
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), (n,)).copy()
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), (n,)).copy()
+    if np.any(lo > 0) or np.any(hi < 0):
+        raise ParameterError("fit_sliders: every slider range must contain 0 (the rest pose)")
+    pairs = np.zeros((0, 2), np.int64) if exclusive is None else np.asarray(exclusive, dtype=np.int64).reshape(-1, 2)
+    F = np.tile(np.asarray(free, dtype=bool), (T, 1))
+    w = np.zeros((T, n))
+    BtC = A.transpose(0, 2, 1) * CW[:, None, :]
+    Hs = BtC @ A
+    q = (BtC @ b[..., None])[..., 0]
+    kr = A.shape[1] if scale_rows is None else scale_rows
+    hbar = np.array([float(np.mean(((CW[k, :kr, None] * A[k, :kr] ** 2).sum(axis=0))[F[k]])) if F[k].any() else 0.0
+                     for k in range(T)])
+    ok = hbar > 0
+    F[~ok] = False
+    Hs = Hs + (ridge * hbar)[:, None, None] * np.eye(n)
+    q = q - (sparsity * hbar)[:, None] * (lo >= 0)
+    todo = np.flatnonzero(ok)
+    for _ in range(len(pairs) + 1):
+        if not todo.size:
+            break
+        pats, inv = np.unique(F[todo], axis=0, return_inverse=True)
+        for g, pat in enumerate(pats):
+            ks = todo[inv.ravel() == g]
+            idx = np.flatnonzero(pat)
+            w[ks] = 0.0
+            if not idx.size:
+                continue
+            iu, ju = np.triu_indices(len(idx))
+            Hsub = Hs[ks][:, idx][:, :, idx]
+            w[np.ix_(ks, idx)] = box_qp_weighted(Hsub[:, iu, ju], q[ks][:, idx], lower=lo[idx], upper=hi[idx])
+        if not len(pairs):
+            break
+        act = np.abs(w[todo]) > ACTIVE
+        both = act[:, pairs[:, 0]] & act[:, pairs[:, 1]]
+        again = both.any(axis=1)
+        for k, hit in zip(todo[again], both[again]):
+            for a, c in pairs[hit]:
+                F[k, c if abs(w[k, c]) <= abs(w[k, a]) else a] = False
+        todo = todo[again]
+    H = [Hs[k] if ok[k] else None for k in range(T)]
+    return w, H, q, F
 
 
 @dataclass

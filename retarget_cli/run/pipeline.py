@@ -18,6 +18,7 @@ from .. import stages
 from ..config import REQUIRED, Command, Config, Flag, Param, load_config
 from ..errors import ConfigError, InputError, OutputError, RetargetError
 from ..io.atomic import folder_lock, guard_writes, remove_stale_parts
+from ..io.rig.cache import cache_limit, rig_cache_dir
 from ..stages._common import Stage, collect_results
 from .manifest import check_unchanged, manifest_matches, record_inputs, write_manifest
 
@@ -57,7 +58,8 @@ RUN_PARAMS = [
           "Override a config value (YAML syntax), e.g. --set select.k=8 or --set output_dir=/scratch/take01. "
           "Repeatable.", nullable=True),
     Param("no_cache", "setting", bool, False,
-          "Read rigs' OBJs every time instead of keeping them parsed in <output_dir>/.retarget/cache."),
+          "Read rigs' files every time instead of keeping them parsed in the user's rig cache "
+          "($RETARGET_CACHE_DIR, else ~/.cache/retarget; see `retarget cache`)."),
 ]
 
 
@@ -151,8 +153,10 @@ def check_up_to_date(cfg: Config, name: str, kw: dict) -> tuple[bool, str]:
 
 
 def cache_dir(cfg: Config) -> Path:
-    """Where a run keeps parsed rigs (:mod:`retarget_cli.io.rig.cache`): ``<output_dir>/.retarget/cache``."""
-    return cfg.output_dir / ".retarget" / "cache"
+    """Where a run keeps parsed rigs (:mod:`retarget_cli.io.rig.cache`): the user's rig cache, shared by every
+    run (:func:`~retarget_cli.io.rig.cache.rig_cache_dir`), whatever *cfg*."""
+    cache_limit()  # a bad $RETARGET_CACHE_SIZE stops the run before any stage
+    return rig_cache_dir()
 
 
 def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = True) -> list[Path]:
@@ -230,6 +234,8 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
             except ConfigError:
                 pass
     inputs = check_outputs(cfg, everything)
+    if cache:
+        cache_limit()  # a bad $RETARGET_CACHE_SIZE stops the run before any stage
     report = []
     with folder_lock(cfg.output_dir, "output_dir"), \
             guard_writes(roots=[cfg.output_dir], inputs=inputs, label=f"output_dir of {cfg.path}"):

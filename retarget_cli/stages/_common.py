@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ..config import Flag, Param
 from ..errors import InputError
+from ..io.rig.cache import cache_limit, rig_cache_dir
 
 
 @contextlib.contextmanager
@@ -46,7 +47,7 @@ class Stage:
     uses_progress: bool = False
     uses_seed: bool = False
     uses_base_dir: bool = False
-    #: The runner takes ``cache_dir`` (the run's ``<output_dir>/.retarget/cache``, for parsed rigs).
+    #: The runner takes ``cache_dir`` (the user's rig cache, :func:`~retarget_cli.io.rig.cache.rig_cache_dir`).
     uses_cache: bool = False
     #: Declarations that extensions add, read at each use (a registry may grow after import).
     more_params: Callable = field(default=lambda: [])
@@ -61,16 +62,19 @@ class Stage:
 
 #: ``--no-cache`` of the commands that read a rig.
 NO_CACHE = Param("no_cache", "setting", bool, False,
-                 "Read the rig's OBJs every time instead of keeping them parsed in a .retarget-cache folder in the "
-                 "output's folder.")
+                 "Read the rig's files every time instead of keeping them parsed in the user's rig cache "
+                 "($RETARGET_CACHE_DIR, else ~/.cache/retarget; see `retarget cache`).")
 NO_CACHE_FLAG = Flag("no_cache", decls=("--no-cache",), show_default=False)
 
 
 def command_cache_dir(output, no_cache: bool, *, folder: bool = False) -> Path | None:
-    """The rig cache of a single command: ``.retarget-cache`` in the folder the output goes to (None: no cache)."""
+    """The rig cache of a command: the user's (:func:`~retarget_cli.io.rig.cache.rig_cache_dir`), shared by
+    every run; None with *no_cache*. *output* and *folder* are kept for the callers (the cache no longer lives
+    beside the output). ``$RETARGET_CACHE_SIZE`` is checked here, before any work."""
     if no_cache:
         return None
-    return (Path(output) if folder else Path(output).parent) / ".retarget-cache"
+    cache_limit()
+    return rig_cache_dir()
 
 
 # --------------------------------------------------------------------------- what a stage found

@@ -1,4 +1,5 @@
-"""Commands that load a rig: arguments checked before the rig's OBJs are parsed, and where the rig cache goes."""
+"""Commands that load a rig: arguments checked before the rig's OBJs are parsed, and where the rig cache goes
+(the user's, shared by every run: $RETARGET_CACHE_DIR, which tests/conftest.py points at a temporary folder)."""
 
 import numpy as np
 import pytest
@@ -34,25 +35,26 @@ def _caches(d):
     return sorted(d.glob("rig-*.npz")) if d.is_dir() else []
 
 
-def test_pose_keys_caches_the_rig_in_the_output_folder(take, monkeypatch):
+def test_pose_keys_caches_the_rig_in_the_user_cache(take, monkeypatch, user_cache):
     out = take / "targets"
     res = run("pose-keys", take / "keys.json", take / "rig.yaml", "--poses", take / "truth.npz", "-o", out)
     assert res.exit_code == 0, res.output
-    assert len(_caches(out / ".retarget-cache")) == 1
-    assert not (take / ".retarget-cache").exists()
+    assert len(_caches(user_cache)) == 1
+    assert not list(take.rglob(".retarget-cache")) and not list(take.rglob("rig-*.npz"))
     first = {p.name: p.read_bytes() for p in (out / "face").glob("*.obj")}
     monkeypatch.setattr(rigcache, "read_obj", lambda p: pytest.fail(f"{p} parsed although cached"))
-    res = run("pose-keys", take / "keys.json", take / "rig.yaml", "--poses", take / "truth.npz", "-o", out)
+    # another output folder: the cache is shared across runs
+    res = run("pose-keys", take / "keys.json", take / "rig.yaml", "--poses", take / "truth.npz", "-o", take / "t3")
     assert res.exit_code == 0, res.output
-    assert {p.name: p.read_bytes() for p in (out / "face").glob("*.obj")} == first and len(first) == 3
+    assert {p.name: p.read_bytes() for p in (take / "t3" / "face").glob("*.obj")} == first and len(first) == 3
 
 
-def test_no_cache_writes_no_cache(take):
+def test_no_cache_writes_no_cache(take, user_cache):
     out = take / "t2"
     res = run("pose-keys", take / "keys.json", take / "rig.yaml", "--poses", take / "truth.npz", "-o", out,
               "--no-cache")
     assert res.exit_code == 0, res.output
-    assert not (out / ".retarget-cache").exists()
+    assert not user_cache.exists() and not list(take.rglob("rig-*.npz"))
 
 
 def test_pose_keys_checks_poses_and_masks_before_parsing_the_rig(take, no_parse):
@@ -86,13 +88,13 @@ def test_edit_checks_its_arguments_before_parsing_the_rig(take, no_parse):
     assert res.exit_code == 1 and "would overwrite the input" in res.output
 
 
-def test_edit_caches_beside_its_output(take):
+def test_edit_caches_in_the_user_cache(take, user_cache):
     (take / "out").mkdir()
     (take / "edits.yaml").write_text("rig: rig.yaml\nedits:\n  - attenuate:\n      frames: [1, 5]\n      select:\n"
                                      "        - {vertices: [0], axes: y}\n")
     res = run("edit", take / "truth.npz", take / "edits.yaml", "-o", take / "out" / "e.csv")
     assert res.exit_code == 0, res.output
-    assert len(_caches(take / "out" / ".retarget-cache")) == 1
+    assert len(_caches(user_cache)) == 1 and sorted(p.name for p in (take / "out").iterdir()) == ["e.csv"]
 
 
 def test_solve_rig_checks_outputs_and_meshes_before_parsing_the_rig(take, no_parse):
@@ -104,15 +106,46 @@ def test_solve_rig_checks_outputs_and_meshes_before_parsing_the_rig(take, no_par
     assert res.exit_code == 1 and "would overwrite the input" in res.output
 
 
-def test_run_caches_the_rig_under_the_run_folder(take):
+def test_run_caches_the_rig_in_the_user_cache_shared_by_runs(take, user_cache, monkeypatch):
     (take / "pose.yaml").write_text("output_dir: runout\npose:\n  keys: keys.json\n  rig: rig.yaml\n"
                                     "  poses: truth.npz\n")
     res = run("run", take / "pose.yaml")
     assert res.exit_code == 0, res.output
-    assert len(_caches(take / "runout" / ".retarget" / "cache")) == 1
-    assert not (take / "runout" / "targets" / ".retarget-cache").exists()
+    assert len(_caches(user_cache)) == 1 and not list((take / "runout").rglob("rig-*.npz"))
+    monkeypatch.setattr(rigcache, "read_obj", lambda p: pytest.fail(f"{p} parsed although cached"))
+    res = run("run", take / "pose.yaml", "--set", "output_dir=runout2")
+    assert res.exit_code == 0, res.output
+    monkeypatch.undo()
     res = run("run", take / "pose.yaml", "--force", "--no-cache")
     assert res.exit_code == 0, res.output
+
+
+def test_bad_cache_size_is_one_line_before_any_stage(take, monkeypatch):
+    (take / "pose.yaml").write_text("output_dir: runout\npose:\n  keys: keys.json\n  rig: rig.yaml\n"
+                                    "  poses: truth.npz\n")
+    monkeypatch.setenv("RETARGET_CACHE_SIZE", "lots")
+    res = CliRunner().invoke(main, ["run", str(take / "pose.yaml")])
+    assert res.exit_code != 0 and "RETARGET_CACHE_SIZE: expected bytes such as 500M or 2G, got 'lots'" in res.output
+    assert "Traceback" not in res.output and not (take / "runout" / "targets").exists()
+
+
+def test_cache_info_and_clear(take, user_cache):
+    res = run("pose-keys", take / "keys.json", take / "rig.yaml", "--poses", take / "truth.npz", "-o", take / "t")
+    assert res.exit_code == 0, res.output
+    (entry,) = _caches(user_cache)
+    mine = user_cache / "rig-notes.txt"  # a file the cache did not write
+    mine.write_text("keep me")
+    lookalike = user_cache / "rig-0123456789abcdef.npz"  # named like an entry, but not one
+    savez(lookalike, {"key": np.array("ffff")})
+    res = run("cache")
+    assert res.exit_code == 0, res.output
+    lines = dict(line.split("\t") for line in res.output.splitlines())
+    assert lines["folder"] == str(user_cache) and lines["entries"] == "1"
+    assert lines["size"].startswith(f"{entry.stat().st_size / 2**20:.1f} MB of 2048.0 MB")
+    res = run("cache", "clear")
+    assert res.exit_code == 0 and "removed 1 entry" in res.output, res.output
+    assert not entry.exists() and mine.read_text() == "keep me" and lookalike.is_file()
+    assert run("cache").output.splitlines()[1] == "entries\t0"
 
 
 def test_edit_objs_folder_must_not_hold_input_frames(take, no_parse):

@@ -12,33 +12,216 @@ With a *cache_dir*, the parsed meshes are kept in ``cache_dir/rig-<key16>.npz``
 float64 vertices as stored, so they round-trip bit for bit, and the
 template's non-coordinate bytes, so written OBJs are byte-identical to those
 of a cold load. A cache file that cannot be read, or whose key or shapes do
-not match, is logged and rebuilt; the cache only ever writes (atomically) and
-replaces files named ``rig-*.npz`` in *cache_dir*.
+not match, is logged and rebuilt.
 
 A rig read from a character file (``source: char.glb``) is kept the same way
 by :func:`cached_arrays`: the key is the sha256 of ``rig.yaml``, the file and
 its external buffers, under another layout name, and the arrays are what
 :mod:`retarget_cli.io.rig.load` builds from the file.
+
+The commands use one cache folder per user, shared by every run and every batch worker
+(:func:`rig_cache_dir`: ``$RETARGET_CACHE_DIR/rigs``, else ``$XDG_CACHE_HOME/retarget/rigs``, else
+``~/.cache/retarget/rigs``), so that a studio's hundreds of clips onto one rig parse it once:
+
+- an entry is written under a temporary name and renamed into place (:mod:`retarget_cli.io.atomic`), so a
+  reader sees a whole entry or none; two workers that write the same key write the same bytes; an entry
+  removed between the look-up and the read is a miss (rebuilt), never an error;
+- a hit sets the entry's modification time (the LRU clock); after a write, the least recently used entries
+  are removed until the folder holds at most :func:`cache_limit` bytes (``$RETARGET_CACHE_SIZE``, default
+  2 GiB; ``0`` keeps nothing);
+- only the cache's own entries are ever removed: files named ``rig-<16 hex>.npz`` whose ``key`` member
+  begins with those 16 hex digits, and temporary files a killed writer's journal lists.
+  :func:`cache_info` and :func:`clear_cache` serve ``retarget cache``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
 from ...errors import InputError, ParameterError
-from ..atomic import savez
+from ..atomic import guard_writes, remove_stale_parts, savez
 from ..obj import ObjMesh, check_coordinates, check_same_topology, count_vertices, read_obj
 
 log = logging.getLogger(__name__)
 
 #: Bump when the cache layout or the meaning of its arrays changes.
 CACHE_VERSION = 1
+
+
+#: The environment variable naming the user cache folder (the rig entries go in its ``rigs/``).
+CACHE_DIR_ENV = "RETARGET_CACHE_DIR"
+#: The environment variable with the cache's size limit: bytes, or with a suffix ``K``, ``M``, ``G`` (powers of 1024).
+CACHE_SIZE_ENV = "RETARGET_CACHE_SIZE"
+#: The size limit without :data:`CACHE_SIZE_ENV`: 2 GiB (the ICT FaceKit's entry is 36 MB).
+DEFAULT_CACHE_BYTES = 2 << 30
+
+_ENTRY_RE = re.compile(r"^rig-([0-9a-f]{16})\.npz$")
+_UNITS = {"": 1, "B": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
+
+
+def user_cache_dir(environ=None) -> Path:
+    """The user's cache folder of ``retarget``.
+
+    ``$RETARGET_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/retarget``, else ``~/.cache/retarget``.
+
+    Parameters
+    ----------
+    environ : mapping, optional
+        The environment (default ``os.environ``).
+    """
+    env = os.environ if environ is None else environ
+    if env.get(CACHE_DIR_ENV):
+        return Path(env[CACHE_DIR_ENV]).expanduser()
+    xdg = env.get("XDG_CACHE_HOME")
+    base = Path(xdg).expanduser() if xdg and Path(xdg).is_absolute() else Path.home() / ".cache"
+    return base / "retarget"
+
+
+def rig_cache_dir(environ=None) -> Path:
+    """Where the commands keep parsed rigs: ``rigs/`` in :func:`user_cache_dir`."""
+    return user_cache_dir(environ) / "rigs"
+
+
+def cache_limit(environ=None) -> int:
+    """The cache's size limit in bytes: ``$RETARGET_CACHE_SIZE`` (``500M``, ``2G``, ``0``) or 2 GiB.
+
+    Raises
+    ------
+    ParameterError
+        ``RETARGET_CACHE_SIZE: expected bytes such as 500M or 2G, got 'lots'``.
+    """
+    env = os.environ if environ is None else environ
+    text = str(env.get(CACHE_SIZE_ENV, "")).strip()
+    if not text:
+        return DEFAULT_CACHE_BYTES
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)\s*([BKMGT]?)(?:I?B)?", text.upper())
+    if m is None:
+        raise ParameterError(f"{CACHE_SIZE_ENV}: expected bytes such as 500M or 2G, got {text!r}")
+    return int(float(m.group(1)) * _UNITS[m.group(2)])
+
+
+def _entry_key(file: Path) -> str | None:
+    """The ``key`` member of a cache entry, or None when the file is no readable entry."""
+    try:
+        with np.load(file, allow_pickle=False) as z:
+            return str(z["key"])
+    except Exception:  # noqa: BLE001  (anything unreadable is no entry of ours)
+        return None
+
+
+def cache_entries(cache_dir) -> list[tuple[Path, int, float]]:
+    """The cache's own entries in *cache_dir*: (path, bytes, last use), least recently used first.
+
+    An entry is a file named ``rig-<16 hex>.npz`` whose ``key`` member begins with those 16 hex digits
+    (what this module writes); any other file is not listed, so never removed.
+    """
+    cache_dir = Path(cache_dir)
+    if not cache_dir.is_dir():
+        return []
+    found = []
+    for p in cache_dir.iterdir():
+        m = _ENTRY_RE.match(p.name)
+        if m is None or p.is_symlink() or not p.is_file():
+            continue
+        key = _entry_key(p)
+        if key is None or not key.startswith(m.group(1)):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            st = p.stat()
+            found.append((p, st.st_size, st.st_mtime))
+    return sorted(found, key=lambda e: (e[2], e[0].name))
+
+
+def _remove(paths) -> int:
+    removed = 0
+    for p in paths:
+        try:
+            os.unlink(p)
+            removed += 1
+        except FileNotFoundError:  # another worker removed it first
+            pass
+    return removed
+
+
+def evict(cache_dir, limit: int, *, keep=None) -> list[Path]:
+    """Remove the least recently used entries of *cache_dir* until they total at most *limit* bytes.
+
+    *keep* (an entry just written or read) goes last. Only :func:`cache_entries` are removed, and the
+    temporary files of writers that were killed (:func:`~retarget_cli.io.atomic.remove_stale_parts`).
+
+    Returns
+    -------
+    list of Path
+        The entries removed.
+    """
+    entries = cache_entries(cache_dir)
+    keep = None if keep is None else Path(keep).resolve()
+    entries.sort(key=lambda e: e[0].resolve() == keep)  # stable: LRU order, *keep* last
+    total = sum(e[1] for e in entries)
+    gone = []
+    for p, size, _ in entries:
+        if total <= limit:
+            break
+        gone.append(p)
+        total -= size
+    with guard_writes(roots=[cache_dir], label="the rig cache"):
+        remove_stale_parts(cache_dir)
+    _remove(gone)
+    if gone:
+        log.info("rig cache %s: removed %d least recently used entr%s (limit %d bytes)", cache_dir, len(gone),
+                 "y" if len(gone) == 1 else "ies", limit)
+    return gone
+
+
+def cache_info(cache_dir=None) -> dict:
+    """``folder``, ``entries``, ``bytes`` and ``limit`` of the rig cache (default :func:`rig_cache_dir`)."""
+    cache_dir = rig_cache_dir() if cache_dir is None else Path(cache_dir)
+    entries = cache_entries(cache_dir)
+    return {"folder": cache_dir, "entries": len(entries), "bytes": sum(e[1] for e in entries),
+            "limit": cache_limit()}
+
+
+def clear_cache(cache_dir=None) -> tuple[int, int]:
+    """Remove every entry of the rig cache (default :func:`rig_cache_dir`); returns (entries, bytes) removed."""
+    cache_dir = rig_cache_dir() if cache_dir is None else Path(cache_dir)
+    entries = cache_entries(cache_dir)
+    if Path(cache_dir).is_dir():
+        with guard_writes(roots=[cache_dir], label="the rig cache"):
+            remove_stale_parts(cache_dir)
+    n = _remove(p for p, _, _ in entries)
+    return n, sum(e[1] for e in entries)
+
+
+def _touch(file: Path) -> None:
+    """Mark *file* as just used (its modification time is the LRU clock)."""
+    with contextlib.suppress(OSError):
+        os.utime(file)
+
+
+def _store(file: Path, arrays: dict, what) -> None:
+    """Write one entry atomically (only inside its folder), then keep the folder within :func:`cache_limit`."""
+    limit = cache_limit()
+    size = sum(np.asarray(a).nbytes for a in arrays.values())
+    if size > limit:
+        log.info("rig %s: not cached (%d bytes, more than the cache's limit of %d)", what, size, limit)
+        return
+    try:
+        with guard_writes(roots=[file.parent], label="the rig cache"):
+            savez(file, arrays, compress=False)
+        log.info("rig %s: cached in %s", what, file)
+    except OSError as exc:
+        log.warning("rig cache %s not written (%s)", file, exc)
+        return
+    with contextlib.suppress(OSError):
+        evict(file.parent, limit, keep=file)
 
 
 def _file_sha256(path: Path) -> str:
@@ -155,6 +338,8 @@ def _read_cache(file: Path, key: str, n_meshes: int, neutral: Path):
         if V.dtype != np.float64 or V.ndim != 3 or V.shape[0] != n_meshes or V.shape[2] != 3:
             raise ParameterError(f"vertices have shape {V.shape}")
         return _template_from(arrays, neutral, V[0]), V
+    except FileNotFoundError:  # removed by another worker since the look-up: a miss
+        return None
     except Exception as exc:  # noqa: BLE001  (any unreadable cache is rebuilt, never an error)
         log.warning("rig cache %s is unusable (%s); rebuilding it", file, exc)
         return None
@@ -205,6 +390,7 @@ def load_rig_meshes(rig_path, entries, *, extra_files=(), cache_dir=None, check=
                     check_coordinates(p, v)
                 if check is not None:
                     check(hit[1].shape[1])
+                _touch(file)
                 log.info("rig %s: %d meshes from the cache %s", rig_path, len(paths), file)
                 return hit
     n_vertices = check_vertex_counts(rig_path, entries)
@@ -215,12 +401,8 @@ def load_rig_meshes(rig_path, entries, *, extra_files=(), cache_dir=None, check=
     V = np.stack([m.vertices for m in meshes])
     template = meshes[0]
     if file is not None:
-        try:
-            savez(file, {"key": np.array(key), "version": np.array(CACHE_VERSION), "vertices": V,
-                         **_template_arrays(template)}, compress=False)
-            log.info("rig %s: cached %d meshes in %s", rig_path, len(paths), file)
-        except OSError as exc:
-            log.warning("rig cache %s not written (%s)", file, exc)
+        _store(file, {"key": np.array(key), "version": np.array(CACHE_VERSION), "vertices": V,
+                      **_template_arrays(template)}, rig_path)
     return template, V
 
 
@@ -262,17 +444,18 @@ def cached_arrays(rig_path, files, build, *, cache_dir=None, kind: str, check=No
                 raise ParameterError("key or version differs")
             if check is not None:
                 check(arrays)
+            _touch(file)
             log.info("rig %s: read from the cache %s", rig_path, file)
             return arrays
+        except FileNotFoundError:  # removed by another worker since the look-up: a miss
+            pass
         except Exception as exc:  # noqa: BLE001  (any unreadable cache is rebuilt, never an error)
             log.warning("rig cache %s is unusable (%s); rebuilding it", file, exc)
     arrays = build()
-    try:
-        savez(file, {"key": np.array(key), "version": np.array(CACHE_VERSION), **arrays}, compress=False)
-        log.info("rig %s: cached in %s", rig_path, file)
-    except OSError as exc:
-        log.warning("rig cache %s not written (%s)", file, exc)
+    _store(file, {"key": np.array(key), "version": np.array(CACHE_VERSION), **arrays}, rig_path)
     return arrays
 
 
-__all__ = ["CACHE_VERSION", "cache_file", "cache_key", "cached_arrays", "check_vertex_counts", "load_rig_meshes"]
+__all__ = ["CACHE_DIR_ENV", "CACHE_SIZE_ENV", "CACHE_VERSION", "DEFAULT_CACHE_BYTES", "cache_entries", "cache_file",
+           "cache_info", "cache_key", "cache_limit", "cached_arrays", "check_vertex_counts", "clear_cache", "evict",
+           "load_rig_meshes", "rig_cache_dir", "user_cache_dir"]

@@ -72,6 +72,20 @@ def _sequential(S, B, C, *, upper):
     return W
 
 
+def _per_frame(S, B, C, hi, chunk: int = 1024) -> np.ndarray:
+    """Every frame's own weighted box QP (``H_t = B diag(c_t) Bᵀ``, ``q_t = B diag(c_t) s_t``, ``0 ≤ w ≤ hi``),
+    solved together by :func:`box_qp_weighted` a chunk of frames at a time, (T, K)."""
+    T, K = len(S), len(B)
+    iu, ju = np.triu_indices(K)
+    W0 = np.empty((T, K))
+    for c0 in range(0, T, chunk):
+        sl = slice(c0, c0 + chunk)
+        H = np.matmul(B[None] * C[sl][:, None, :], B.T)  # (n, K, K), each as (B * c_t) @ Bᵀ
+        Q = np.matmul((S[sl] * C[sl])[:, None, :], B.T)[:, 0]
+        W0[sl] = box_qp_weighted(H[:, iu, ju], Q, lower=0.0, upper=hi)
+    return W0
+
+
 def temporal_events(frames, keys, *, lam: float, upper: float | None = None, confidence=None,
                     shape_space: bool = True, robust: float = 0.0, passes: int = 3, point_dim: int = 2,
                     point_factor: float = 5.0) -> np.ndarray:
@@ -127,8 +141,7 @@ def temporal_events(frames, keys, *, lam: float, upper: float | None = None, con
         return W
     C = np.ones_like(S) if confidence is None else np.asarray(confidence, dtype=np.float64)
     hi = np.inf if upper is None else upper
-    W0 = np.concatenate([box_qp((B * C[t]) @ B.T, ((S[t] * C[t]) @ B.T)[None], lower=0.0, upper=hi)
-                         for t in range(T)]) if confidence is not None else box_qp(B @ B.T, S @ B.T, upper=hi)
+    W0 = _per_frame(S, B, C, hi) if confidence is not None else box_qp(B @ B.T, S @ B.T, upper=hi)
     pd = int(point_dim) if point_dim >= 1 and S.shape[1] % int(point_dim) == 0 else 1
 
     def per_point(W):

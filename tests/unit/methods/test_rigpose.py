@@ -325,3 +325,33 @@ def test_an_open_eyes_lid_noise_is_not_a_blink():
     w = delta_pose(rig, np.arange(68), Y0, Y, **kw)["w"][:, 0]
     plain = delta_pose(rig, np.arange(68), Y0, Y, contact_weight=0.0, **kw)["w"][:, 0]
     assert w.max() < 0.02 < plain.max()  # held open (LID_DEADBAND); the plain delta fit follows the noise
+
+
+def test_batched_slider_qps_match_one_frame_at_a_time():
+    """delta_pose solves each step's QPs for many frames at once (_slider_qps); each frame's answer, exclusive pairs
+    included, is _slider_qp's for that frame alone."""
+    from retarget_cli.methods.rigpose import _slider_qp, _slider_qps
+
+    rng = np.random.default_rng(4)
+    T, r, n = 40, 30, 9
+    A = rng.normal(size=(T, r, n))
+    b = rng.normal(size=(T, r)) * 2
+    CW = rng.uniform(0.0, 1.0, size=(T, r))
+    CW[3] = 0.0  # a frame whose rows weigh nothing
+    lo, hi = np.r_[-1.0, np.zeros(n - 1)], np.ones(n)
+    free = np.ones(n, bool)
+    free[5] = False
+    pairs = np.array([[1, 2], [3, 4], [2, 6]])
+    w, H, q, F = _slider_qps(A, b, lo, hi, CW, sparsity=0.01, ridge=0.001, exclusive=pairs, free=free,
+                             scale_rows=20)
+    dropped = 0
+    for k in range(T):
+        wk, Hk, qk, Fk = _slider_qp(A[k], b[k], lo, hi, weights=CW[k], sparsity=0.01, ridge=0.001, exclusive=pairs,
+                                    free=free, scale_rows=20)
+        np.testing.assert_allclose(w[k], wk, rtol=0, atol=1e-10)
+        assert np.array_equal(F[k], Fk) and (H[k] is None) == (Hk is None)
+        if Hk is not None:
+            np.testing.assert_allclose(H[k], Hk, rtol=1e-12)
+            np.testing.assert_allclose(q[k], qk, rtol=1e-12)
+        dropped += int((~Fk & free).sum())
+    assert H[3] is None and not F[3].any() and dropped > 0  # the exclusive pairs were exercised

@@ -103,3 +103,19 @@ def test_an_event_of_one_point_is_released_by_the_per_point_test():
     # the region test misses the event (a third of it smoothed away); the per-point test keeps it
     assert peaks[np.inf] < 0.8
     assert abs(peaks[5.0] - 1.0) < 0.1
+
+
+def test_per_frame_weighted_solves_match_box_qp_frame_by_frame():
+    """temporal_events' unsmoothed reference W0 with confidences: every frame solved together, as one at a time."""
+    from retarget_cli.methods.decomposition import box_qp
+    from retarget_cli.methods.decomposition.temporal import _per_frame
+
+    rng = np.random.default_rng(2)
+    B = rng.normal(size=(6, 40))
+    S = rng.normal(size=(50, 40))
+    C = rng.uniform(0.0, 1.0, size=(50, 40))
+    W0 = _per_frame(S, B, C, 0.1, chunk=16)
+    one = np.concatenate([box_qp((B * C[t]) @ B.T, ((S[t] * C[t]) @ B.T)[None], lower=0.0, upper=0.1)
+                          for t in range(len(S))])
+    np.testing.assert_allclose(W0, one, rtol=0, atol=1e-10)
+    assert (W0 == 0).any() and (W0 == 0.1).any()  # bounds active: the QP, not a plain solve
