@@ -127,9 +127,11 @@ def retarget_api():
 
     from retarget_cli.io.livelink import ARKIT_SHAPES, arkit_mapping, canonical_name, check_names_mapping
     from retarget_cli.methods.render import Camera, MeshRenderer, View
+    from retarget_cli.methods.tracking.detect import detector_installed, predictor_model_path
 
     return SimpleNamespace(ARKIT_SHAPES=ARKIT_SHAPES, arkit_mapping=arkit_mapping, canonical_name=canonical_name,
-                           check_names_mapping=check_names_mapping, Camera=Camera, MeshRenderer=MeshRenderer, View=View)
+                           check_names_mapping=check_names_mapping, Camera=Camera, MeshRenderer=MeshRenderer, View=View,
+                           detector_installed=detector_installed, predictor_model_path=predictor_model_path)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -186,7 +188,6 @@ def dlib_raw(video: Path) -> dict:
     """
     import cv2
     import dlib
-    import face_recognition_models
     from reference import sha256_file
 
     out = BUILD / "reference" / f"dlib-{video.stem}-{sha256_file(video)[:12]}.npz"
@@ -194,7 +195,7 @@ def dlib_raw(video: Path) -> dict:
         with np.load(out) as d:
             return {"points": d["points"], "found": d["found"]}
     detector = dlib.get_frontal_face_detector()
-    predictor = dlib.shape_predictor(face_recognition_models.pose_predictor_model_location())
+    predictor = dlib.shape_predictor(str(retarget_api().predictor_model_path()))
     cap = cv2.VideoCapture(str(video))
     pts, found = [], []
     t = time.perf_counter()
@@ -685,11 +686,8 @@ def unavailable(args, clips) -> str | None:
     missing = [p for p in need if not p.is_file()]
     if missing:
         return f"{missing[0]} not found (needs ../shared/realdata)"
-    try:
-        import dlib  # noqa: F401
-        import face_recognition_models  # noqa: F401
-    except ImportError as exc:
-        return f"raw dlib reference needs {exc.name} (the extra 'detect')"
+    if not retarget_api().detector_installed():
+        return "raw dlib reference needs dlib and its model (the extra 'detect')"
     from reference import ReferenceUnavailable, ensure_venv
 
     try:

@@ -6,7 +6,6 @@ the overlay): the detector's eye opening there falls to about half of the
 median (0.14 against 0.26).
 """
 
-import importlib.util
 import json
 import sys
 
@@ -14,6 +13,7 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from detector_marks import needs_detector
 
 from retarget_cli.cli.commands import main
 from retarget_cli.config import load_config
@@ -21,10 +21,6 @@ from retarget_cli.io.annotations import read_pts
 from retarget_cli.io.landmarks import load_landmarks
 from retarget_cli.run.pipeline import STAGES, _inputs, resolve, run_pipeline, stage_params
 
-HAS_DLIB = importlib.util.find_spec("dlib") is not None and importlib.util.find_spec("face_recognition_models") \
-    is not None
-needs_dlib = pytest.mark.skipif(not HAS_DLIB, reason="needs the optional extra 'detect' (dlib-bin, "
-                                                    "face_recognition_models): pip install -e '.[detect]'")
 BLINK = [47, 48, 49, 50]
 
 
@@ -50,7 +46,7 @@ def black_video(tmp_path):
     return path
 
 
-@needs_dlib
+@needs_detector
 def test_detector_on_frame_0_agrees_with_the_committed_annotation(real_clip):
     from retarget_cli.methods.tracking.detect import Detector, detect_landmarks
 
@@ -67,7 +63,7 @@ def test_detector_on_frame_0_agrees_with_the_committed_annotation(real_clip):
     assert box[0] < ref[:, 0].min() + 40 and box[0] + box[2] > ref[:, 0].max() - 40
 
 
-@needs_dlib
+@needs_detector
 def test_track_detect_closes_the_eyes_on_the_blink(real_clip, tmp_path):
     from retarget_cli.methods.tracking.detect import eye_opening
 
@@ -90,7 +86,7 @@ def test_track_detect_closes_the_eyes_on_the_blink(real_clip, tmp_path):
     assert e[BLINK].min() / open_eyes < e_lk[BLINK].min() / np.median(e_lk[:40])
 
 
-@needs_dlib
+@needs_detector
 def test_track_detect_range_step_downscale(real_clip, tmp_path):
     full, part = tmp_path / "full.npz", tmp_path / "part.npz"
     assert run("track", real_clip / "d3.avi", "--method", "detect", "-o", full, "--end", 20).exit_code == 0
@@ -103,7 +99,7 @@ def test_track_detect_range_step_downscale(real_clip, tmp_path):
     assert np.linalg.norm(b.points - a.points[b.frames], axis=2).mean() < 4.0
 
 
-@needs_dlib
+@needs_detector
 def test_init_auto_writes_its_annotation_and_never_overwrites_another(real_clip, tmp_path):
     out = tmp_path / "lk.npz"
     r = run("track", real_clip / "d3.avi", "--method", "lk", "-o", out, "--end", 10)  # init omitted: auto
@@ -120,7 +116,7 @@ def test_init_auto_writes_its_annotation_and_never_overwrites_another(real_clip,
     assert str(pts) in msg and "refusing to overwrite" in msg
 
 
-@needs_dlib
+@needs_detector
 def test_config_without_init_annotates_automatically(real_clip, tmp_path):
     cfg_path = tmp_path / "config.yaml"
     cfg_path.write_text(f"output_dir: out\ntrack: {{video: {real_clip / 'd3.avi'}, end: 5}}\n")
@@ -133,7 +129,7 @@ def test_config_without_init_annotates_automatically(real_clip, tmp_path):
     assert [s for _, s, _ in run_pipeline(cfg)] == ["skipped"]
 
 
-@needs_dlib
+@needs_detector
 def test_rerun_with_init_auto_tracks_again_in_place(real_clip, tmp_path):
     """Issue 27 item 6: --force and a changed tracking setting rerun track over its own landmarks and annotation."""
     cfg = tmp_path / "config.yaml"
@@ -153,7 +149,7 @@ def test_rerun_with_init_auto_tracks_again_in_place(real_clip, tmp_path):
     assert r.exit_code == 1 and "refusing to overwrite" in r.output and str(pts) in r.output, r.output
 
 
-@needs_dlib
+@needs_detector
 def test_a_calibration_image_is_the_neutral_of_a_take_that_starts_elsewhere(real_clip, tmp_path):
     """Issue 27 item 2: track.neutral, a separate image of the actor at rest, tracked like the take."""
     from retarget_cli.methods.neutral import face_openings
@@ -197,7 +193,7 @@ def test_init_auto_in_a_config_names_no_file(tmp_path):
     assert _inputs(STAGES["track"], kw) == [tmp_path.resolve() / "v.mp4"]
 
 
-@needs_dlib
+@needs_detector
 def test_annotate_writes_the_requested_frames(real_clip, tmp_path):
     out = tmp_path / "ann"
     r = run("annotate", real_clip / "d3.avi", "--frames", "0,30-50:20", "-o", out)
@@ -212,7 +208,7 @@ def test_annotate_writes_the_requested_frames(real_clip, tmp_path):
     assert "frame 75" in msg and "past the last frame" in msg
 
 
-@needs_dlib
+@needs_detector
 @pytest.mark.parametrize("args, frame", [
     (["track", "--method", "detect"], 0),
     (["track", "--start", "2"], 2),  # lk with the automatic annotation

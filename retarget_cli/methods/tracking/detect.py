@@ -19,14 +19,20 @@ centre is ``(x, y)`` in the 0-based pixel-centre convention of
 
 dlib is imported lazily: without the optional extra ``detect`` the first
 call raises a one-line :class:`~retarget_cli.errors.MissingExtraError` saying which
-extra to install.
+extra to install. The model file is located through ``importlib.metadata`` (the
+files the installed ``face_recognition_models`` distribution records) without
+importing that package, whose ``__init__`` needs ``pkg_resources`` (setuptools),
+which Python 3.12+ virtual environments do not have.
 """
 
 from __future__ import annotations
 
+import importlib.metadata
+import importlib.util
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -49,11 +55,48 @@ BOX_POINTS = (27, 28, 29, 30, 31, 33, 35, 36, 39, 42, 45)
 DEFAULT_BOX = (0.0, 0.2, 2.35)
 
 
-def detector_installed() -> bool:
-    """Whether the optional extra ``detect`` (dlib and its model package) can be imported."""
-    import importlib.util
+#: The package that ships the 68-point model, and the model's file name in it.
+MODEL_PACKAGE, MODEL_FILE = "face_recognition_models", "shape_predictor_68_face_landmarks.dat"
 
-    return all(importlib.util.find_spec(m) is not None for m in ("dlib", "face_recognition_models"))
+
+def predictor_model_path() -> Path:
+    """The installed ``shape_predictor_68_face_landmarks.dat`` of ``face_recognition_models``.
+
+    Found without importing the package (its ``__init__`` imports ``pkg_resources``, absent from
+    Python 3.12+ virtual environments): first among the files its distribution records
+    (``importlib.metadata``), else beside the package as the import system would find it
+    (``importlib.util.find_spec``, which does not run the package's code).
+
+    Raises
+    ------
+    MissingExtraError
+        If the package is not installed or has no model file (names the extra to install).
+    """
+    try:
+        files = importlib.metadata.files(MODEL_PACKAGE) or []
+    except importlib.metadata.PackageNotFoundError:
+        files = []
+    for f in files:
+        if f.name == MODEL_FILE and Path(f.locate()).is_file():
+            return Path(f.locate())
+    spec = importlib.util.find_spec(MODEL_PACKAGE)
+    for folder in (spec.submodule_search_locations or []) if spec else []:
+        path = Path(folder) / "models" / MODEL_FILE
+        if path.is_file():
+            return path
+    what = f"{MODEL_PACKAGE} is not installed" if spec is None else f"{MODEL_PACKAGE} has no {MODEL_FILE}"
+    raise MissingExtraError(f"the landmark detector needs its model ({what}): {INSTALL_HINT}")
+
+
+def detector_installed() -> bool:
+    """Whether the optional extra ``detect`` is usable: dlib importable and the model file installed."""
+    if importlib.util.find_spec("dlib") is None:
+        return False
+    try:
+        predictor_model_path()
+    except MissingExtraError:
+        return False
+    return True
 
 
 class Detector:
@@ -76,13 +119,18 @@ class Detector:
     def __init__(self, upsample: int = 1):
         try:
             import dlib
-            import face_recognition_models
         except ImportError as exc:
             raise MissingExtraError(f"the landmark detector needs {exc.name or 'dlib'}: {INSTALL_HINT}") from None
         self._dlib = dlib
         self.upsample = int(upsample)
+        self.model_path = predictor_model_path()
         self.faces = dlib.get_frontal_face_detector()
-        self.predictor = dlib.shape_predictor(face_recognition_models.pose_predictor_model_location())
+        try:
+            self.predictor = dlib.shape_predictor(str(self.model_path))
+        except RuntimeError as exc:  # dlib's deserialize error on a truncated or foreign file
+            why = (str(exc).strip().splitlines() or ["RuntimeError"])[0]
+            raise MissingExtraError(f"{self.model_path}: dlib could not load the landmark model ({why}); "
+                                    f"reinstall: {INSTALL_HINT}") from None
 
     def detect(self, gray) -> np.ndarray:
         """Face boxes ``(K, 4)`` as ``[left, top, width, height]`` in pixels, strongest first."""

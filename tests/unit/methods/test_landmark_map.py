@@ -1,12 +1,11 @@
 """The landmark map found automatically (methods/landmark_map): the ICT neutral, the sliders' fallback, corrections."""
 
 import numpy as np
-import pytest
 import yaml
+from detector_marks import needs_detector
 
 from retarget_cli.io.obj import read_obj
 from retarget_cli.methods import landmark_map as lm
-from retarget_cli.methods.tracking.detect import detector_installed
 
 
 def sphere_head(n_lat=36, n_lon=48):
@@ -100,7 +99,7 @@ def test_quality_names_shared_vertices_and_asymmetry():
     assert q2["symmetry_max"] > lm.map_quality(V, m.vertices)["symmetry_max"]
 
 
-@pytest.mark.skipif(not detector_installed(), reason="the detector (the extra 'detect': dlib) is not installed")
+@needs_detector
 def test_map_found_on_the_ict_neutral_is_near_the_shipped_map(ict_rig_dir):
     """The ICT FaceKit (sample_data/ict): neutral, blinks, jaw-open and smiles only (enough for the view)."""
     from retarget_cli.methods.tracking.detect import Detector

@@ -1,19 +1,14 @@
 """Detection + optical flow fusion (track.detect.FlowFusion) and the default tracker on a synthetic blink."""
 
-import importlib.util
 from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
+from detector_marks import needs_detector
 
 from retarget_cli.methods.tracking.detect import FlowFusion, FusionSettings, eye_opening
 
 SAMPLE = Path(__file__).resolve().parents[4] / "sample_data"
-HAS_DLIB = importlib.util.find_spec("dlib") is not None and importlib.util.find_spec("face_recognition_models") \
-    is not None
-needs_dlib = pytest.mark.skipif(not HAS_DLIB, reason="needs the optional extra 'detect' (dlib-bin, "
-                                                    "face_recognition_models): pip install -e '.[detect]'")
 
 
 def _face_points(rng):
@@ -83,7 +78,7 @@ def test_annotated_frames_are_taken_exactly_and_reset_forgets_the_track():
     np.testing.assert_array_equal(fuser.step(img, far, np.ones(68), reset=True), far)
 
 
-@needs_dlib
+@needs_detector
 def test_default_tracker_follows_a_synthetic_blink_that_lk_misses(tmp_path):
     """sample_data's take blinks at frame 70 (truth eye opening 0.02 of the eye width against 0.31 open).
 
@@ -119,7 +114,7 @@ def test_default_tracker_follows_a_synthetic_blink_that_lk_misses(tmp_path):
     assert lk < 0.1, lk
 
 
-@needs_dlib
+@needs_detector
 def test_fusion_keeps_the_detectors_blink():
     """On sample_data's blink (frames 67-73) the fused track closes the eyes as far as the raw detections.
 
@@ -145,7 +140,7 @@ def test_fusion_keeps_the_detectors_blink():
     assert closure(fused) >= 0.95 * closure(raw), (closure(fused), closure(raw))
 
 
-@needs_dlib
+@needs_detector
 def test_track_cli_no_fuse_keeps_the_raw_detections(tmp_path):
     """`retarget track --no-fuse --filter none` gives the detector's own points; the default fuses them."""
     from click.testing import CliRunner

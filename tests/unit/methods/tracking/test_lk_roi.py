@@ -80,8 +80,10 @@ def test_roi_tracking_matches_full_frame_tracking(padded):
     d = np.linalg.norm(roi - full, axis=2)
     # Float32 rounding differs between crop and frame coordinates (~1e-3 px per
     # LK call); the tracker's per-point choices can amplify a few of these, as
-    # they do for the same video shifted by a whole pixel. Most points agree tightly.
-    assert np.median(d) < 0.01, np.median(d)
+    # they do for the same video shifted by a whole pixel. Most points agree tightly: median 0.001 px with
+    # OpenCV 5.0, 0.016 with 4.8-4.12 and 0.020 with 4.13 (pyramidal LK's float32 arithmetic differs between
+    # releases; the error against the truth is the same either way, asserted below).
+    assert np.median(d) < 0.03, np.median(d)
     assert d.mean() < 0.05 and np.quantile(d, 0.95) < 0.2, (d.mean(), np.quantile(d, 0.95))
     assert np.abs(c_roi - c_full).mean() < 0.01
     err = lambda p: np.linalg.norm(p - truth, axis=2).mean()  # noqa: E731
