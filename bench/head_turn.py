@@ -41,11 +41,12 @@ def read_curves(path: Path) -> tuple[list[str], np.ndarray]:
     return head[start:], np.array([[float(v) for v in r[start:]] for r in rows[1:]])
 
 
-def run(rig_path: Path, n: int, seed: int, max_angle: float, work: Path) -> dict:
+def run(rig_path: Path, n: int, seed: int, max_angle: float, work: Path, max_roll: float = 10.0,
+        noise: float = 1.0) -> dict:
     import yaml
 
-    from retarget_cli.io.rig import load_rig
     from retarget_cli.io.landmarks import load_landmarks
+    from retarget_cli.io.rig import load_rig
     from retarget_cli.stages.auto_pose import DEFAULT_EXCLUDE, excluded_sliders, run_auto_pose
     from retarget_cli.synth.head_turn import write_turned_take
 
@@ -54,10 +55,10 @@ def run(rig_path: Path, n: int, seed: int, max_angle: float, work: Path) -> dict
     rng = np.random.default_rng(seed)
     free = ~excluded_sliders(rig.names, DEFAULT_EXCLUDE)
     W = rng.uniform(0, 1, size=(n, rig.n_sliders)) * (rng.uniform(size=(n, rig.n_sliders)) < 0.08) * free
-    turned = np.column_stack([rng.uniform(-max_angle, max_angle, (n, 2)), rng.uniform(-10, 10, n)])
+    turned = np.column_stack([rng.uniform(-max_angle, max_angle, (n, 2)), rng.uniform(-max_roll, max_roll, n)])
     weights = np.concatenate([np.zeros((1, rig.n_sliders)), W, W])
     angles = np.concatenate([np.zeros((1 + n, 3)), turned])
-    lm_path, keys_path = write_turned_take(work, rig, ids, weights, angles, seed=seed)
+    lm_path, keys_path = write_turned_take(work, rig, ids, weights, angles, seed=seed, noise=noise)
     lm = load_landmarks(lm_path)
     err = np.abs(lm.head_angles.astype(np.float64) - angles)
     out = {"frames": len(weights), "angle_mean": err.mean(0), "angle_p95": np.percentile(err, 95, axis=0),
@@ -86,16 +87,18 @@ def main(argv=None) -> int:
     ap.add_argument("--rig", type=Path, default=ROOT / "build" / "ict-facekit" / "rig.yaml")
     ap.add_argument("--expressions", type=int, default=60)
     ap.add_argument("--max-angle", type=float, default=30.0)
+    ap.add_argument("--max-roll", type=float, default=10.0)
+    ap.add_argument("--noise", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     if not args.rig.is_file():
         print(f"skip: {args.rig} not found (make build/ict-facekit/rig.yaml)")
         return 0
     with tempfile.TemporaryDirectory() as tmp:
-        r = run(args.rig, args.expressions, args.seed, args.max_angle, Path(tmp))
+        r = run(args.rig, args.expressions, args.seed, args.max_angle, Path(tmp), args.max_roll, args.noise)
     a = r["angle_mean"]
     print(f"## Turned head (ICT landmark vertices, {args.expressions} expressions x frontal/turned, yaw/pitch up "
-          f"to +-{args.max_angle:g} deg, roll +-10, 1 px noise, seed {args.seed})\n")
+          f"to +-{args.max_angle:g} deg, roll +-{args.max_roll:g}, {args.noise:g} px noise, seed {args.seed})\n")
     print(f"stored head pose (generic face): mean angle error {r['angle_all']:.2f} deg (yaw {a[0]:.2f}, pitch "
           f"{a[1]:.2f}, roll {a[2]:.2f}; 95th percentile {r['angle_p95'][0]:.2f} / {r['angle_p95'][1]:.2f} / "
           f"{r['angle_p95'][2]:.2f})\n")
