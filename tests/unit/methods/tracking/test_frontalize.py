@@ -1,0 +1,66 @@
+"""The head's 3D rotation removed from the landmarks (issue 28): frontalize and the rotation transforms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from retarget_cli.methods.blending import head_rotation_transforms
+from retarget_cli.methods.tracking.headpose import (
+    FACE_68,
+    angles_rotation,
+    camera_matrix,
+    frontalize,
+    head_pose,
+)
+
+SIZE = (1280, 720)
+
+
+def _project(X, angles, t):
+    K = camera_matrix(SIZE)
+    Y = X @ angles_rotation(angles).T + t
+    p = Y @ K.T
+    return p[:, :2] / p[:, 2:]
+
+
+def _expression():
+    X = FACE_68.copy()
+    X[48:68, 1] += 1.0          # mouth down
+    X[48, 0] -= 0.8             # mouth corners out
+    X[54, 0] += 0.8
+    X[17:27, 1] -= 0.5          # brows up
+    return X
+
+
+@pytest.mark.parametrize("angles", [(30, 0, 0), (-30, 20, 5), (20, -30, -8)])
+def test_frontalize_shows_the_turned_expression_as_facing_the_camera(angles):
+    X, t = _expression(), np.array([1.0, -2.0, 55.0])
+    obs = _project(X, angles, t)[None]
+    front = _project(X, (0, 0, 0), t)
+    pose = head_pose(obs, SIZE)
+    back = frontalize(obs, pose, SIZE)[0]
+    sub = frontalize(obs, pose, SIZE, mode="subtract")[0]
+    turned = np.abs(obs[0] - front).mean()
+    assert turned > 10                                   # the turn moves the points by many pixels
+    assert np.abs(back - front).mean() < 0.1             # back-projected: the frontal view within 0.1 px
+    assert np.abs(sub - front).mean() > np.abs(back - front).mean()  # subtraction keeps the foreshortening
+
+
+def test_frontalize_is_the_identity_for_a_face_looking_into_the_camera():
+    X, t = _expression(), np.array([0.0, 0.0, 60.0])
+    obs = _project(X, (0, 0, 0), t)[None] + np.random.default_rng(0).normal(0, 0.5, (1, 68, 2))
+    pose = head_pose(obs, SIZE)
+    assert np.abs(frontalize(obs, pose, SIZE) - obs).max() < 1.0
+
+
+def test_head_rotation_transforms_turn_the_model_the_actors_way():
+    """Yaw > 0 (the actor turns to their left): the character's nose (model +z, y up) moves to its left (+x)."""
+    nose = np.array([0.0, 0.0, 10.0])
+    A = head_rotation_transforms(np.array([[20.0, 0, 0], [0, 20.0, 0], [0, 0, 0]]), pivot=np.zeros(3))
+    moved = A[:, :, :3] @ nose + A[:, :, 3]
+    assert moved[0, 0] > 3 and abs(moved[0, 1]) < 1e-9       # yaw: to the character's left
+    assert moved[1, 1] > 3                                   # pitch up: the nose rises
+    np.testing.assert_allclose(moved[2], nose)
+    np.testing.assert_allclose(A[:, :, :3] @ A[:, :, :3].transpose(0, 2, 1), np.tile(np.eye(3), (3, 1, 1)),
+                               atol=1e-12)
