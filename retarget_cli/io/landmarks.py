@@ -68,7 +68,8 @@ class Landmarks:
         cuts, smoothed on its own), -1 in the gaps. Absent: one segment of
         the found frames (:attr:`segments`).
     head_angles : ndarray, shape (T, 3), float32, optional
-        The head's 3D rotation, ``yaw, pitch, roll`` in degrees (0: looking into the camera; yaw > 0 turned
+        The head's 3D rotation relative to the line of sight from the camera, ``yaw, pitch, roll`` in degrees
+        (0: looking into the lens, wherever the face is in the picture; yaw > 0 turned
         to the actor's left, pitch > 0 looking up, roll > 0 tilted to the actor's left shoulder), fitted on
         ``points`` (:func:`retarget_cli.methods.tracking.headpose.head_pose`); a frame without a face holds
         the last found frame's.

@@ -47,7 +47,7 @@ from ..methods.rigpose import (
     slider_owners,
 )
 from ..methods.tracking.head import estimate_head
-from ..methods.tracking.headpose import HeadPose, head_pose
+from ..methods.tracking.headpose import HeadPose, camera_angles, head_pose
 from ..methods.tracking.headpose import frontalize as frontalize_points
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
 from ._neutral import neutral_from_keys
@@ -296,8 +296,8 @@ def frontal_landmarks(lm, rig, vx, lm_ids, neutral=None):
         pose = head_pose(lm.points, size, confidence=conf, model=model)
         what = "the rig's landmark vertices"
     else:
-        pose = HeadPose(np.asarray(lm.head_angles, np.float64), np.asarray(lm.head_translation, np.float64),
-                        np.full(lm.n_frames, np.nan))
+        tr = np.asarray(lm.head_translation, np.float64)
+        pose = HeadPose(camera_angles(np.asarray(lm.head_angles, np.float64), tr), tr, np.full(lm.n_frames, np.nan))
         what = "the generic face (landmarks.npz head_angles)"
     front = frontalize_points(lm.points, pose, size, model=model)
     stab = estimate_head(front, conf)[1].astype(np.float32)

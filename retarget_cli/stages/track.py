@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from ..methods.tracking.head import apply_similarity, estimate_head, invert_simi
 from ..methods.tracking.head import smooth_head as _smooth
 from ..methods.tracking.head import smooth_head as smooth_head_fn
 from ..methods.tracking.headpose import head_pose as fit_head_pose
+from ..methods.tracking.headpose import sight_angles
 from ._common import Stage, _no_progress, _require
 from ._landmark_filter import FILTER_DEFAULTS, FILTER_PARAMS, apply_filter
 from .annotate import detect_frame, init_pts_path, is_auto, write_pts_once
@@ -256,7 +258,9 @@ def _head_pose_3d(points, confidence, frame_size):
     """The 3D head pose of every frame (:func:`~retarget_cli.methods.tracking.headpose.head_pose` on the generic
     face, on the filtered *points*), or None for a layout other than 68 points or an unknown frame size.
 
-    A frame without a face has the last found frame's points and confidences (:func:`held_confidence`), so it
+    The angles are relative to the line of sight (:func:`~retarget_cli.methods.tracking.headpose.sight_angles`:
+    0 for a face that looks into the lens wherever it is in the picture). A frame without a face has the last
+    found frame's points and confidences (:func:`held_confidence`), so it
     holds that frame's pose; the frames before the first found one take its pose.
     """
     if points.shape[1] != 68 or min(frame_size) <= 0:
@@ -264,6 +268,7 @@ def _head_pose_3d(points, confidence, frame_size):
                  points.shape[1], tuple(frame_size))
         return None
     pose = fit_head_pose(points, frame_size, confidence=confidence)
+    pose = replace(pose, angles=sight_angles(pose.angles, pose.translation))
     log.info("head pose: yaw %.1f..%.1f, pitch %.1f..%.1f, roll %.1f..%.1f deg; reprojection error median %.2f px",
              *np.ravel(np.stack([pose.angles.min(0), pose.angles.max(0)], 1)), float(np.nanmedian(pose.error))
              if np.isfinite(pose.error).any() else float("nan"))

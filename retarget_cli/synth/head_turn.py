@@ -17,7 +17,7 @@ from ..io.atomic import write_text
 from ..io.landmarks import Landmarks, save_landmarks
 from ..methods.rigpose import FRONT_68, frontal_rotation, rig_landmarks
 from ..methods.tracking.head import estimate_head
-from ..methods.tracking.headpose import angles_rotation, camera_matrix, head_pose
+from ..methods.tracking.headpose import angles_rotation, camera_matrix, head_pose, sight_angles
 
 #: The 68-point regions of ``configs/sample.yaml`` (Chuang & Bregler §5).
 REGIONS_68 = {
@@ -93,10 +93,11 @@ def write_turned_take(folder, rig, vertices, weights, angles, *, frame_size=(128
                          seed=seed)
     conf = np.ones(pts.shape[:2])
     head, stab = estimate_head(pts, conf)
-    pose = head_pose(pts, frame_size, confidence=conf)
+    pose = head_pose(pts, frame_size, confidence=conf)  # as track stores it: relative to the line of sight
+    pose_angles = sight_angles(pose.angles, pose.translation)
     lm_path, keys_path = folder / "landmarks.npz", folder / "keys.json"
     save_landmarks(lm_path, Landmarks(pts, conf, head, stab, fps, np.asarray(frame_size), meta={"tracker": "synth"},
-                                      head_angles=pose.angles, head_translation=pose.translation))
+                                      head_angles=pose_angles, head_translation=pose.translation))
     keys = {"landmarks": lm_path.name, "neutral": {"frame": 0, "source": "given", "reason": "synthetic rest pose"},
             "regions": {name: {"points": pts_, "frames": [0]} for name, pts_ in REGIONS_68.items()}}
     write_text(keys_path, json.dumps(keys, sort_keys=True, indent=1) + "\n")

@@ -112,6 +112,38 @@ def angles_rotation(angles) -> np.ndarray:
     return Ry @ Rx @ Rz
 
 
+def sight_rotation(translation) -> np.ndarray:
+    """The camera-axes rotation (..., 3, 3) of a face at *translation* (..., 3) that looks into the lens.
+
+    It turns the 3D face's depth axis (+z, away from the camera for a face looking into it on the optical
+    axis) onto the line of sight from the camera to the face: ``angles_rotation((−atan2(x, z), asin(y/|t|), 0))``.
+    """
+    t = np.asarray(translation, dtype=np.float64)
+    u = t / np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-300)
+    a = np.stack([-np.degrees(np.arctan2(u[..., 0], u[..., 2])), np.degrees(np.arcsin(np.clip(u[..., 1], -1, 1))),
+                  np.zeros(u.shape[:-1])], axis=-1)
+    return angles_rotation(a)
+
+
+def sight_angles(angles, translation) -> np.ndarray:
+    """Head angles (..., 3) relative to the line of sight, from :func:`head_pose`'s camera-relative *angles*.
+
+    ``R_sight = S(t)ᵀ R_camera`` with ``S`` of :func:`sight_rotation`: 0 for a face that looks into the lens
+    wherever it is in the picture, as a viewer (and a 2D measure such as the nose's offset between the eye
+    corners) sees it. A face beside the optical axis that looks into the lens is turned in camera axes by
+    ``atan(x / z)`` (14° at a third of a 512-pixel frame's width from its centre, the camera's focal the
+    frame's side); MediaPipe Face Landmarker's facial transformation matrix reports the rotation as seen
+    (bench/gaze_head.py: d12's yaw r against it 0.16 camera-relative, 0.88 relative to the line of sight).
+    """
+    R = np.swapaxes(sight_rotation(translation), -1, -2) @ angles_rotation(angles)
+    return rotation_angles(R)
+
+
+def camera_angles(angles, translation) -> np.ndarray:
+    """The inverse of :func:`sight_angles`: camera-relative angles (..., 3) of line-of-sight *angles*."""
+    return rotation_angles(sight_rotation(translation) @ angles_rotation(angles))
+
+
 def head_pose(points, frame_size, *, confidence=None, model=None, pose_points=POSE_POINTS_68,
               focal: float | None = None) -> HeadPose:
     """The 3D head pose of every frame from its 2D landmarks (perspective-n-point on a 3D face).
@@ -202,16 +234,17 @@ def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float |
     2D similarity of :mod:`.head` removes roll, scale and translation but reads a turn of the head out of
     the image plane as expression. Per frame ``t``, with the pose ``(R_t, t_t)`` of :func:`head_pose` and
     the 3D face ``X``, each landmark's residual ``d = x − π(R_t X + t_t)`` (the expression, and the actor's
-    face where it differs from the model) is carried to the frontal pose ``(I, t_t)``:
+    face where it differs from the model) is carried to the frontal pose ``(S_t, t_t)``, the face at the same
+    place looking into the lens (:func:`sight_rotation`):
 
     - ``mode="backproject"`` (default): the residual is taken to be a displacement ``D = (dx, dy, 0)`` in
       the face's own plane (an expression moves the skin along the face far more than in depth), solved
       from ``d = J(R_t X + t_t) R_t D`` (``J`` the projection's 2×3 Jacobian) and shown frontally,
-      ``x' = π(X + t_t) + J(X + t_t) D``. It undoes the foreshortening of a turned face (a mouth corner's
+      ``x' = π(S_t X + t_t) + J(S_t X + t_t) S_t D``. It undoes the foreshortening of a turned face (a mouth corner's
       sideways motion reads ``cos(yaw)`` smaller at a yaw), which plain subtraction keeps. Where the face's
       plane is seen at a grazing angle (``|det(J R_t[:, :2])|`` below *min_cos* times its frontal value),
       the residual is subtracted as in ``subtract``;
-    - ``mode="subtract"``: ``x' = x − π(R_t X + t_t) + π(X + t_t)``, the rigid rotation's projected effect
+    - ``mode="subtract"``: ``x' = x − π(R_t X + t_t) + π(S_t X + t_t)``, the rigid rotation's projected effect
       replaced by the frontal one, the residual kept as seen.
 
     The translation is kept, so :func:`.head.estimate_head` on the result still removes scale and
@@ -222,7 +255,7 @@ def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float |
     points : ndarray (T, 68, 2)
         Landmarks in image pixels (those the pose was fitted on).
     pose : HeadPose
-        Their :func:`head_pose` (angles (T, 3) degrees, translation (T, 3) in the model's units).
+        Their :func:`head_pose` (camera-relative angles (T, 3) degrees, translation (T, 3) in the model's units).
     frame_size : (int, int)
         ``(width, height)``.
     model : ndarray (68, 3), optional
@@ -253,19 +286,20 @@ def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float |
     R = angles_rotation(pose.angles)                                   # (T, 3, 3)
     tr = np.asarray(pose.translation, dtype=np.float64)
     Yt = np.einsum("tij,lj->tli", R, X) + tr[:, None]                  # posed model, camera axes (T, 68, 3)
-    Yf = X[None] + tr[:, None]                                         # the same face looking into the camera
+    S = sight_rotation(tr)                                             # (T, 3, 3): looking into the lens
+    Yf = np.einsum("tij,lj->tli", S, X) + tr[:, None]                  # the same face looking into the camera
     ok = (Yt[..., 2] > 0).all(1) & (Yf[..., 2] > 0).all(1) & np.isfinite(P).all((1, 2))
     out = P.copy()
     if not ok.any():
         return out
-    Yt, Yf, R, Pk = Yt[ok], Yf[ok], R[ok], P[ok]
+    Yt, Yf, R, S, Pk = Yt[ok], Yf[ok], R[ok], S[ok], P[ok]
     d = Pk - _project_cam(Yt, K)                                       # residual: expression + identity
     front = _project_cam(Yf, K)
     if mode == "subtract":
         out[ok] = front + d
         return out
     M = np.einsum("tlij,tjk->tlik", _jacobian(Yt, K), R[:, :, :2])     # (T', 68, 2, 2): in-plane D -> pixels
-    M0 = _jacobian(Yf, K)[..., :2]                                     # the same, frontal
+    M0 = np.einsum("tlij,tjk->tlik", _jacobian(Yf, K), S[:, :, :2])   # the same, frontal
     det, det0 = np.linalg.det(M), np.linalg.det(M0)
     good = np.abs(det) >= min_cos * np.abs(det0)
     Msafe = np.where(good[..., None, None], M, M0)

@@ -9,9 +9,11 @@ from retarget_cli.methods.blending import head_rotation_transforms
 from retarget_cli.methods.tracking.headpose import (
     FACE_68,
     angles_rotation,
+    camera_angles,
     camera_matrix,
     frontalize,
     head_pose,
+    sight_angles,
 )
 
 SIZE = (1280, 720)
@@ -37,7 +39,7 @@ def _expression():
 def test_frontalize_shows_the_turned_expression_as_facing_the_camera(angles):
     X, t = _expression(), np.array([1.0, -2.0, 55.0])
     obs = _project(X, angles, t)[None]
-    front = _project(X, (0, 0, 0), t)
+    front = _project(X, camera_angles((0, 0, 0), t), t)  # the same face at the same place, looking into the lens
     pose = head_pose(obs, SIZE)
     back = frontalize(obs, pose, SIZE)[0]
     sub = frontalize(obs, pose, SIZE, mode="subtract")[0]
@@ -45,6 +47,17 @@ def test_frontalize_shows_the_turned_expression_as_facing_the_camera(angles):
     assert turned > 10                                   # the turn moves the points by many pixels
     assert np.abs(back - front).mean() < 0.1             # back-projected: the frontal view within 0.1 px
     assert np.abs(sub - front).mean() > np.abs(back - front).mean()  # subtraction keeps the foreshortening
+
+
+def test_sight_angles_are_zero_for_a_face_that_looks_into_the_lens_off_axis():
+    t = np.array([[12.0, -6.0, 50.0], [0.0, 0.0, 60.0], [-8.0, 9.0, 40.0]])
+    cam = camera_angles(np.zeros((3, 3)), t)
+    assert abs(cam[0, 0]) > 10 and abs(cam[1]).max() < 1e-9    # turned in camera axes beside the optical axis
+    pts = np.stack([_project(FACE_68, a, tt) for a, tt in zip(cam, t)])
+    pose = head_pose(pts, SIZE)
+    np.testing.assert_allclose(sight_angles(pose.angles, pose.translation), 0, atol=0.05)
+    a = np.random.default_rng(2).uniform(-30, 30, (3, 3))
+    np.testing.assert_allclose(sight_angles(camera_angles(a, t), t), a, atol=1e-9)
 
 
 def test_frontalize_is_the_identity_for_a_face_looking_into_the_camera():
