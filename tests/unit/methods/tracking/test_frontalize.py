@@ -77,3 +77,14 @@ def test_head_rotation_transforms_turn_the_model_the_actors_way():
     np.testing.assert_allclose(moved[2], nose)
     np.testing.assert_allclose(A[:, :, :3] @ A[:, :, :3].transpose(0, 2, 1), np.tile(np.eye(3), (3, 1, 1)),
                                atol=1e-12)
+
+
+def test_head_rotation_after_the_2d_motion_leaves_the_3d_roll_to_it():
+    angles = np.array([[15.0, -10.0, 8.0]])
+    A2 = np.array([[[0.0, -1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 2.0], [0.0, 0.0, 1.0, 3.0]]])  # a 90° roll and a shift
+    P = np.array([0.5, 1.0, -2.0])
+    both = head_rotation_transforms(angles, pivot=P, transforms=A2, keep_roll=False)
+    alone = head_rotation_transforms(angles * [1, 1, 0], pivot=P)
+    X = np.random.default_rng(4).normal(size=(5, 3))
+    want = (X @ alone[0, :, :3].T + alone[0, :, 3]) @ A2[0, :, :3].T + A2[0, :, 3]
+    np.testing.assert_allclose(X @ both[0, :, :3].T + both[0, :, 3], want, atol=1e-12)
