@@ -7,8 +7,9 @@ documented tracker), then
   widths, correlated (Pearson r) with MediaPipe Face Mesh's iris centre (points 468/473) relative to its own
   corners (33-133, 362-263), on eyes whose reference gaze moves (standard deviation >= 0.05 eye widths);
   the peer's own gaze (Face Landmarker's eyeLookIn/Out/Up/Down scores) is scored against the same reference;
-- head pose (:func:`retarget_cli.methods.tracking.headpose.head_pose`): yaw, pitch, roll against the
-  rotation of Face Landmarker's facial transformation matrix, where the reference moves (sd >= 2 degrees).
+- head pose (:func:`retarget_cli.methods.tracking.headpose.head_pose`, camera-relative, and the pipeline's
+  stored ``head_angles``, relative to the line of sight): yaw, pitch, roll against the rotation of Face
+  Landmarker's facial transformation matrix, where the reference moves (sd >= 2 degrees).
   That matrix is fitted on the whole face mesh, mouth included, so a strong expression moves it too.
 
 Synthetic: the ICT FaceKit's 68 landmark vertices posed at random slider weights (expressions), turned by
@@ -151,9 +152,12 @@ def real_clip(name: str) -> dict:
         for who, est in (("ours", g.offset[:T]), ("peer", P)):
             rs = [pearson(est[:, e, k], G[:, e, k]) for e in range(2) if np.nanstd(G[:, e, k]) >= MOVES_GAZE]
             row[f"{who}_{axis}"] = float(np.mean(rs)) if rs else float("nan")
+    stored = lm.head_angles  # the pipeline's: track's head_angles, relative to the line of sight
     for k, axis in enumerate(("yaw", "pitch", "roll")):
         moves = np.std(A[:, k]) >= MOVES_HEAD
         row[axis] = pearson(hp.angles[:T, k], A[:, k]) if moves else float("nan")
+        row[f"{axis}_stored"] = pearson(stored[:T, k].astype(np.float64), A[:, k]) \
+            if moves and stored is not None else float("nan")
         row[f"{axis}_sd"] = float(np.std(A[:, k]))
     return row
 
@@ -218,7 +222,15 @@ def main(argv=None) -> int:
         print(f"| {r['clip']} | {r['frames']} | {f(r['ours_h'])} | {f(r['peer_h'])} | {f(r['ours_v'])} | "
               f"{f(r['peer_v'])} | {f(r['yaw'])} | {f(r['pitch'])} | {f(r['roll'])} | {r['yaw_sd']:.1f} / "
               f"{r['pitch_sd']:.1f} / {r['roll_sd']:.1f} | {r['gaze_s'] + r['head_s']:.1f} |")
-    for key in ("ours_h", "peer_h", "ours_v", "peer_v", "yaw", "pitch", "roll"):
+    print("\n## Head pose stored by the pipeline (track's landmarks.npz head_angles, relative to the line of sight) "
+          "against MediaPipe (Pearson r; '-' where the reference does not move)\n")
+    print("| clip | yaw | pitch | roll | reference sd yaw/pitch/roll |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['clip']} | {f(r['yaw_stored'])} | {f(r['pitch_stored'])} | {f(r['roll_stored'])} | "
+              f"{r['yaw_sd']:.1f} / {r['pitch_sd']:.1f} / {r['roll_sd']:.1f} |")
+    for key in ("ours_h", "peer_h", "ours_v", "peer_v", "yaw", "pitch", "roll", "yaw_stored", "pitch_stored",
+                "roll_stored"):
         vals = [r[key] for r in rows if np.isfinite(r[key])]
         print(f"mean {key}: {np.mean(vals):.2f} over {len(vals)} clips" if vals else f"mean {key}: -")
     return 0

@@ -26,6 +26,10 @@ from .text import read_text
 # --------------------------------------------------------------------------- animations
 
 
+#: The head's columns of a curves CSV (:func:`write_animation`): yaw, pitch, roll in degrees and the translation.
+HEAD_COLUMNS = ("head_yaw", "head_pitch", "head_roll", "head_x", "head_y", "head_z")
+
+
 def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarray, np.ndarray | None]:
     """Read rig weights over time.
 
@@ -66,7 +70,7 @@ def read_animation(path: str | os.PathLike) -> tuple[list, np.ndarray, np.ndarra
         frames = fcol.astype(np.int64)
         if "time" in header:
             times = rows[:, header.index("time")]
-        names = [h for h in header if h not in ("frame", "time", "found")]
+        names = [h for h in header if h not in ("frame", "time", "found", *HEAD_COLUMNS)]
         W = rows[:, [header.index(n) for n in names]]
     else:
         raise InputError(f"{path}: expected a .csv or .npz animation")
@@ -118,15 +122,21 @@ def _is_number(text: str) -> bool:
 
 
 def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, meta: dict | None = None,
-                    found=None) -> None:
+                    found=None, head=None) -> None:
     """Write rig weights over time, CSV or NPZ by the file's extension (the formats of :func:`read_animation`).
 
     *found* (T,) bool, optional: whether the face was found in each frame (a take with gaps): a ``found``
     column of 0/1 after ``frame``/``time`` in a CSV (:func:`read_animation` skips it), a ``found`` member of
-    an NPZ.
+    an NPZ. *head* (T, 6), optional: the head's yaw, pitch, roll (degrees) and translation x, y, z
+    (``landmarks.npz``'s ``head_angles``, ``head_translation``): the :data:`HEAD_COLUMNS` after the sliders in
+    a CSV (:func:`read_animation` skips them), ``head_angles`` (T, 3) and ``head_translation`` (T, 3) members
+    of an NPZ.
     """
     path = Path(path)
     W = np.asarray(W, dtype=np.float64)
+    H = None if head is None else np.asarray(head, dtype=np.float64)
+    if H is not None and H.shape != (len(W), 6):
+        raise InputError(f"{path}: head: expected shape ({len(W)}, 6), got {H.shape}")
     if path.suffix.lower() == ".npz":
         arrays = {"curves": W, "names": np.asarray(names, dtype=str), "frames": np.asarray(frames, dtype=np.int64),
                   "meta": np.array(json.dumps({"version": __version__, **(meta or {})}, sort_keys=True))}
@@ -134,11 +144,16 @@ def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, me
             arrays["times"] = np.asarray(times, dtype=np.float64)
         if found is not None:
             arrays["found"] = np.asarray(found, dtype=bool)
+        if H is not None:
+            arrays["head_angles"], arrays["head_translation"] = H[:, :3], H[:, 3:]
         savez(path, arrays)
         return
     if path.suffix.lower() != ".csv":
         raise InputError(f"{path}: expected a .csv or .npz output")
     head = ["frame"] + (["time"] if times is not None else []) + (["found"] if found is not None else []) + list(names)
+    head += list(HEAD_COLUMNS) if H is not None else []
+    if H is not None:
+        W = np.concatenate([W, H], axis=1)
     line = io.StringIO()
     csv.writer(line, lineterminator="").writerow(head)  # a name holding a comma or a quote is quoted
     out = [line.getvalue()]
@@ -380,4 +395,4 @@ def read_edits(path: str | os.PathLike, *, n_vertices: int, frames, expressions=
     return out
 
 
-__all__ = ["edits_rig", "read_animation", "read_edits", "write_animation"]
+__all__ = ["HEAD_COLUMNS", "edits_rig", "read_animation", "read_edits", "write_animation"]

@@ -33,7 +33,7 @@ from .exr import write_vat
 from .gltf import write_glb
 from .gltf_animation import copy_groups, is_vrm, write_animated_copy, write_vrma
 from .landmarks import load_landmarks
-from .livelink import head_rotation_from_similarity, livelink_csv
+from .livelink import head_rotation_from_pose, head_rotation_from_similarity, livelink_csv
 from .obj import read_obj, write_obj
 from .objsurface import obj_surface
 from .rig.gltf import read_gltf_rig
@@ -89,6 +89,12 @@ class ExportContext:
         The source's own frame rate (frame numbers over it are times); default *fps*.
     found : ndarray, shape (T,), bool, or None
         Whether the face was found in each frame (``landmarks.npz``'s ``found``); None: every frame.
+    root_transforms : ndarray, shape (T, 3, 4), or None
+        The glTF node's and the USD root's transform with the 3D head rotation
+        (:func:`~retarget_cli.methods.blending.head_rotation_transforms`); the streamed meshes get *head* only.
+    head_pose : ndarray, shape (T, 6), or None
+        The head's 3D pose per frame: yaw, pitch, roll in degrees and the translation (``landmarks.npz``'s
+        ``head_angles`` and ``head_translation``); None without them or with ``apply.head_rotation: false``.
     gaps : str
         ``apply.gaps``: ``omit`` leaves the frames of a gap out of the exports that can (curves.csv,
         livelink.csv, the glTF's keys, the USD's time samples); the curves already hold the behaviour's
@@ -118,6 +124,14 @@ class ExportContext:
     source_fps: float | None = None
     found: np.ndarray | None = None
     gaps: str = "ease"
+    head_pose: np.ndarray | None = None
+    root_transforms: np.ndarray | None = None
+
+    @property
+    def node_transforms(self) -> np.ndarray | None:
+        """(T, 3, 4) transform of the glTF node and the USD root: *root_transforms* (the 3D head rotation,
+        with the 2D head motion when asked), else *head*."""
+        return self.head if self.root_transforms is None else self.root_transforms
 
     def written_rows(self) -> np.ndarray:
         """Rows the row-per-frame exports write (T,) bool: all but the gaps' with ``gaps: omit``."""
@@ -241,8 +255,9 @@ class GlbExport(Exporter):
         mt, names, mw = c.morph_targets()
         path = c.out / self.files[0]
         keep = c.written_rows()  # gaps omit: the gap frames are not keyed (the player interpolates across)
+        nodes = c.node_transforms
         write_glb(path, base=c.base, faces=None, targets=mt, target_names=names, weights=mw[keep],
-                  fps=c.fps, node_transforms=None if c.head is None else c.head[keep], name=c.template.path.stem,
+                  fps=c.fps, node_transforms=None if nodes is None else nodes[keep], name=c.template.path.stem,
                   surface=obj_surface(c.template), times=timing(c)[1][keep])
         return [path]
 
@@ -258,9 +273,10 @@ class CurvesExport(Exporter):
         csv, npz = (c.out / f for f in self.files)
         keep = c.written_rows()
         found = None if c.found is None or np.all(c.found) else np.asarray(c.found, bool)
+        hp = c.head_pose
         write_animation(csv, c.rig.names, c.curves[keep], frames[keep], times[keep],
-                        found=None if found is None else found[keep])
-        write_animation(npz, c.rig.names, c.curves, frames, times, found=found,
+                        found=None if found is None else found[keep], head=None if hp is None else hp[keep])
+        write_animation(npz, c.rig.names, c.curves, frames, times, found=found, head=hp,
                         meta={"fps": c.fps, "source_fps": rate, "rig": Path(c.rig_file).name,
                               "weights": Path(c.weights).name, **({} if found is None else {"gaps": c.gaps})})
         return [csv, npz]
@@ -275,7 +291,7 @@ class LiveLinkExport(Exporter):
         c = self.ctx
         frames, _, rate = timing(c)
         return [write_livelink(c.out / self.files[0], c.rig, c.curves, rate, landmarks=c.landmarks, frames=frames,
-                               rows=c.written_rows())]
+                               rows=c.written_rows(), head_pose=c.head_pose)]
 
 
 class UsdExport(Exporter):
@@ -290,7 +306,8 @@ class UsdExport(Exporter):
         c = self.ctx
         frames, _, rate = timing(c)
         return [write_usd(c.out / self.files[0], c.template, c.base, c.positions, c.n_frames, rate,
-                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.head, frames=frames,
+                          morph_targets=c.morph_targets if c.rig is not None else None, head=c.node_transforms,
+                          frames=frames,
                           keys=c.written_rows())]
 
 
@@ -412,7 +429,7 @@ def head_rotation(landmarks, T: int):
 
 
 def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None, frames=None,
-                   rows=None) -> Path:
+                   rows=None, head_pose=None) -> Path:
     """Write the rig's curves as a Live Link Face CSV (:func:`retarget_cli.io.livelink.livelink_csv`).
 
     Parameters
@@ -426,9 +443,13 @@ def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks
         The source's rate and each row's source frame number: the timecodes (:func:`~.livelink.livelink_csv`).
     rows : ndarray, shape (T,), bool, optional
         The rows written (``apply.gaps: omit`` leaves the gaps' out; each row keeps its frame's timecode).
+    head_pose : ndarray, shape (T, 6), optional
+        The 3D head pose (:attr:`ExportContext.head_pose`): HeadYaw, HeadPitch and HeadRoll from it
+        (:func:`~.livelink.head_rotation_from_pose`) instead of the 2D similarity's roll.
     """
 
-    rot = head_rotation(landmarks, len(curves))
+    rot = head_rotation(landmarks, len(curves)) if head_pose is None else \
+        head_rotation_from_pose(np.asarray(head_pose)[:, :3])
     if rot is None:
         log.info("Live Link Face CSV: no landmarks file, so the head rotation columns are 0")
     if rows is not None and not np.all(rows):

@@ -30,6 +30,7 @@ import os
 import struct
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .. import __version__
 from ..errors import ShapeError
@@ -235,14 +236,26 @@ def _primitives(b: _Bin, groups: list, attributes: dict, targets: list) -> list:
     return prims
 
 
+def _quaternions(R) -> np.ndarray:
+    """glTF ``[x, y, z, w]`` unit quaternions (T, 4) of rotation matrices (T, 3, 3), each in the hemisphere of the
+    previous one (a linear interpolation between keys then turns the short way)."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    if len(q):
+        q[0] *= -1.0 if q[0, 3] < 0 else 1.0
+    for t in range(1, len(q)):
+        if q[t] @ q[t - 1] < 0:
+            q[t] = -q[t]
+    return q
+
+
 def _node_animation(b: _Bin, node_transforms, T: int, t_acc: int, samplers: list, channels: list) -> None:
-    """Append the node's TRS samplers and channels for per-frame similarities (T, 3, 4)."""
+    """Append the node's TRS samplers and channels for per-frame similarities (T, 3, 4): a rotation in 3D (the
+    head's 3D pose) or about z (the 2D head motion's roll), a uniform scale and a translation."""
     A = np.asarray(node_transforms, dtype=np.float64)
     if A.shape != (T, 3, 4):
         raise ShapeError(f"node_transforms: expected shape ({T}, 3, 4), got {A.shape}")
     s = np.linalg.norm(A[:, :, 0], axis=1)
-    phi = np.arctan2(A[:, 1, 0], A[:, 0, 0])  # roll about z
-    quat = np.stack([np.zeros(T), np.zeros(T), np.sin(phi / 2), np.cos(phi / 2)], 1)
+    quat = _quaternions(A[:, :, :3] / s[:, None, None])
     for path, val in (("translation", A[:, :, 3]), ("rotation", quat), ("scale", np.repeat(s[:, None], 3, 1))):
         kind = "VEC4" if path == "rotation" else "VEC3"
         samplers.append({"input": t_acc, "output": b.add(val.astype(np.float32), kind=kind),

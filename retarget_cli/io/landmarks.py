@@ -67,6 +67,15 @@ class Landmarks:
         Segment of each frame (a run of found frames between gaps and scene
         cuts, smoothed on its own), -1 in the gaps. Absent: one segment of
         the found frames (:attr:`segments`).
+    head_angles : ndarray, shape (T, 3), float32, optional
+        The head's 3D rotation relative to the line of sight from the camera, ``yaw, pitch, roll`` in degrees
+        (0: looking into the lens, wherever the face is in the picture; yaw > 0 turned
+        to the actor's left, pitch > 0 looking up, roll > 0 tilted to the actor's left shoulder), fitted on
+        ``points`` (:func:`retarget_cli.methods.tracking.headpose.head_pose`); a frame without a face holds
+        the last found frame's.
+    head_translation : ndarray, shape (T, 3), float32, optional
+        The face's origin (between the eye corners) in camera axes (x right, y down, z away), in the 3D
+        face's units (cm for the generic face); given with *head_angles*.
     """
 
     points: np.ndarray
@@ -84,6 +93,8 @@ class Landmarks:
     times: np.ndarray | None = None
     found: np.ndarray | None = None
     segment: np.ndarray | None = None
+    head_angles: np.ndarray | None = None
+    head_translation: np.ndarray | None = None
 
     @property
     def found_mask(self) -> np.ndarray:
@@ -159,11 +170,13 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
         if arrays["neutral"].shape != (L, 2) or arrays["neutral_confidence"].shape != (L,):
             raise ParameterError(f"neutral: expected shapes {(L, 2)} and {(L,)}, got {arrays['neutral'].shape} "
                                  f"and {arrays['neutral_confidence'].shape}")
-    for key, value, dtype in (("found", lm.found, bool), ("segment", lm.segment, np.int32)):
+    for key, value, dtype, shape in (("found", lm.found, bool, (T,)), ("segment", lm.segment, np.int32, (T,)),
+                                     ("head_angles", lm.head_angles, np.float32, (T, 3)),
+                                     ("head_translation", lm.head_translation, np.float32, (T, 3))):
         if value is not None:
             arrays[key] = np.asarray(value, dtype=dtype)
-            if arrays[key].shape != (T,):
-                raise ParameterError(f"{key}: expected shape {(T,)}, got {arrays[key].shape}")
+            if arrays[key].shape != shape:
+                raise ParameterError(f"{key}: expected shape {shape}, got {arrays[key].shape}")
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)
@@ -294,6 +307,24 @@ def _found(data: dict, path, T: int) -> tuple[np.ndarray | None, np.ndarray | No
     return found, seg
 
 
+def _head_3d(data: dict, path, T: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``head_angles`` and ``head_translation`` (T, 3) float32, finite and given together, or (None, None)."""
+    if ("head_angles" in data) != ("head_translation" in data):
+        raise InputError(f"{path}: 'head_angles' and 'head_translation' must be given together or not at all")
+    if "head_angles" not in data:
+        return None, None
+    out = []
+    for key in ("head_angles", "head_translation"):
+        a = _numeric(data, key, path)
+        if a.shape != (T, 3):
+            raise InputError(f"{path}: {key!r} must have shape {(T, 3)} (one row per frame), got {a.shape}")
+        if not np.isfinite(a).all():
+            t = int(np.flatnonzero(~np.isfinite(a).all(1))[0])
+            raise InputError(f"{path}: {key!r} must be finite; frame {t} is not")
+        out.append(a.astype(np.float32))
+    return out[0], out[1]
+
+
 def _times(data: dict, path, T: int) -> np.ndarray | None:
     if "times" not in data:
         return None
@@ -377,6 +408,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     meta = _meta(data, path)
     neutral, neutral_conf = _neutral(data, path, L)
     found, segment = _found(data, path, T)
+    head_angles, head_translation = _head_3d(data, path, T)
     return Landmarks(
         points=points,
         confidence=conf.astype(np.float32, copy=False),
@@ -393,4 +425,6 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         neutral_confidence=neutral_conf,
         found=found,
         segment=segment,
+        head_angles=head_angles,
+        head_translation=head_translation,
     )

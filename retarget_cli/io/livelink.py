@@ -260,6 +260,29 @@ def head_rotation_from_similarity(head) -> np.ndarray:
     return out
 
 
+def head_rotation_from_pose(angles) -> np.ndarray:
+    """Live Link's HeadYaw, HeadPitch, HeadRoll (radians) from the 3D head pose (``landmarks.npz`` ``head_angles``).
+
+    The columns are radians, as :data:`ROTATIONS` and :func:`head_rotation_from_similarity` write them: yaw > 0
+    when the actor turns to their left, pitch > 0 when they look up, and roll counter-clockwise-positive as
+    seen by the camera (the sign of :func:`head_rotation_from_similarity`'s roll; ``head_angles``'s roll is
+    positive towards the actor's left shoulder, clockwise in the image, so it changes sign).
+
+    Parameters
+    ----------
+    angles : ndarray, shape (T, 3)
+        ``yaw, pitch, roll`` in degrees (:class:`~retarget_cli.methods.tracking.headpose.HeadPose`).
+
+    Returns
+    -------
+    ndarray, shape (T, 3)
+    """
+    A = np.asarray(angles, dtype=np.float64)
+    if A.ndim != 2 or A.shape[1] != 3:
+        raise ShapeError(f"head angles: expected shape (T, 3), got {A.shape}")
+    return np.radians(A) * np.array([1.0, 1.0, -1.0])
+
+
 __all__ = ["ARKIT_SHAPES", "BLENDSHAPE_COUNT", "COLUMNS", "ROTATIONS", "arkit_mapping", "canonical_name",
-           "check_names_mapping", "head_rotation_from_similarity", "livelink_csv", "livelink_table",
+           "check_names_mapping", "head_rotation_from_pose", "head_rotation_from_similarity", "livelink_csv", "livelink_table",
            "parse_timecode", "timecode"]

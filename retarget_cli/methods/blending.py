@@ -11,6 +11,7 @@ import numpy as np
 
 from .._validate import check_array
 from ..errors import ShapeError
+from .tracking.headpose import angles_rotation
 
 
 def blend_keys(weights, key_vertices) -> np.ndarray:
@@ -195,6 +196,50 @@ def region_weights(masks, *, vertices=None, faces=None, falloff=None) -> np.ndar
         M = np.stack([falloff_mask(m, vertices=vertices, edges=edges, width=w) for m, w in zip(M, widths)])
     M = M / np.maximum(M.sum(0), 1.0)
     return np.concatenate([M, (1.0 - M.sum(0))[None]])
+
+
+def head_rotation_transforms(angles, *, pivot, transforms=None, keep_roll: bool = True) -> np.ndarray:
+    """3D transforms that turn the character's head as the actor's: the 3D head pose (issue 28) about *pivot*.
+
+    The rotation ``R_t`` of ``angles[t]`` (:func:`~retarget_cli.methods.tracking.headpose.angles_rotation`, in
+    camera axes: x right, y down, z away) is carried into the model's axes (y up, the face looking along
+    +z towards the viewer: ``F R_t F``, ``F = diag(1, -1, -1)``) and applied about *pivot*,
+    ``X' = P + F R_t F (X - P)``; 0 degrees is the character as modelled, facing the viewer. With
+    *transforms* (the 2D head motion of :func:`head_motion_transforms`, whose roll is the image's), the
+    rotation is applied first and *keep_roll* false leaves the 3D roll out (the 2D motion has it):
+    ``X'' = A_t X' + b_t``.
+
+    Parameters
+    ----------
+    angles : ndarray, shape (T, 3)
+        ``yaw, pitch, roll`` in degrees (``landmarks.npz`` ``head_angles``).
+    pivot : array_like, shape (3,)
+        Model-space centre of the rotation.
+    transforms : ndarray, shape (T, 3, 4), optional
+    keep_roll : bool
+
+    Returns
+    -------
+    ndarray, shape (T, 3, 4)
+    """
+    a = check_array(angles, "angles", ndim=2)
+    if a.shape[1] != 3:
+        raise ShapeError(f"angles: expected shape (T, 3), got {a.shape}")
+    a = a.copy()
+    if not keep_roll:
+        a[:, 2] = 0.0
+    F = np.diag([1.0, -1.0, -1.0])
+    R = F @ angles_rotation(a) @ F
+    P = np.asarray(pivot, dtype=np.float64).reshape(3)
+    out = np.concatenate([R, (P - R @ P)[:, :, None]], axis=2)
+    if transforms is None:
+        return out
+    A = check_array(transforms, "transforms", ndim=3)
+    if A.shape != (len(a), 3, 4):
+        raise ShapeError(f"transforms: expected shape ({len(a)}, 3, 4), got {A.shape}")
+    M = A[:, :, :3] @ out[:, :, :3]
+    t = np.einsum("tij,tj->ti", A[:, :, :3], out[:, :, 3]) + A[:, :, 3]
+    return np.concatenate([M, t[:, :, None]], axis=2)
 
 
 def head_motion_transforms(head, *, units_per_pixel: float, pivot, image_pivot, reference: int = 0) -> np.ndarray:

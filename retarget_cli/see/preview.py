@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, ParameterError
-from ..io.atomic import check_not_input, write_bytes
+from ..io.atomic import check_not_input, load_npz, write_bytes
 from ..io.editfiles import read_animation
 from ..io.frames import FrameSource as SourceFrames
 from ..io.landmarks import load_landmarks
@@ -22,6 +22,7 @@ from ..io.obj import read_obj, read_vertices_like
 from ..io.rig import load_rig
 from ..io.stagefiles import read_targets
 from ..io.video import atomic_video_writer
+from ..methods.blending import apply_transforms, head_rotation_transforms
 from ..methods.render import Camera, MeshRenderer
 from ..run.runfiles import RunFiles, read_run_weights
 
@@ -252,6 +253,24 @@ def curves_character(run: RunFiles):
     return rig, curves, path, targets.rig
 
 
+def curves_head_turn(character) -> np.ndarray | None:
+    """(T, 3, 4) head rotation of the character from the curves' ``head_angles`` (``curves.npz`` with
+    ``apply.head_rotation``), about the centre of the rig's rest mesh, or None when the curves have none.
+
+    The preview then turns the character's head as the exports do (the glTF node, the USD root:
+    :func:`~retarget_cli.methods.blending.head_rotation_transforms`).
+    """
+    rig, curves, path = character[:3]
+    if Path(path).suffix.lower() != ".npz":
+        return None
+    data = load_npz(path)
+    angles = data.get("head_angles")
+    if angles is None or angles.shape != (len(curves), 3) or not np.isfinite(angles).all():
+        return None
+    base = np.asarray(rig.neutral, dtype=np.float64)
+    return head_rotation_transforms(np.asarray(angles, np.float64), pivot=(base.min(0) + base.max(0)) / 2)
+
+
 class RunData:
     """Arrays of a run loaded once for preview and report (whatever exists).
 
@@ -267,6 +286,7 @@ class RunData:
             self.regions, self.extras, self.other = read_run_weights(run.weights)
         self.frame_files = run.frame_files()
         self.character = None if self.frame_files else curves_character(run)
+        self.head_turn = None if self.character is None else curves_head_turn(self.character)
         lengths = []
         if self.lm is not None:
             lengths.append(self.lm.n_frames)
@@ -329,7 +349,10 @@ class RunData:
 
         if not self.frame_files:
             rig, curves = self.character[:2]
-            return rig.evaluate(curves[t])
+            v = rig.evaluate(curves[t])
+            if self.head_turn is not None and t < len(self.head_turn):
+                v = apply_transforms(self.head_turn[t:t + 1], v[None])[0]
+            return v
         v = read_vertices_like(self.frame_files[t], self.mesh())
         if len(v) != self.mesh().n_vertices:
             raise InputError(f"{self.frame_files[t]}: {len(v)} vertices, but "

@@ -34,6 +34,7 @@ from ..methods.blending import (
     blend_keys,
     blend_regions,
     head_motion_transforms,
+    head_rotation_transforms,
     morph_targets,
     morph_weights,
     region_weights,
@@ -67,6 +68,11 @@ PARAMS = [
     Param("pivot", "setting", list, None,
           "[x, y, z] in model units: centre of head roll and scale (default: centre of the "
           "neutral mesh's bounding box).", nullable=True, validate=check_vector3),
+    Param("head_rotation", "setting", bool, True,
+          "The head's 3D rotation (landmarks.npz head_angles, from track.head_pose): head_yaw/pitch/roll and "
+          "head_x/y/z columns in the curves, Live Link's HeadYaw/HeadPitch/HeadRoll, and the rotation of the glTF "
+          "node and the USD root about the pivot (with head_motion 2d: its yaw and pitch added to the 2D motion). "
+          "The OBJ/EXR meshes are not turned."),
     Param("vat", "setting", str, "offsets", "EXR texture holds offsets from the neutral or positions.",
           choices=("offsets", "positions")),
     Param("gaps", "setting", str, "ease",
@@ -235,8 +241,8 @@ def _rig_driver(regions, tg, targets, cache_dir, gap_fill=None):
 
 @validate_params(PARAMS)
 def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), head_motion="none", scale=None,
-              pivot=None, vat="offsets", drive="auto", gaps="ease", gap_ease=0.4, progress=_no_progress,
-              cache_dir=None) -> list[Path]:
+              pivot=None, vat="offsets", drive="auto", gaps="ease", gap_ease=0.4, head_rotation=True,
+              progress=_no_progress, cache_dir=None) -> list[Path]:
     """Drive the character with the weights and export the result.
 
     Writes into *output*: ``frame_%05d.obj`` (streamed, chunk by chunk),
@@ -283,6 +289,11 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     else:
         positions, template, base, glb, rig_out = _key_driver(regions, tg, targets, weights)
     head = _head_transforms(landmarks, T, base, scale, pivot) if head_motion == "2d" else None
+    pose3d = _head_pose(landmarks, T) if head_rotation else None
+    root = None
+    if pose3d is not None:
+        P = (base.min(0) + base.max(0)) / 2 if pivot is None else np.asarray(pivot, dtype=np.float64)
+        root = head_rotation_transforms(pose3d[:, :3], pivot=P, transforms=head, keep_roll=head is None)
     out.mkdir(parents=True, exist_ok=True)
     ledger = TrackedOutputs(out, "apply")  # the output manifest of the folder: what apply wrote there
     rig, curves = rig_out if rig_out is not None else (None, None)
@@ -290,7 +301,8 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
                         positions=positions, head=head, regions=regions, weights=weights, targets=targets,
                         landmarks=landmarks, rig=rig, rig_file=tg.rig, curves=curves, morph_targets=glb,
                         settings={"vat": vat}, ledger=ledger, frames=frames, times=times,
-                        source_fps=meta.get("source_fps"), found=found, gaps=gaps)
+                        source_fps=meta.get("source_fps"), found=found, gaps=gaps, head_pose=pose3d,
+                        root_transforms=root)
     for f in formats:
         EXPORTS[f].check_context(ctx)
     exporters = [EXPORTS[f](ctx) for f in EXPORTS if f in formats]
@@ -301,6 +313,20 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
     log.info("wrote %d frames of %d vertices to %s (%s; driven by %s)", T, template.n_vertices, out,
              ", ".join(formats), "the rig" if use_rig else "the key shapes")
     return ledger.written
+
+
+def _head_pose(landmarks, T: int) -> np.ndarray | None:
+    """(T, 6) yaw, pitch, roll (degrees) and translation of the head from *landmarks*, or None without them."""
+    if landmarks is None:
+        return None
+    lm = load_landmarks(landmarks)
+    if lm.head_angles is None:
+        log.info("%s: no head_angles (track.head_pose off, or an older file); no 3D head rotation in the exports",
+                 landmarks)
+        return None
+    if lm.n_frames != T:
+        raise InputError(f"{landmarks}: has {lm.n_frames} frames but the weights have {T}")
+    return np.concatenate([lm.head_angles, lm.head_translation], axis=1).astype(np.float64)
 
 
 def _found_frames(landmarks, T: int) -> np.ndarray | None:
@@ -404,7 +430,7 @@ COMMAND = Command(
           help=f"Comma-separated exports: {formats_help()}."),
      Flag("landmarks", path="file", show_default=False,
           help="landmarks.npz whose head motion --head-motion 2d applies and whose gaps --gaps fills."),
-     "head_motion", "scale", Flag("pivot", value="xyz", metavar="X,Y,Z", show_default=False), "vat", "drive",
+     "head_motion", "head_rotation", "scale", Flag("pivot", value="xyz", metavar="X,Y,Z", show_default=False), "vat", "drive",
      "gaps", "gap_ease", NO_CACHE_FLAG),
     _cli_apply,
     _show_apply,

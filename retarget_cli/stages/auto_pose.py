@@ -15,6 +15,7 @@ from __future__ import annotations
 import fnmatch
 import logging
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -38,16 +39,21 @@ from ..methods.rigpose import (
     Contact,
     contact_references,
     delta_pose,
+    frontal_rotation,
     infer_exclusive,
     project,
     rig_landmarks,
     rig_region_masks,
     slider_owners,
 )
+from ..methods.tracking.head import estimate_head
+from ..methods.tracking.headpose import HeadPose, camera_angles, head_pose
+from ..methods.tracking.headpose import frontalize as frontalize_points
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
 from ._neutral import neutral_from_keys
 from .map_landmarks import cached_landmark_map
 from .pose import NEUTRAL_OBJ, _pose_files, targets_neutral
+from .track import held_confidence
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +108,10 @@ PARAMS = [
     Param("masks", "setting", dict, None,
           "Region name to vertex-mask file, overriding the masks derived from the rig.", nullable=True,
           validate=check_masks),
+    Param("frontalize", "setting", bool, True,
+          "Remove the head's 3D rotation from the landmarks before the fit (needs landmarks.npz head_angles, "
+          "68 points): each frame's landmarks as the face would show them looking into the camera, with the rig's "
+          "own landmark vertices as the 3D face, so a turn of the head is not read as expression."),
     Param("alpha", "setting", float, 0.001, "absolute fit: eq. 3's alpha.", min=0),
     Param("mu", "setting", float, 0.0001, "absolute fit: eq. 3's mu.", min=0),
 ]
@@ -158,7 +168,7 @@ def _mask_text(weights: np.ndarray) -> str:
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame="auto", sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=3.0, contact_weight=4.0,
-                  lip_closed=0.02, lid_closed=0.15, base_dir=None, cache_dir=None) -> list[Path]:
+                  lip_closed=0.02, lid_closed=0.15, frontalize=True, base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
     ``sliders.csv``, masks, ``targets.yaml`` (and ``curves.csv``).
 
@@ -183,6 +193,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
     rigid_points : sequence of int, optional
         Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
+    frontalize : bool
+        Fit the frontalized landmarks (:func:`frontal_landmarks`) instead of ``stabilized``.
     """
 
     if fit not in FITS:
@@ -201,6 +213,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     if landmark_vertices is None and spec.landmarks is None and lm.n_points == 68:
         landmark_vertices = cached_landmark_map(rig_path, r, spec, out)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
+    if frontalize:
+        lm, neutral = frontal_landmarks(lm, r, vx, lm_ids, neutral)
     fixed = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
     Y = lm.stabilized[:, lm_ids].astype(np.float64)
@@ -231,6 +245,72 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         poses = _hold_gaps(poses, lm.n_frames)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
                        None if neutral is None else neutral.frame, every_frame=frames == "all")
+
+
+def rig_face_model(rig, vertices) -> np.ndarray:
+    """The rig's 68 landmark vertices at rest as a 3D face for :func:`~retarget_cli.methods.tracking.headpose.head_pose`.
+
+    In camera axes (:func:`~retarget_cli.methods.rigpose.frontal_rotation`: x from the image-left to the
+    image-right outer eye corner, y down towards the chin, z away from the viewer), the eye corners' centre at
+    the origin, in the rig's units.
+
+    Parameters
+    ----------
+    rig : BlendshapeRig
+    vertices : array_like of int, shape (68,)
+
+    Returns
+    -------
+    ndarray, shape (68, 3)
+    """
+    X0 = rig_landmarks(rig, vertices)[0]
+    Rc = frontal_rotation(X0, *FRONT_68)
+    return (X0 - X0[[36, 39, 42, 45]].mean(0)) @ Rc.T
+
+
+def frontal_landmarks(lm, rig, vx, lm_ids, neutral=None):
+    """*lm* with its ``stabilized`` landmarks frontalized: the head's 3D rotation removed (issue 28).
+
+    Each frame's pose is fitted with the rig's own landmark vertices as the 3D face (:func:`rig_face_model`)
+    when the rig maps all 68 landmarks, else the stored ``head_angles``/``head_translation`` (the generic
+    face) are used; the points are moved to the frontal pose by
+    :func:`~retarget_cli.methods.tracking.headpose.frontalize` (the residual back-projected onto the face's
+    plane) and the 2D similarity is removed again (:func:`~retarget_cli.methods.tracking.head.estimate_head`,
+    default rigid points, frame 0 the reference). A take's rest shape (a *neutral* found in the take) is
+    re-averaged over the same frames. *lm* unchanged (with a log line) without ``head_angles``, with another
+    layout than 68 points or without a frame size.
+
+    Returns
+    -------
+    lm : Landmarks
+    neutral : Neutral or None
+    """
+    if lm.head_angles is None or lm.n_points != 68 or min(lm.frame_size) <= 0:
+        log.info("frontalize: not applied (landmarks.npz has %s, %d points, frame size %s)",
+                 "no head_angles" if lm.head_angles is None else "head_angles", lm.n_points, lm.frame_size.tolist())
+        return lm, neutral
+    conf = held_confidence(lm.confidence, lm.found)
+    size = tuple(int(v) for v in lm.frame_size)
+    model = rig_face_model(rig, vx) if np.array_equal(lm_ids, np.arange(68)) else None
+    if model is not None:
+        pose = head_pose(lm.points, size, confidence=conf, model=model)
+        what = "the rig's landmark vertices"
+    else:
+        tr = np.asarray(lm.head_translation, np.float64)
+        pose = HeadPose(camera_angles(np.asarray(lm.head_angles, np.float64), tr), tr, np.full(lm.n_frames, np.nan))
+        what = "the generic face (landmarks.npz head_angles)"
+    front = frontalize_points(lm.points, pose, size, model=model)
+    stab = estimate_head(front, conf)[1].astype(np.float32)
+    log.info("frontalize: the head's 3D rotation removed before the fit (3D face: %s; |yaw| up to %.1f, |pitch| up "
+             "to %.1f deg)", what, float(np.abs(pose.angles[:, 0]).max()), float(np.abs(pose.angles[:, 1]).max()))
+    lm = replace(lm, stabilized=stab)
+    if neutral is not None and neutral.shape is not None and neutral.record.get("source") == "take" \
+            and neutral.record.get("frames"):
+        rows = np.asarray(neutral.record["frames"], dtype=np.int64)
+        rows = rows[(rows >= 0) & (rows < lm.n_frames)]
+        if rows.size:
+            neutral = replace(neutral, shape=stab[rows].astype(np.float64).mean(0))
+    return lm, neutral
 
 
 def _contact_rows(lm_ids, L: int):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,8 @@ from ..methods.tracking.facemark import train_lbf
 from ..methods.tracking.head import apply_similarity, estimate_head, invert_similarity
 from ..methods.tracking.head import smooth_head as _smooth
 from ..methods.tracking.head import smooth_head as smooth_head_fn
+from ..methods.tracking.headpose import head_pose as fit_head_pose
+from ..methods.tracking.headpose import sight_angles
 from ._common import Stage, _no_progress, _require
 from ._landmark_filter import FILTER_DEFAULTS, FILTER_PARAMS, apply_filter
 from .annotate import detect_frame, init_pts_path, is_auto, write_pts_once
@@ -68,6 +71,10 @@ PARAMS = [
     Param("smooth_head", "setting", int, 0,
           "Temporal smoothing of the head track: Savitzky-Golay window in frames (0: none).",
           min=0, max=301),
+    Param("head_pose", "setting", bool, True,
+          "Fit the head's 3D rotation and translation per frame (landmarks.npz head_angles, head_translation; "
+          "68 points and a known frame size): the head columns of the curves, Live Link, USD and glTF, and the "
+          "rotation auto-pose removes before the expression fit."),
     Param("keep_partial", "setting", bool, False,
           "On a truncated video (or a face lost by a tracker that cannot find it again), keep what was tracked up "
           "to then. Method detect keeps tracking through frames without a face (gaps in landmarks.npz's found)."),
@@ -134,7 +141,7 @@ def _all_track_params() -> list:
 def run_track(*, video, init=None, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
               rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
               fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, neutral=None,
-              base_dir=None,
+              base_dir=None, head_pose=True,
               progress=_no_progress, filter=FILTER_DEFAULTS["filter"], filter_model=FILTER_DEFAULTS["filter_model"],
               filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
               filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
@@ -206,6 +213,7 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
+    pose3d = _head_pose_3d(points, held_confidence(conf, found), (W, H)) if head_pose else None
     calibration = None
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
@@ -214,7 +222,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
                        "downscale": downscale, "start": start, "end": end, "step": step,
-                       "smooth_head": smooth_head, **({"fuse": fuse} if "fuse" in spec.settings else {}),
+                       "smooth_head": smooth_head, "head_pose": head_pose,
+                       **({"fuse": fuse} if "fuse" in spec.settings else {}),
                        **{k: v for k, v in settings.items() if k in spec.settings}},
         "filter": fmeta,
         "source": Path(video).name,
@@ -233,7 +242,9 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
                                      frames=frame_numbers, times=source.times(frame_numbers), points_raw=raw,
                                      neutral=None if calibration is None else calibration[0],
                                      neutral_confidence=None if calibration is None else calibration[1],
-                                     found=found, segment=segment))
+                                     found=found, segment=segment,
+                                     head_angles=None if pose3d is None else pose3d.angles,
+                                     head_translation=None if pose3d is None else pose3d.translation))
     written = [Path(output)] + ([init_out] if init_out else [])
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
     if overlay:
@@ -241,6 +252,27 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
                              progress=progress)
         written.append(Path(overlay))
     return written
+
+
+def _head_pose_3d(points, confidence, frame_size):
+    """The 3D head pose of every frame (:func:`~retarget_cli.methods.tracking.headpose.head_pose` on the generic
+    face, on the filtered *points*), or None for a layout other than 68 points or an unknown frame size.
+
+    The angles are relative to the line of sight (:func:`~retarget_cli.methods.tracking.headpose.sight_angles`:
+    0 for a face that looks into the lens wherever it is in the picture). A frame without a face has the last
+    found frame's points and confidences (:func:`held_confidence`), so it
+    holds that frame's pose; the frames before the first found one take its pose.
+    """
+    if points.shape[1] != 68 or min(frame_size) <= 0:
+        log.info("head pose: not fitted (%d points, frame size %s; needs 68 points and a frame size)",
+                 points.shape[1], tuple(frame_size))
+        return None
+    pose = fit_head_pose(points, frame_size, confidence=confidence)
+    pose = replace(pose, angles=sight_angles(pose.angles, pose.translation))
+    log.info("head pose: yaw %.1f..%.1f, pitch %.1f..%.1f, roll %.1f..%.1f deg; reprojection error median %.2f px",
+             *np.ravel(np.stack([pose.angles.min(0), pose.angles.max(0)], 1)), float(np.nanmedian(pose.error))
+             if np.isfinite(pose.error).any() else float("nan"))
+    return pose
 
 
 #: At most this many frames of a calibration clip (track.neutral) are tracked.
@@ -771,7 +803,7 @@ _TRACK_FLAGS = (
          help="Also write an mp4 with the landmarks (green = confident, red = lost) and the head frame."),
     Flag("neutral", path="file", show_default=False, metavar="IMAGE_OR_CLIP"),
     "method", "fuse", Flag("model", path="file"), "window", "levels", "fb_threshold", "anchor", "start", "end",
-    "step", "downscale", "fps", "smooth_head",
+    "step", "downscale", "fps", "smooth_head", "head_pose",
     Flag("rigid_points", decls=("--rigid-points",), value="indices", metavar="SPEC", show_default=False,
          help="Landmarks that define head motion, e.g. 27-31,33,35,36,39,42,45 (default: eye corners "
               "and nose for 68 points, else all)."),

@@ -112,6 +112,38 @@ def angles_rotation(angles) -> np.ndarray:
     return Ry @ Rx @ Rz
 
 
+def sight_rotation(translation) -> np.ndarray:
+    """The camera-axes rotation (..., 3, 3) of a face at *translation* (..., 3) that looks into the lens.
+
+    It turns the 3D face's depth axis (+z, away from the camera for a face looking into it on the optical
+    axis) onto the line of sight from the camera to the face: ``angles_rotation((−atan2(x, z), asin(y/|t|), 0))``.
+    """
+    t = np.asarray(translation, dtype=np.float64)
+    u = t / np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-300)
+    a = np.stack([-np.degrees(np.arctan2(u[..., 0], u[..., 2])), np.degrees(np.arcsin(np.clip(u[..., 1], -1, 1))),
+                  np.zeros(u.shape[:-1])], axis=-1)
+    return angles_rotation(a)
+
+
+def sight_angles(angles, translation) -> np.ndarray:
+    """Head angles (..., 3) relative to the line of sight, from :func:`head_pose`'s camera-relative *angles*.
+
+    ``R_sight = S(t)ᵀ R_camera`` with ``S`` of :func:`sight_rotation`: 0 for a face that looks into the lens
+    wherever it is in the picture, as a viewer (and a 2D measure such as the nose's offset between the eye
+    corners) sees it. A face beside the optical axis that looks into the lens is turned in camera axes by
+    ``atan(x / z)`` (14° at a third of a 512-pixel frame's width from its centre, the camera's focal the
+    frame's side); MediaPipe Face Landmarker's facial transformation matrix reports the rotation as seen
+    (bench/gaze_head.py: d12's yaw r against it 0.16 camera-relative, 0.88 relative to the line of sight).
+    """
+    R = np.swapaxes(sight_rotation(translation), -1, -2) @ angles_rotation(angles)
+    return rotation_angles(R)
+
+
+def camera_angles(angles, translation) -> np.ndarray:
+    """The inverse of :func:`sight_angles`: camera-relative angles (..., 3) of line-of-sight *angles*."""
+    return rotation_angles(sight_rotation(translation) @ angles_rotation(angles))
+
+
 def head_pose(points, frame_size, *, confidence=None, model=None, pose_points=POSE_POINTS_68,
               focal: float | None = None) -> HeadPose:
     """The 3D head pose of every frame from its 2D landmarks (perspective-n-point on a 3D face).
@@ -171,3 +203,107 @@ def head_pose(points, frame_size, *, confidence=None, model=None, pose_points=PO
         elif t:
             angles[t], trans[t] = angles[t - 1], trans[t - 1]
     return HeadPose(angles, trans, err)
+
+
+#: Frontalization modes of :func:`frontalize`.
+FRONTAL_MODES = ("backproject", "subtract")
+
+
+def _project_cam(Y, K) -> np.ndarray:
+    """Pinhole projection of camera-axes points ``Y`` (..., 3) through ``K``: pixels (..., 2)."""
+    return Y[..., :2] / Y[..., 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+
+
+def _jacobian(Y, K) -> np.ndarray:
+    """d pixel / d camera point of :func:`_project_cam` at ``Y`` (..., 3): (..., 2, 3)."""
+    z = Y[..., 2]
+    f = K[[0, 1], [0, 1]]
+    J = np.zeros(Y.shape[:-1] + (2, 3))
+    J[..., 0, 0] = f[0] / z
+    J[..., 1, 1] = f[1] / z
+    J[..., 0, 2] = -f[0] * Y[..., 0] / z ** 2
+    J[..., 1, 2] = -f[1] * Y[..., 1] / z ** 2
+    return J
+
+
+def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float | None = None,
+               mode: str = "backproject", min_cos: float = 0.2) -> np.ndarray:
+    """The landmarks as a face looking into the camera would show them: the head's 3D rotation removed.
+
+    Chuang & Bregler (2002, §3) remove the head's rigid motion before the expression is decomposed; the
+    2D similarity of :mod:`.head` removes roll, scale and translation but reads a turn of the head out of
+    the image plane as expression. Per frame ``t``, with the pose ``(R_t, t_t)`` of :func:`head_pose` and
+    the 3D face ``X``, each landmark's residual ``d = x − π(R_t X + t_t)`` (the expression, and the actor's
+    face where it differs from the model) is carried to the frontal pose ``(S_t, t_t)``, the face at the same
+    place looking into the lens (:func:`sight_rotation`):
+
+    - ``mode="backproject"`` (default): the residual is taken to be a displacement ``D = (dx, dy, 0)`` in
+      the face's own plane (an expression moves the skin along the face far more than in depth), solved
+      from ``d = J(R_t X + t_t) R_t D`` (``J`` the projection's 2×3 Jacobian) and shown frontally,
+      ``x' = π(S_t X + t_t) + J(S_t X + t_t) S_t D``. It undoes the foreshortening of a turned face (a mouth corner's
+      sideways motion reads ``cos(yaw)`` smaller at a yaw), which plain subtraction keeps. Where the face's
+      plane is seen at a grazing angle (``|det(J R_t[:, :2])|`` below *min_cos* times its frontal value),
+      the residual is subtracted as in ``subtract``;
+    - ``mode="subtract"``: ``x' = x − π(R_t X + t_t) + π(S_t X + t_t)``, the rigid rotation's projected effect
+      replaced by the frontal one, the residual kept as seen.
+
+    The translation is kept, so :func:`.head.estimate_head` on the result still removes scale and
+    translation (and the little roll left).
+
+    Parameters
+    ----------
+    points : ndarray (T, 68, 2)
+        Landmarks in image pixels (those the pose was fitted on).
+    pose : HeadPose
+        Their :func:`head_pose` (camera-relative angles (T, 3) degrees, translation (T, 3) in the model's units).
+    frame_size : (int, int)
+        ``(width, height)``.
+    model : ndarray (68, 3), optional
+        The 3D face the pose was fitted with (default :data:`FACE_68`), camera axes.
+    focal : float, optional
+        The focal length the pose was fitted with (:func:`camera_matrix`).
+    mode : {"backproject", "subtract"}
+    min_cos : float
+        The grazing-angle limit of ``backproject``.
+
+    Returns
+    -------
+    ndarray (T, 68, 2), float64
+    """
+    if mode not in FRONTAL_MODES:
+        raise ShapeError(f"mode: expected one of {', '.join(FRONTAL_MODES)}, got {mode!r}")
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim != 3 or P.shape[1:] != (68, 2):
+        raise ShapeError(f"points: expected shape (T, 68, 2), got {P.shape}")
+    X = np.asarray(FACE_68 if model is None else model, dtype=np.float64)
+    if X.shape != (68, 3):
+        raise ShapeError(f"model: expected shape (68, 3), got {X.shape}")
+    T = len(P)
+    if pose.angles.shape != (T, 3) or pose.translation.shape != (T, 3):
+        raise ShapeError(f"pose: expected angles and translation of shape ({T}, 3), got {pose.angles.shape} and "
+                         f"{pose.translation.shape}")
+    K = camera_matrix(frame_size, focal)
+    R = angles_rotation(pose.angles)                                   # (T, 3, 3)
+    tr = np.asarray(pose.translation, dtype=np.float64)
+    Yt = np.einsum("tij,lj->tli", R, X) + tr[:, None]                  # posed model, camera axes (T, 68, 3)
+    S = sight_rotation(tr)                                             # (T, 3, 3): looking into the lens
+    Yf = np.einsum("tij,lj->tli", S, X) + tr[:, None]                  # the same face looking into the camera
+    ok = (Yt[..., 2] > 0).all(1) & (Yf[..., 2] > 0).all(1) & np.isfinite(P).all((1, 2))
+    out = P.copy()
+    if not ok.any():
+        return out
+    Yt, Yf, R, S, Pk = Yt[ok], Yf[ok], R[ok], S[ok], P[ok]
+    d = Pk - _project_cam(Yt, K)                                       # residual: expression + identity
+    front = _project_cam(Yf, K)
+    if mode == "subtract":
+        out[ok] = front + d
+        return out
+    M = np.einsum("tlij,tjk->tlik", _jacobian(Yt, K), R[:, :, :2])     # (T', 68, 2, 2): in-plane D -> pixels
+    M0 = np.einsum("tlij,tjk->tlik", _jacobian(Yf, K), S[:, :, :2])   # the same, frontal
+    det, det0 = np.linalg.det(M), np.linalg.det(M0)
+    good = np.abs(det) >= min_cos * np.abs(det0)
+    Msafe = np.where(good[..., None, None], M, M0)
+    D = np.linalg.solve(Msafe, d[..., None])[..., 0]                   # (T', 68, 2) face-plane displacement
+    moved = front + np.einsum("tlij,tlj->tli", M0, D)
+    out[ok] = np.where(good[..., None], moved, front + d)
+    return out
