@@ -30,11 +30,13 @@ def write_keys(path: str | os.PathLike, landmarks: str | os.PathLike, regions: d
     landmarks : path-like
         The landmarks file the frames index into; stored relative to *path*.
     regions : dict
-        Region name to ``{"points": [...], "method": str, "frames": [...], "error": float}``.
+        Region name to ``{"points": [...], "method": str, "frames": [...], "rows": [...], "error": float}``:
+        ``frames`` are the key frames' source frame numbers (``landmarks.npz`` ``frames``), ``rows`` the same
+        keys as rows of the landmarks file (what the stages index with).
     neutral : dict, optional
-        The neutral (rest) frame every region keeps: ``{"frame": int, "source": "given" | "take" |
-        "calibration", "reason": str, ...}``; ``decompose`` and ``auto-pose`` with ``neutral_frame: auto``
-        use it. None: no neutral frame (``select --no-neutral``).
+        The neutral (rest) frame every region keeps: ``{"frame": int (source frame), "row": int, "source":
+        "given" | "take" | "calibration", "reason": str, ...}``; ``decompose`` and ``auto-pose`` with
+        ``neutral_frame: auto`` use it. None: no neutral frame (``select --no-neutral``).
     """
     path = Path(path)
     rel = os.path.relpath(Path(landmarks).resolve(), path.resolve().parent)
@@ -46,13 +48,44 @@ def write_keys(path: str | os.PathLike, landmarks: str | os.PathLike, regions: d
 
 @dataclass
 class Keys:
-    """Parsed ``keys.json``: region name to (points, frames)."""
+    """Parsed ``keys.json``: region name to ``{"points", "frames", "rows", "method", "error"}``.
+
+    ``frames`` name the key frames by source frame number (their labels in ``weights.npz``, ``targets.yaml``
+    and the key OBJs' names); ``rows`` are the same keys as rows of the landmarks file (older files without
+    ``rows`` numbered keys by row: ``rows`` is then ``frames``).
+    """
 
     path: Path
     landmarks: Path | None
     regions: dict = field(default_factory=dict)
-    #: The neutral frame's record (``frame``, ``source``, ``reason``, ...), or None when keys.json has none.
+    #: The neutral frame's record (``frame`` (source), ``row``, ``source``, ``reason``, ...), or None when
+    #: keys.json has none.
     neutral: dict | None = None
+
+    def check_rows(self, source_frames: np.ndarray, landmarks) -> None:
+        """Raise unless every key's ``rows`` entry is a row of the landmarks whose source frame is its ``frames``.
+
+        Parameters
+        ----------
+        source_frames : ndarray, shape (T,), int
+            The landmarks' source frame number of each row (``Landmarks.timing()[0]``).
+        landmarks : path-like
+            Named in the error.
+        """
+        T = len(source_frames)
+        for name, reg in self.regions.items():
+            for f, r in zip(reg["frames"], reg["rows"]):
+                if r >= T:
+                    raise InputError(f"{self.path}: region {name!r} key frame {f} is outside the take "
+                                     f"({T} frames in {landmarks}; row {r})")
+                if int(source_frames[r]) != f:
+                    raise InputError(f"{self.path}: region {name!r} key frame {f}: row {r} of {landmarks} is source "
+                                     f"frame {int(source_frames[r])}; expected frames and rows that agree")
+        if self.neutral is not None:
+            f, r = self.neutral["frame"], self.neutral["row"]
+            if r >= T or int(source_frames[r]) != f:
+                raise InputError(f"{self.path}: neutral frame {f} (row {r}) is not a frame of {landmarks} "
+                                 f"({T} frames, source frames {int(source_frames[0])}-{int(source_frames[-1])})")
 
 
 def read_keys(path: str | os.PathLike) -> Keys:
@@ -82,7 +115,12 @@ def read_keys(path: str | os.PathLike) -> Keys:
                                  f"(not true/false), got {str(vals)[:60]}")
         if len(set(reg["frames"])) != len(reg["frames"]):
             raise InputError(f"{path}: region {name!r} lists a key frame twice")
-        regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]),
+        rows = reg.get("rows", reg["frames"])
+        if not isinstance(rows, list) or len(rows) != len(reg["frames"]) or not all(
+                isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 31 for v in rows):
+            raise InputError(f"{path}: region {name!r} key 'rows' must be a list of integers >= 0, one per key "
+                             f"frame ({len(reg['frames'])}), got {str(rows)[:60]}")
+        regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]), "rows": list(rows),
                          "method": reg.get("method"), "error": reg.get("error")}
     lm = data.get("landmarks")
     return Keys(path, (path.parent / lm) if isinstance(lm, str) else None, regions, _neutral_record(data, path))
@@ -103,7 +141,10 @@ def _neutral_record(data: dict, path: Path) -> dict | None:
     if rec.get("source") not in NEUTRAL_SOURCES:
         raise InputError(f"{path}: neutral.source must be one of {', '.join(NEUTRAL_SOURCES)}, got "
                          f"{rec.get('source')!r}")
-    return dict(rec)
+    row = rec.get("row", frame)  # (older files: the frame was a row)
+    if not isinstance(row, int) or isinstance(row, bool) or not 0 <= row < 1 << 31:
+        raise InputError(f"{path}: neutral.row must be an integer >= 0 (a row of the landmarks), got {row!r}")
+    return {**rec, "row": row}
 
 
 # --------------------------------------------------------------------------- weights.npz
