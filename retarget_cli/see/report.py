@@ -45,13 +45,13 @@ from ..io.atomic import check_not_input, load_npz, write_text
 from ..io.landmarks import load_landmarks
 from ..io.obj import read_obj
 from ..io.stagefiles import read_targets
-from ..io.video import VideoReader
 from ..methods.decomposition import mean_acceleration
 from ..methods.gaps import gap_summary
 from ..methods.render import Camera, MeshRenderer
 from ..run.pipeline import STAGES
 from ..run.runfiles import RunFiles
 from .preview import REGION_COLORS, RunData, _blank, draw_landmarks, put_text
+from .preview import FrameSource as RowFrames
 from .truth import load_truth_animation, mesh_against_truth, points_against_truth
 
 log = logging.getLogger(__name__)
@@ -230,22 +230,25 @@ def _residual_rms(data: RunData, keys: dict) -> dict:
 # --------------------------------------------------------------------------- images from the take
 
 
-def grab_frames(video: Path | None, indices) -> dict:
-    """Decode the given frame indices of *video* in one pass (empty dict without a video)."""
+def grab_frames(video: Path | None, indices, numbers=None) -> dict:
+    """Decode the given rows of the take from *video* (a video or an image sequence) in one pass: row to image
+    (empty dict without a video).
+
+    *numbers* (T,): each row's source frame number (``landmarks.npz`` ``frames``; a take tracked from
+    ``start: 100, step: 2`` reads source frames 100, 102, …); default the row itself.
+    """
     wanted = sorted(set(int(i) for i in indices))
     if video is None or not wanted:
         return {}
-
     out = {}
-    with VideoReader(video) as reader:
-        try:
-            for t, frame in enumerate(reader):
-                if t in wanted:
-                    out[t] = frame
-                if t >= wanted[-1]:
-                    break
-        except InputError:
-            return out
+    src = RowFrames(video, (1, 1), numbers)
+    try:
+        for t in wanted:
+            img = src.get(t)
+            if img is not None:
+                out[t] = img
+    finally:
+        src.close()
     return out
 
 
@@ -493,10 +496,15 @@ def _gaps_html(gaps: list, lm) -> str:
 
 
 def _sheet_regions(data: RunData, keys: dict) -> dict:
-    """Regions with key frames: from ``keys.json``, else the weights file's key frames."""
-    regions = {n: r for n, r in keys.items() if r.get("frames")}
+    """Regions with key frames: from ``keys.json``, else the weights file's key frames; each with ``frames``
+    (source frame numbers) and ``rows`` (rows of the take, None for a frame that is not one of it)."""
+    regions = {n: dict(r) for n, r in keys.items() if r.get("frames")}
     if not regions and data.regions:
         regions = {n: {"frames": [int(f) for f in fr], "points": None} for n, (_, fr) in data.regions.items()}
+    for reg in regions.values():
+        rows = reg.get("rows")
+        if not (isinstance(rows, list) and len(rows) == len(reg["frames"]) and all(isinstance(r, int) for r in rows)):
+            reg["rows"] = [data.row_of(int(f)) for f in reg["frames"]]
     return regions
 
 
@@ -538,11 +546,12 @@ def _sheet_rows(data: RunData, frames: dict, regions: dict, targets, renderer) -
     for r, (name, reg) in enumerate(regions.items()):
         col = REGION_COLORS[r % len(REGION_COLORS)]
         fr = [int(f) for f in reg["frames"]]
+        rows_ = reg["rows"]
         if len(fr) > MAX_SHEET_KEYS:
             notes.append(f"{name}: first {MAX_SHEET_KEYS} of {len(fr)} keys shown")
-            fr = fr[:MAX_SHEET_KEYS]
-        top = [_label(source_thumb(data, frames, f, highlight=reg.get("points"), color=col), f"{name} {f}", col)
-               for f in fr]
+            fr, rows_ = fr[:MAX_SHEET_KEYS], rows_[:MAX_SHEET_KEYS]
+        top = [_label(source_thumb(data, frames, r, highlight=reg.get("points"), color=col) if r is not None
+                      else _blank((THUMB, THUMB), (60, 60, 60)), f"{name} {f}", col) for f, r in zip(fr, rows_)]
         rows.append(np.hstack(top))
         if renderer is not None:
             rows.append(np.hstack([_target_thumb(renderer, targets, name, f, col) for f in fr]))
@@ -666,7 +675,7 @@ def _weights(data: RunData) -> str | None:
     cmap = _matplotlib()[0].colormaps["tab20"]
     for i, (name, (W, fr)) in enumerate(data.regions.items()):
         a = ax[i, 0]
-        t = np.arange(W.shape[0])
+        t = data.numbers(W.shape[0])  # source frame numbers: the keys' own frames are on this axis
         for k in range(W.shape[1]):
             a.plot(t, W[:, k], lw=0.9, color=cmap(k % 20), label=str(int(fr[k])))
         for k, f in enumerate(fr):
@@ -694,7 +703,7 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     unit = "RMS px per landmark" if per_pt else "norm, px"
     n_plots = 1 + bool(res)
     fig, ax = _figure(9, 1.0 + 2.2 * n_plots, n_plots, 1, sharex=True)
-    t = np.arange(T)
+    t = data.numbers(T)  # rows on the axis by source frame number
     res_total = np.sum([r[:T] for r in res.values()], axis=0) if res else None
     jit_total = np.sum([j[:T] for j in jit.values()], axis=0)
     worst_res = worst_frames(res_total, worst) if res_total is not None else []
@@ -705,7 +714,7 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
         for r, (name, v) in enumerate(res.items()):
             a.plot(t, v[:T], lw=1, label=name, color=np.array(REGION_COLORS[r % len(REGION_COLORS)][::-1]) / 255)
         for f in worst_res:
-            a.axvline(f, color="#c33", lw=0.6, alpha=0.6)
+            a.axvline(t[f], color="#c33", lw=0.6, alpha=0.6)
         a.set_ylabel(f"residual\n({unit})")
         a.legend(fontsize=8, loc="upper left")
         lost = [data.extras.get(n, {}).get("lost") for n in data.regions]
@@ -718,7 +727,7 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     for r, (name, v) in enumerate(jit.items()):
         a.plot(t, v[:T], lw=1, label=name, color=np.array(REGION_COLORS[r % len(REGION_COLORS)][::-1]) / 255)
     for f in worst_jit:
-        a.axvline(f, color="#36c", lw=0.6, alpha=0.6)
+        a.axvline(t[f], color="#36c", lw=0.6, alpha=0.6)
     a.set_ylabel("jitter\n(mean sq. 2nd diff.)")
     a.set_yscale("symlog", linthresh=max(float(np.percentile(jit_total, 50)), 1e-9))
     a.set_ylim(bottom=0)
@@ -731,16 +740,18 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     if listed:
         rows = []
         for f, why in listed:
-            cells = [f, f"{f / data.fps:.2f}", why]
+            number, seconds = data.source_time(f)
+            cells = [number, f"{seconds:.2f}", why]
             cells += [f"{res[n][f]:.3g}" for n in res]
             cells += [f"{jit_total[f]:.3g}"]
             if data.lm is not None and f < data.lm.n_frames:
                 cells.append(f"{float(data.lm.confidence[f].mean()):.3f}")
             else:
                 cells.append("")
-            thumbs = [_img_tag(_png_img(source_thumb(data, frames, f, size=96)), f"source frame {f}")]
+            thumbs = [_img_tag(_png_img(source_thumb(data, frames, f, size=96)), f"source frame {number}")]
             if mesh_renderer is not None and f < data.n_character_frames:
-                thumbs.append(_img_tag(_png_img(mesh_renderer.render(data.frame_vertices(f))), f"target frame {f}"))
+                thumbs.append(_img_tag(_png_img(mesh_renderer.render(data.frame_vertices(f))),
+                                       f"target frame {number}"))
             cells.append(_Raw(f'<span class="thumb">{"".join(thumbs)}</span>'))
             rows.append(cells)
         header = ["frame", "time (s)", "listed for"] + [f"residual {n}" for n in res] + ["jitter", "confidence",
@@ -923,10 +934,16 @@ def read_neutral(run: RunFiles) -> tuple[dict | None, dict]:
     return record, stages
 
 
-def _neutral_frame(run: RunFiles) -> int | None:
+def _neutral_frame(run: RunFiles, data: RunData) -> int | None:
+    """The neutral's row of the take (its recorded ``row``, else the row of its source frame)."""
     record, stages = read_neutral(run)
     rec = record or next(iter(stages.values()), None)
-    return None if rec is None else int(rec["frame"])
+    return None if rec is None else _record_row(rec, data)
+
+
+def _record_row(rec: dict, data: RunData) -> int | None:
+    row = rec.get("row")
+    return int(row) if isinstance(row, int) and not isinstance(row, bool) else data.row_of(int(rec["frame"]))
 
 
 def _rest_pose(data: RunData, run: RunFiles, frames: dict, mesh_renderer) -> str | None:
@@ -935,7 +952,7 @@ def _rest_pose(data: RunData, run: RunFiles, frames: dict, mesh_renderer) -> str
     rec = record or next(iter(stages.values()), None)
     if rec is None:
         return None
-    f = int(rec["frame"])
+    f, row = int(rec["frame"]), _record_row(rec, data)
     body = f"<p>Neutral frame <b>{f}</b> ({html.escape(str(rec.get('source', '')))}): " \
            f"{html.escape(str(rec.get('reason', '')))}.</p>"
     if rec.get("at_rest") is False:
@@ -950,10 +967,14 @@ def _rest_pose(data: RunData, run: RunFiles, frames: dict, mesh_renderer) -> str
             body += "<p><b>The stages used different neutral frames.</b></p>"
     import cv2
 
-    tiles = [_label(source_thumb(data, frames, f), f"source {f}")]
+    if row is None:
+        body += f"<p>Frame {f} is not a frame of this take.</p>"
+        return _section("rest", "Rest pose", body)
+    tiles = [_label(source_thumb(data, frames, row), f"source {f}")]
     what = "the source frame"
-    if mesh_renderer is not None and f < data.n_character_frames:
-        img = cv2.resize(mesh_renderer.render(data.frame_vertices(f)), (THUMB, THUMB), interpolation=cv2.INTER_AREA)
+    if mesh_renderer is not None and row < data.n_character_frames:
+        img = cv2.resize(mesh_renderer.render(data.frame_vertices(row)), (THUMB, THUMB),
+                         interpolation=cv2.INTER_AREA)
         tiles.append(_label(img, f"character {f}"))
         what += " and the character there (at rest when the neutral is)"
     body += _figure_html(_png_img(np.hstack(tiles)), f"Neutral frame {f}: {what}.")
@@ -1003,12 +1024,9 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
     data = RunData(run)
     keys = _read_keys_lenient(run.keys)
     need = set()
-    for reg in keys.values():
-        need |= {int(f) for f in reg.get("frames", [])[:MAX_SHEET_KEYS]}
-    if not keys:
-        for _, fr in data.regions.values():
-            need |= {int(f) for f in fr[:MAX_SHEET_KEYS]}
-    neutral = _neutral_frame(run)
+    for reg in _sheet_regions(data, keys).values():
+        need |= {r for r in reg["rows"][:MAX_SHEET_KEYS] if r is not None}
+    neutral = _neutral_frame(run, data)
     if neutral is not None:
         need.add(neutral)
     mesh_renderer = None
@@ -1033,7 +1051,7 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
             if bar:
                 bar.update(1)
 
-        frames = grab_frames(run.video, need)
+        frames = grab_frames(run.video, need, data.numbers(data.n_frames))
         done()
         summary, _ = _summary(data, run, keys)
         sections.append(summary)
