@@ -8,7 +8,8 @@ frame count, fps, mode and the bounds of the stored values.
 
 Rows are frames in order; each row's source frame number (``landmarks.npz``
 ``frames``: 100, 102, … for a take tracked with ``start: 100, step: 2``) is
-carried in the EXR header (:data:`FRAMES_ATTRIBUTE`, an int vector) and in the
+carried in the EXR header (:data:`FRAMES_ATTRIBUTE`, a string of comma-separated
+integers: ``"100,102,104"``) and in the
 sidecar (``source_frames``, with ``times`` in seconds and ``source_fps``).
 """
 
@@ -27,7 +28,7 @@ from .atomic import write_bytes, write_json
 #: Values the texture can hold.
 VAT_MODES = ("offsets", "positions")
 
-#: EXR header attribute holding each row's source frame number (int vector, length T).
+#: EXR header attribute holding each row's source frame number: a string, T integers separated by commas.
 FRAMES_ATTRIBUTE = "retargetFrames"
 
 
@@ -92,7 +93,7 @@ def write_vat(path: str | os.PathLike, values, *, fps: float, mode: str, sidecar
         raise ShapeError(f"frames: expected shape ({values.shape[0]},), one per row, got {frames.shape}")
     channels = {c: np.ascontiguousarray(values[:, :, i]) for i, c in enumerate("RGB")}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-              FRAMES_ATTRIBUTE: frames.astype(np.int32)}
+              FRAMES_ATTRIBUTE: ",".join(str(int(f)) for f in frames)}
     buf = io.BytesIO()
     OpenEXR.File(header, channels).write(buf)
     write_bytes(path, buf.getvalue())
@@ -136,4 +137,10 @@ def read_vat_frames(path: str | os.PathLike) -> np.ndarray | None:
         raise InputError(f"{path}: EXR file not found")
     with OpenEXR.File(str(path)) as f:
         value = f.header().get(FRAMES_ATTRIBUTE)
-    return None if value is None else np.asarray(value, dtype=np.int64)
+    if value is None:
+        return None
+    try:
+        return np.array([int(v) for v in str(value).split(",")], dtype=np.int64)
+    except ValueError:
+        raise InputError(f"{path}: header attribute {FRAMES_ATTRIBUTE}: expected integers separated by commas, got "
+                         f"{str(value)[:40]!r}") from None

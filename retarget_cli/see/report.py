@@ -804,31 +804,45 @@ def _truth_mesh_rows(data: RunData, run: RunFiles, target: np.ndarray, notes: li
         notes.append(f"Meshes not compared: the frames have {n_v} vertices, the true animation {target.shape[1]}.")
         return [], None
     n = data.n_character_frames
-    T = min(n, len(target))
-    if T < n or T < len(target):
-        notes.append(f"Compared over the first {T} frames (frames {n}, truth {len(target)}).")
-    m = mesh_against_truth(np.stack([data.frame_vertices(t) for t in range(T)]), target[:T])
+    rows, at = _truth_rows(data, n, len(target))  # the truth is indexed by the video's frame numbers
+    if len(rows) < n or len(rows) < len(target):
+        notes.append(f"Compared over {len(rows)} frames (frames {n}, truth {len(target)}).")
+    if len(rows) < 2:
+        notes.append("Meshes not compared: fewer than 2 of the run's frames are frames of the truth.")
+        return [], None
+    m = mesh_against_truth(np.stack([data.frame_vertices(t) for t in rows]), target[at])
     row = ("target mesh (apply's frames)", f"{m['error_mean']:.4g} ({m['error_pct']:.1f} % of the mean true "
            "displacement)", f"{m['jitter']:.3g}", f"{m['jitter_truth']:.3g}", f"{m['jitter_ratio']:.2f}×")
     return [row], m["error_per_frame"]
+
+
+def _truth_rows(data: RunData, n: int, n_truth: int) -> tuple[np.ndarray, np.ndarray]:
+    """The run's rows (of its first *n*) whose source frame is a row of the truth (*n_truth* frames, one per frame
+    of the video), and those truth rows: a take tracked from ``start: 100, step: 2`` is compared with the truth's
+    frames 100, 102, …"""
+    numbers = data.numbers(n)
+    rows = np.flatnonzero((numbers >= 0) & (numbers < n_truth))
+    return rows, numbers[rows]
 
 
 def _truth_landmark_rows(data: RunData, keys: dict, truth_lm) -> list:
     """Rows of the tracked (filtered and raw) and the reconstructed landmarks against the true landmarks."""
 
     lm = data.lm
-    T = min(lm.n_frames, truth_lm.n_frames)
+    sel, at = _truth_rows(data, lm.n_frames, truth_lm.n_frames)
     rows = []
+    if len(sel) < 2:
+        return rows
     for label, P in (("landmarks (track)", lm.points), ("landmarks before the filter (points_raw)", lm.points_raw)):
         if P is not None and P.shape[1:] == truth_lm.points.shape[1:]:
-            m = points_against_truth(P[:T], truth_lm.points[:T])
+            m = points_against_truth(P[sel], truth_lm.points[at])
             rows.append((label, f"{m['error_px']:.3g} px", f"{m['jitter']:.3g}", f"{m['jitter_truth']:.3g}",
                          f"{m['jitter_ratio']:.2f}×"))
 
     for name, d in sorted((data.other["meta"].get("diagnostics") or {}).items()):
         pts = keys.get(name, {}).get("points")
         if isinstance(d, dict) and "shape_jitter_px" in d and pts:
-            truth_jit = mean_acceleration(truth_lm.stabilized[:T, np.asarray(pts, dtype=np.int64)])
+            truth_jit = mean_acceleration(truth_lm.stabilized[at][:, np.asarray(pts, dtype=np.int64)])
             if truth_jit > 0:
                 rows.append((f"reconstructed landmarks, {name} (decompose)", "", f"{d['shape_jitter_px']:.3g}",
                              f"{truth_jit:.3g}", f"{d['shape_jitter_px'] / truth_jit:.2f}×"))
