@@ -98,7 +98,7 @@ def _found(lm, landmarks, candidates=None) -> Neutral:
     """The rest frame of the take and its rest shape (:func:`~retarget_cli.methods.neutral.find_rest_frame`),
     warned about when no frame is at rest."""
     try:
-        choice = find_rest_frame(lm.stabilized, lm.confidence, candidates=candidates)
+        choice = find_rest_frame(lm.stabilized, lm.confidence, candidates=candidates, numbers=_source(lm))
     except ValueError as exc:
         raise InputError(f"{landmarks}: neutral_frame auto: {exc}") from None
     n = len(choice.members)

@@ -341,7 +341,8 @@ def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contac
                 if contact else None
             cache[k] = (y0, c0, shot_refs)
             log.info("auto-pose: the shot of frames %d-%d (after a scene cut) is measured from its own rest shape "
-                     "(rest frame %d)", bounds[k], bounds[k + 1] - 1, int(rows[choice.frame]))
+                     "(rest frame %d)", *(int(lm.timing()[0][r]) for r in (bounds[k], bounds[k + 1] - 1,
+                                                                           rows[choice.frame])))
         out.append(cache[k])
     return out
 
