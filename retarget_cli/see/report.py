@@ -94,6 +94,21 @@ def _figure(width=9.0, height=3.0, nrows=1, ncols=1, **kw):
     return fig, axes
 
 
+def _frame_axis(a, data: RunData, T: int) -> None:
+    """Label the x axis of *a*, whose positions are rows 0 … T−1 of the take, with the rows' source frame
+    numbers (a take tracked from ``start: 100, step: 2`` reads 100, 110, … under rows 0, 5, …)."""
+    numbers = data.numbers(T)
+    if T == 0 or np.array_equal(numbers, np.arange(T)):
+        a.set_xlabel("frame")
+        return
+    def label(x, _pos):
+        r = int(round(x))
+        return str(int(numbers[r])) if 0 <= r < T and abs(x - r) < 1e-6 else ""
+
+    a.xaxis.set_major_formatter(_matplotlib()[0].ticker.FuncFormatter(label))
+    a.set_xlabel("frame (source frame number)")
+
+
 def _png_fig(fig) -> bytes:
     """PNG bytes of a matplotlib figure, with no metadata that changes between runs."""
     matplotlib, _, _ = _matplotlib()
@@ -447,7 +462,7 @@ def _tracking(data: RunData) -> str | None:
     im = b.imshow(conf.T, aspect="auto", cmap="RdYlGn", vmin=0, vmax=1, interpolation="nearest",
                   extent=(-0.5, T - 0.5, lm.n_points - 0.5, -0.5))
     b.set_ylabel("landmark")
-    b.set_xlabel("frame")
+    _frame_axis(b, data, T)
     fig.colorbar(im, ax=b, fraction=0.03, pad=0.01)
     n_lost = int(lost.any(1).sum())
     worst = int(np.argmin(conf.mean(1)))
@@ -675,15 +690,17 @@ def _weights(data: RunData) -> str | None:
     cmap = _matplotlib()[0].colormaps["tab20"]
     for i, (name, (W, fr)) in enumerate(data.regions.items()):
         a = ax[i, 0]
-        t = data.numbers(W.shape[0])  # source frame numbers: the keys' own frames are on this axis
+        t = np.arange(W.shape[0])
         for k in range(W.shape[1]):
             a.plot(t, W[:, k], lw=0.9, color=cmap(k % 20), label=str(int(fr[k])))
-        for k, f in enumerate(fr):
-            a.plot([f], [W[:, k].max() if W.shape[0] else 0], marker="v", ms=4, color=cmap(k % 20), ls="none")
+        for k, f in enumerate(fr):  # a key is named by its source frame; drawn at its row
+            r = data.row_of(int(f))
+            if r is not None:
+                a.plot([r], [W[:, k].max() if W.shape[0] else 0], marker="v", ms=4, color=cmap(k % 20), ls="none")
         a.set_ylabel(f"{name}\nweight")
         a.legend(title="key frame", fontsize=6, title_fontsize=7, ncol=1 + (W.shape[1] > 8) + (W.shape[1] > 24),
                  loc="upper left", bbox_to_anchor=(1.005, 1.0), borderaxespad=0)
-    ax[-1, 0].set_xlabel("frame")
+    _frame_axis(ax[-1, 0], data, next(iter(data.regions.values()))[0].shape[0])
     body = _figure_html(_png_fig(fig), "Weights per region and key (triangles: each key's own frame, at its "
                                        "curve's maximum).")
     return _section("weights", "Weight curves", body)
@@ -703,7 +720,7 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     unit = "RMS px per landmark" if per_pt else "norm, px"
     n_plots = 1 + bool(res)
     fig, ax = _figure(9, 1.0 + 2.2 * n_plots, n_plots, 1, sharex=True)
-    t = data.numbers(T)  # rows on the axis by source frame number
+    t = np.arange(T)
     res_total = np.sum([r[:T] for r in res.values()], axis=0) if res else None
     jit_total = np.sum([j[:T] for j in jit.values()], axis=0)
     worst_res = worst_frames(res_total, worst) if res_total is not None else []
@@ -714,7 +731,7 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
         for r, (name, v) in enumerate(res.items()):
             a.plot(t, v[:T], lw=1, label=name, color=np.array(REGION_COLORS[r % len(REGION_COLORS)][::-1]) / 255)
         for f in worst_res:
-            a.axvline(t[f], color="#c33", lw=0.6, alpha=0.6)
+            a.axvline(f, color="#c33", lw=0.6, alpha=0.6)
         a.set_ylabel(f"residual\n({unit})")
         a.legend(fontsize=8, loc="upper left")
         lost = [data.extras.get(n, {}).get("lost") for n in data.regions]
@@ -727,12 +744,12 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     for r, (name, v) in enumerate(jit.items()):
         a.plot(t, v[:T], lw=1, label=name, color=np.array(REGION_COLORS[r % len(REGION_COLORS)][::-1]) / 255)
     for f in worst_jit:
-        a.axvline(t[f], color="#36c", lw=0.6, alpha=0.6)
+        a.axvline(f, color="#36c", lw=0.6, alpha=0.6)
     a.set_ylabel("jitter\n(mean sq. 2nd diff.)")
     a.set_yscale("symlog", linthresh=max(float(np.percentile(jit_total, 50)), 1e-9))
     a.set_ylim(bottom=0)
     a.legend(fontsize=8)
-    ax[-1, 0].set_xlabel("frame")
+    _frame_axis(ax[-1, 0], data, T)
     caption = ("Per-frame residual of the weight fit (eq. 4) and jitter of the weights; vertical lines mark the "
                "frames listed below (red: residual, blue: jitter).")
     body = _figure_html(_png_fig(fig), caption)

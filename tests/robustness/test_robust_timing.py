@@ -498,3 +498,19 @@ def test_preview_frames_are_source_frame_numbers(from_100, tmp_path):
     far = (np.min(np.hypot(xx[..., None] - pts[:, 0], yy[..., None] - pts[:, 1]), -1) > 4) & (yy > 24) & (yy < 74)
     diff = {f: np.abs(panel[far] - video[f][far].astype(int)).mean() for f in (120, 10, 110)}
     assert diff[120] < 1.5 and diff[120] < 0.5 * min(diff[10], diff[110]), diff
+
+
+def test_report_names_source_frames(from_100, tmp_path):
+    """The report's key table, rest pose and worst frames name source frames 100, 102, … (and their times)."""
+    import re
+
+    pytest.importorskip("matplotlib", reason="the report needs the extra report (matplotlib)")
+    res = _cli("report", from_100 / "from100.yaml", "-o", tmp_path / "r.html", "--worst", "3")
+    assert res.exit_code == 0, res.output
+    page = (tmp_path / "r.html").read_text()
+    keys = json.loads((from_100 / "out/keys.json").read_text())
+    for reg in keys["regions"].values():
+        assert ", ".join(str(f) for f in reg["frames"]) in page
+    assert f"Neutral frame <b>{keys['neutral']['frame']}</b>" in page
+    listed = [int(f) for f in re.findall(r'alt="source frame (\d+)"', page)]
+    assert listed and set(listed) <= set(range(100, 140, 2)), listed
