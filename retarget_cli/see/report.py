@@ -105,7 +105,9 @@ def _frame_axis(a, data: RunData, T: int) -> None:
         r = int(round(x))
         return str(int(numbers[r])) if 0 <= r < T and abs(x - r) < 1e-6 else ""
 
-    a.xaxis.set_major_formatter(_matplotlib()[0].ticker.FuncFormatter(label))
+    ticker = _matplotlib()[0].ticker
+    a.xaxis.set_major_locator(ticker.MaxNLocator(integer=True))  # ticks on rows, each labelled by its frame
+    a.xaxis.set_major_formatter(ticker.FuncFormatter(label))
     a.set_xlabel("frame (source frame number)")
 
 
