@@ -231,7 +231,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     if frames == "all" and len(poses) < lm.n_frames:
         poses = _hold_gaps(poses, lm.n_frames)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
-                       None if neutral is None else neutral.label, every_frame=frames == "all", timing=lm.timing())
+                       None if neutral is None else neutral.label, lm.timing(), every_frame=frames == "all")
 
 
 def _contact_rows(lm_ids, L: int):
@@ -411,14 +411,14 @@ def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
 
 
 def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit, neutral_frame,
-                every_frame=False, timing=None):
+                timing, every_frame=False):
     """Key OBJs, region masks, ``sliders.csv``, ``curves.csv`` (*every_frame*: *poses* holds every frame) and
     ``targets.yaml``; a failure part-way removes what it wrote.
 
     *frames* and the keys of *poses* are rows of the take; *timing* (source frame numbers (T,), times (T,))
     names them: the key OBJs, ``targets.yaml``'s keys and the CSVs' ``frame``/``time`` are source frames.
     """
-    source, times = timing if timing is not None else (np.arange(max(poses) + 1), None)
+    source, times = timing
 
     names = list(kf.regions)
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
@@ -451,7 +451,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
         if every_frame:
             every = sorted(poses)
             write_animation(out / "curves.csv", r.names, np.stack([poses[f] for f in every]), source[every],
-                            None if times is None else times[every])
+                            times[every])
             written.append(out / "curves.csv")
         nrel = targets_neutral(out, r, ledger.add)
         rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
