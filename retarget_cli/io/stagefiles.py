@@ -51,8 +51,8 @@ class Keys:
     """Parsed ``keys.json``: region name to ``{"points", "frames", "rows", "method", "error"}``.
 
     ``frames`` name the key frames by source frame number (their labels in ``weights.npz``, ``targets.yaml``
-    and the key OBJs' names); ``rows`` are the same keys as rows of the landmarks file (older files without
-    ``rows`` numbered keys by row: ``rows`` is then ``frames``).
+    and the key OBJs' names); ``rows``, the same keys as rows of the landmarks file, are None until
+    :meth:`resolve_rows` finds them in the landmarks.
     """
 
     path: Path
@@ -62,30 +62,39 @@ class Keys:
     #: keys.json has none.
     neutral: dict | None = None
 
-    def check_rows(self, source_frames: np.ndarray, landmarks) -> None:
-        """Raise unless every key's ``rows`` entry is a row of the landmarks whose source frame is its ``frames``.
+    def resolve_rows(self, source_frames: np.ndarray, landmarks) -> None:
+        """Set each region's ``rows`` (and the neutral's ``row``): the rows of the landmarks whose source frame
+        numbers are its key ``frames``. The frames decide (a ``rows`` list in the file is only their cache, and a
+        key list edited by hand needs no ``rows``).
 
         Parameters
         ----------
-        source_frames : ndarray, shape (T,), int
+        source_frames : ndarray, shape (T,), int, increasing
             The landmarks' source frame number of each row (``Landmarks.timing()[0]``).
         landmarks : path-like
             Named in the error.
+
+        Raises
+        ------
+        InputError
+            For a key frame (or the neutral frame) that is not a frame of the landmarks, naming the region, the
+            frame and the take's frames.
         """
-        T = len(source_frames)
+        src = np.asarray(source_frames, dtype=np.int64)
+        T = len(src)
+
+        def row(f, what):
+            r = int(np.searchsorted(src, f))
+            if r >= T or src[r] != f:
+                span = f"source frames {int(src[0])}-{int(src[-1])}" if T else "no frames"
+                raise InputError(f"{self.path}: {what} {f} is outside the take ({T} frames in {landmarks}, "
+                                 f"{span})")
+            return r
+
         for name, reg in self.regions.items():
-            for f, r in zip(reg["frames"], reg["rows"]):
-                if r >= T:
-                    raise InputError(f"{self.path}: region {name!r} key frame {f} is outside the take "
-                                     f"({T} frames in {landmarks}; row {r})")
-                if int(source_frames[r]) != f:
-                    raise InputError(f"{self.path}: region {name!r} key frame {f}: row {r} of {landmarks} is source "
-                                     f"frame {int(source_frames[r])}; expected frames and rows that agree")
+            reg["rows"] = [row(f, f"region {name!r} key frame") for f in reg["frames"]]
         if self.neutral is not None:
-            f, r = self.neutral["frame"], self.neutral["row"]
-            if r >= T or int(source_frames[r]) != f:
-                raise InputError(f"{self.path}: neutral frame {f} (row {r}) is not a frame of {landmarks} "
-                                 f"({T} frames, source frames {int(source_frames[0])}-{int(source_frames[-1])})")
+            self.neutral["row"] = row(int(self.neutral["frame"]), "neutral frame")
 
 
 def read_keys(path: str | os.PathLike) -> Keys:
@@ -115,13 +124,8 @@ def read_keys(path: str | os.PathLike) -> Keys:
                                  f"(not true/false), got {str(vals)[:60]}")
         if len(set(reg["frames"])) != len(reg["frames"]):
             raise InputError(f"{path}: region {name!r} lists a key frame twice")
-        rows = reg.get("rows", reg["frames"])
-        if not isinstance(rows, list) or len(rows) != len(reg["frames"]) or not all(
-                isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 31 for v in rows):
-            raise InputError(f"{path}: region {name!r} key 'rows' must be a list of integers >= 0, one per key "
-                             f"frame ({len(reg['frames'])}), got {str(rows)[:60]}")
-        regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]), "rows": list(rows),
-                         "method": reg.get("method"), "error": reg.get("error")}
+        regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]), "rows": None,
+                         "method": reg.get("method"), "error": reg.get("error")}  # rows: Keys.resolve_rows
     lm = data.get("landmarks")
     return Keys(path, (path.parent / lm) if isinstance(lm, str) else None, regions, _neutral_record(data, path))
 
@@ -141,10 +145,7 @@ def _neutral_record(data: dict, path: Path) -> dict | None:
     if rec.get("source") not in NEUTRAL_SOURCES:
         raise InputError(f"{path}: neutral.source must be one of {', '.join(NEUTRAL_SOURCES)}, got "
                          f"{rec.get('source')!r}")
-    row = rec.get("row", frame)  # (older files: the frame was a row)
-    if not isinstance(row, int) or isinstance(row, bool) or not 0 <= row < 1 << 31:
-        raise InputError(f"{path}: neutral.row must be an integer >= 0 (a row of the landmarks), got {row!r}")
-    return {**rec, "row": row}
+    return {**rec, "row": None}  # (Keys.resolve_rows finds it from the frame)
 
 
 # --------------------------------------------------------------------------- weights.npz

@@ -518,10 +518,8 @@ def _sheet_regions(data: RunData, keys: dict) -> dict:
     regions = {n: dict(r) for n, r in keys.items() if r.get("frames")}
     if not regions and data.regions:
         regions = {n: {"frames": [int(f) for f in fr], "points": None} for n, (_, fr) in data.regions.items()}
-    for reg in regions.values():
-        rows = reg.get("rows")
-        if not (isinstance(rows, list) and len(rows) == len(reg["frames"]) and all(isinstance(r, int) for r in rows)):
-            reg["rows"] = [data.row_of(int(f)) for f in reg["frames"]]
+    for reg in regions.values():  # the frames decide (a keys.json edited by hand may hold stale rows)
+        reg["rows"] = [data.row_of(int(f)) for f in reg["frames"]]
     return regions
 
 
@@ -968,15 +966,14 @@ def read_neutral(run: RunFiles) -> tuple[dict | None, dict]:
 
 
 def _neutral_frame(run: RunFiles, data: RunData) -> int | None:
-    """The neutral's row of the take (its recorded ``row``, else the row of its source frame)."""
+    """The neutral's row of the take (the row of its source frame)."""
     record, stages = read_neutral(run)
     rec = record or next(iter(stages.values()), None)
     return None if rec is None else _record_row(rec, data)
 
 
 def _record_row(rec: dict, data: RunData) -> int | None:
-    row = rec.get("row")
-    return int(row) if isinstance(row, int) and not isinstance(row, bool) else data.row_of(int(rec["frame"]))
+    return data.row_of(int(rec["frame"]))
 
 
 def _rest_pose(data: RunData, run: RunFiles, frames: dict, mesh_renderer) -> str | None:

@@ -154,18 +154,16 @@ def choose_neutral(neutral_frame, lm, *, landmarks) -> Neutral | None:
 
 def shared_key_frames(keys) -> list[int]:
     """The key frames every region of *keys* (:class:`~retarget_cli.io.stagefiles.Keys`) has, as rows."""
-    sets = [set(r["rows"]) for r in keys.regions.values()]
+    sets = [set(r["rows"]) for r in keys.regions.values()]  # (after Keys.resolve_rows)
     return sorted(set.intersection(*sets)) if sets else []
 
 
 def _recorded(keys, lm, landmarks) -> Neutral:
     """The neutral keys.json records (its landmarks and confidence when it holds them)."""
     rec = keys.neutral
+    if rec.get("row") is None:
+        keys.resolve_rows(_source(lm), landmarks)
     frame, row = int(rec["frame"]), int(rec["row"])
-    src = _source(lm)
-    if row >= lm.n_frames or int(src[row]) != frame:
-        raise InputError(f"{keys.path}: neutral frame {frame} (row {row}) is not a frame of the take ({landmarks}: "
-                         f"{lm.n_frames} frames, source frames {int(src[0])}-{int(src[-1])})")
     shape = conf = None
     if rec.get("shape") is not None:
         try:

@@ -263,7 +263,7 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, skip_points
     for name in ("targets.yaml", "sliders.csv", "curves.csv", *found_map) + ((NEUTRAL_OBJ,) if spec.neutral is None
                                                                              else ()):
         check_not_input(out / name, inputs)
-    kf.check_rows(lm.timing()[0], landmarks)  # keys are named by source frame and found by row
+    kf.resolve_rows(lm.timing()[0], landmarks)  # keys are named by source frame: their rows
     key_frames = sorted({f for reg in kf.regions.values() for f in reg["rows"]})
     L = lm.n_points
     for label, pts in (("skip_points", skip_points), ("rigid_points", rigid_points)):

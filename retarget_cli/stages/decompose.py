@@ -93,7 +93,7 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formu
         prefetch_kernel((peek_frames(landmarks) or 0) * n_keys, weighted=confidence)
     lm = load_landmarks(landmarks)
     frames, times = lm.timing()
-    kf.check_rows(frames, landmarks)  # keys are named by source frame and found by row
+    kf.resolve_rows(frames, landmarks)  # keys are named by source frame: their rows
     stab, conf = lm.stabilized, lm.confidence  # float32; a region's rows become float64 once, below
     neutral = neutral_from_keys(neutral_frame, kf, lm, landmarks=landmarks) if formulation == "delta" else None
     regions, extras, diagnostics = {}, {}, {}
