@@ -34,7 +34,7 @@ from .gltf import write_glb
 from .gltf_animation import copy_groups, is_vrm, write_animated_copy, write_vrma
 from .landmarks import load_landmarks
 from .livelink import head_rotation_from_pose, head_rotation_from_similarity, livelink_csv
-from .obj import read_obj, write_obj
+from .obj import obj_frame_name, read_obj, write_obj
 from .objsurface import obj_surface
 from .rig.gltf import read_gltf_rig
 from .rig.inverse import parse_correctives
@@ -198,17 +198,21 @@ class Exporter:
 
 
 class ObjExport(Exporter):
-    help = "frame_%05d.obj"
+    """``frame_%05d.obj``, one per frame, named by its source frame number (``frame_00100.obj`` for source frame
+    100 of a take tracked from ``start: 100``; row ``t`` of the weights is ``frame_<frames[t]>.obj``)."""
+
+    help = "frame_%05d.obj (by source frame number)"
     streams = True
 
     def __init__(self, ctx):
         super().__init__(ctx)
-        ctx.ledger.plan([ctx.out / f"frame_{t:05d}.obj" for t in range(ctx.n_frames)])
+        self.numbers = timing(ctx)[0]
+        ctx.ledger.plan([ctx.out / obj_frame_name(f) for f in self.numbers])
         self.written: list[Path] = []
 
     def add(self, start, frames):
         for i, p in enumerate(frames):
-            path = self.ctx.out / f"frame_{start + i:05d}.obj"
+            path = self.ctx.out / obj_frame_name(self.numbers[start + i])
             write_obj(path, self.ctx.template, p)
             self.written.append(path)
 
@@ -228,7 +232,7 @@ class CsvExport(Exporter):
 
 
 class ExrExport(Exporter):
-    help = "animation.exr + animation.json"
+    help = "animation.exr + animation.json (rows: frames; their source frame numbers and times in both)"
     files = ("animation.exr", "animation.json")
     streams = True
 
@@ -242,7 +246,9 @@ class ExrExport(Exporter):
 
     def finish(self):
         exr, sidecar = (self.ctx.out / f for f in self.files)
-        write_vat(exr, self.values, fps=self.ctx.fps, mode=self.ctx.settings.get("vat", "offsets"), sidecar=sidecar)
+        frames, times, rate = timing(self.ctx)
+        write_vat(exr, self.values, fps=self.ctx.fps, mode=self.ctx.settings.get("vat", "offsets"), sidecar=sidecar,
+                  frames=frames, times=times, source_fps=rate)
         return [exr, sidecar]
 
 

@@ -26,8 +26,13 @@ from .atomic import atomic_open
 COORD_FORMAT = "%.6f"
 
 
-#: An OBJ of a frame sequence (``apply`` and ``edit`` write ``frame_%05d.obj``, by frame number).
+#: An OBJ of a frame sequence (``apply`` and ``edit`` write ``frame_%05d.obj``, by source frame number).
 FRAME_RE = re.compile(r"frame_(\d+)\.obj$")
+
+
+def obj_frame_name(frame: int) -> str:
+    """The file name of source frame *frame* in a frame sequence: ``frame_00100.obj`` (at least 5 digits)."""
+    return f"frame_{int(frame):05d}.obj"
 
 
 @dataclass

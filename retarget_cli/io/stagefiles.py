@@ -30,11 +30,13 @@ def write_keys(path: str | os.PathLike, landmarks: str | os.PathLike, regions: d
     landmarks : path-like
         The landmarks file the frames index into; stored relative to *path*.
     regions : dict
-        Region name to ``{"points": [...], "method": str, "frames": [...], "error": float}``.
+        Region name to ``{"points": [...], "method": str, "frames": [...], "rows": [...], "error": float}``:
+        ``frames`` are the key frames' source frame numbers (``landmarks.npz`` ``frames``), ``rows`` the same
+        keys as rows of the landmarks file (what the stages index with).
     neutral : dict, optional
-        The neutral (rest) frame every region keeps: ``{"frame": int, "source": "given" | "take" |
-        "calibration", "reason": str, ...}``; ``decompose`` and ``auto-pose`` with ``neutral_frame: auto``
-        use it. None: no neutral frame (``select --no-neutral``).
+        The neutral (rest) frame every region keeps: ``{"frame": int (source frame), "row": int, "source":
+        "given" | "take" | "calibration", "reason": str, ...}``; ``decompose`` and ``auto-pose`` with
+        ``neutral_frame: auto`` use it. None: no neutral frame (``select --no-neutral``).
     """
     path = Path(path)
     rel = os.path.relpath(Path(landmarks).resolve(), path.resolve().parent)
@@ -46,13 +48,53 @@ def write_keys(path: str | os.PathLike, landmarks: str | os.PathLike, regions: d
 
 @dataclass
 class Keys:
-    """Parsed ``keys.json``: region name to (points, frames)."""
+    """Parsed ``keys.json``: region name to ``{"points", "frames", "rows", "method", "error"}``.
+
+    ``frames`` name the key frames by source frame number (their labels in ``weights.npz``, ``targets.yaml``
+    and the key OBJs' names); ``rows``, the same keys as rows of the landmarks file, are None until
+    :meth:`resolve_rows` finds them in the landmarks.
+    """
 
     path: Path
     landmarks: Path | None
     regions: dict = field(default_factory=dict)
-    #: The neutral frame's record (``frame``, ``source``, ``reason``, ...), or None when keys.json has none.
+    #: The neutral frame's record (``frame`` (source), ``row``, ``source``, ``reason``, ...), or None when
+    #: keys.json has none.
     neutral: dict | None = None
+
+    def resolve_rows(self, source_frames: np.ndarray, landmarks) -> None:
+        """Set each region's ``rows`` (and the neutral's ``row``): the rows of the landmarks whose source frame
+        numbers are its key ``frames``. The frames decide (a ``rows`` list in the file is only their cache, and a
+        key list edited by hand needs no ``rows``).
+
+        Parameters
+        ----------
+        source_frames : ndarray, shape (T,), int, increasing
+            The landmarks' source frame number of each row (``Landmarks.timing()[0]``).
+        landmarks : path-like
+            Named in the error.
+
+        Raises
+        ------
+        InputError
+            For a key frame (or the neutral frame) that is not a frame of the landmarks, naming the region, the
+            frame and the take's frames.
+        """
+        src = np.asarray(source_frames, dtype=np.int64)
+        T = len(src)
+
+        def row(f, what):
+            r = int(np.searchsorted(src, f))
+            if r >= T or src[r] != f:
+                span = f"source frames {int(src[0])}-{int(src[-1])}" if T else "no frames"
+                raise InputError(f"{self.path}: {what} {f} is outside the take ({T} frames in {landmarks}, "
+                                 f"{span})")
+            return r
+
+        for name, reg in self.regions.items():
+            reg["rows"] = [row(f, f"region {name!r} key frame") for f in reg["frames"]]
+        if self.neutral is not None:
+            self.neutral["row"] = row(int(self.neutral["frame"]), "neutral frame")
 
 
 def read_keys(path: str | os.PathLike) -> Keys:
@@ -82,8 +124,8 @@ def read_keys(path: str | os.PathLike) -> Keys:
                                  f"(not true/false), got {str(vals)[:60]}")
         if len(set(reg["frames"])) != len(reg["frames"]):
             raise InputError(f"{path}: region {name!r} lists a key frame twice")
-        regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]),
-                         "method": reg.get("method"), "error": reg.get("error")}
+        regions[name] = {"points": list(reg["points"]), "frames": list(reg["frames"]), "rows": None,
+                         "method": reg.get("method"), "error": reg.get("error")}  # rows: Keys.resolve_rows
     lm = data.get("landmarks")
     return Keys(path, (path.parent / lm) if isinstance(lm, str) else None, regions, _neutral_record(data, path))
 
@@ -103,7 +145,7 @@ def _neutral_record(data: dict, path: Path) -> dict | None:
     if rec.get("source") not in NEUTRAL_SOURCES:
         raise InputError(f"{path}: neutral.source must be one of {', '.join(NEUTRAL_SOURCES)}, got "
                          f"{rec.get('source')!r}")
-    return dict(rec)
+    return {**rec, "row": None}  # (Keys.resolve_rows finds it from the frame)
 
 
 # --------------------------------------------------------------------------- weights.npz

@@ -278,7 +278,7 @@ def rest_shape(stabilized, confidence=None) -> RestShape:
     return RestShape(_held(z, usable, HOLD), calm, usable, members, openings)
 
 
-def find_rest_frame(stabilized, confidence=None, *, candidates=None) -> RestChoice:
+def find_rest_frame(stabilized, confidence=None, *, candidates=None, numbers=None) -> RestChoice:
     """The frame of the take where the actor's face is nearest rest, and the take's rest shape
     (see the module docstring).
 
@@ -291,6 +291,8 @@ def find_rest_frame(stabilized, confidence=None, *, candidates=None) -> RestChoi
     candidates : sequence of int, optional
         Restrict the choice to these frames (e.g. the key frames every region
         shares); the rest shape is still that of the whole take.
+    numbers : array_like (T,) of int, optional
+        Each row's source frame number, to name the frame in the reason (default: the row).
 
     Returns
     -------
@@ -325,8 +327,9 @@ def find_rest_frame(stabilized, confidence=None, *, candidates=None) -> RestChoi
         np.median(np.asarray(confidence, dtype=np.float64)[members], axis=0)
     measures = {"usable": int(usable.sum()), "calm": int(calm.sum()), "distance": float(dist[frame]),
                 "averaged": int(members.size)}
+    label = frame if numbers is None else int(np.asarray(numbers)[frame])
     if not openings:
-        return RestChoice(frame, True, f"frame {frame}: the usable frame nearest the take's most common shape "
+        return RestChoice(frame, True, f"frame {label}: the usable frame nearest the take's most common shape "
                                        f"({int(usable.sum())} of {T} frames usable; no lips or eyes to test "
                                        "without the 68-point layout)", measures, shape, conf, members)
     gap, el, er = (float(openings[k][frame]) for k in ("lip_gap", "eye_l", "eye_r"))
@@ -334,11 +337,11 @@ def find_rest_frame(stabilized, confidence=None, *, candidates=None) -> RestChoi
     at_rest = gap <= LIPS_CLOSED
     where = "" if candidates is None else f" among {int(allowed.sum())} candidate frames"
     if at_rest:
-        reason = (f"frame {frame}: lips closed (gap {gap:.3f} of the mouth width) and eyes open "
+        reason = (f"frame {label}: lips closed (gap {gap:.3f} of the mouth width) and eyes open "
                   f"({el:.2f}, {er:.2f} of their widths), nearest the take's rest shape{where} "
                   f"({int(calm.sum())} of {T} frames had closed lips and open eyes)")
     else:
-        reason = (f"frame {frame}: no frame of the take has the lips closed; the least expressive frame{where} "
+        reason = (f"frame {label}: no frame of the take has the lips closed; the least expressive frame{where} "
                   f"(lip gap {gap:.3f} of the mouth width, eyes {el:.2f}, {er:.2f}): the character's lips "
                   "stay closed where the actor's are this open")
     return RestChoice(frame, bool(at_rest), reason, measures, shape, conf, members)

@@ -38,7 +38,8 @@ RENDER_PARAMS = [
 PREVIEW_PARAMS = [
     Param("run_path", "input", str, help="A config YAML or a run's output directory."),
     Param("output", "output", str, "preview.mp4", "Video file."),
-    Param("frames", "setting", str, None, "Frame range (Python slice), e.g. 0:120.", nullable=True),
+    Param("frames", "setting", str, None, "Source frames A:B (as curves.csv's frame column names them; B excluded), "
+          "e.g. 100:220, or one frame; a negative value counts frames from the end.", nullable=True),
     Param("size", "setting", int, 360, "Height of each panel in pixels.", min=32, max=2160),
     Param("fps", "setting", float, None, "Frame rate (default: the take's).", min=0, max=240, min_open=True,
           nullable=True),

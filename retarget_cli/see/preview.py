@@ -35,35 +35,69 @@ MUTED = (150, 150, 150)
 REGION_COLORS = [(235, 160, 60), (70, 170, 245), (120, 200, 110), (200, 120, 220), (90, 90, 235), (200, 200, 80)]
 
 
-def parse_frames(spec: str | None, n_frames: int) -> range:
-    """Frames selected by ``a:b`` (Python slice semantics; either end may be omitted).
+def describe_frames(numbers) -> str:
+    """``source frames 100-198, every 2nd`` for (T,) source frame numbers (for messages)."""
+    numbers = np.asarray(numbers)
+    if len(numbers) == 0:
+        return "no frames"
+    text = f"source frames {int(numbers[0])}-{int(numbers[-1])}"
+    steps = np.unique(np.diff(numbers))
+    if len(steps) == 1 and steps[0] > 1:
+        text += f", every {int(steps[0])}{'nd' if steps[0] == 2 else 'rd' if steps[0] == 3 else 'th'}"
+    return text
+
+
+def parse_frames(spec: str | None, numbers) -> range:
+    """Rows selected by ``a:b`` of source frame numbers (as ``curves.csv``'s ``frame`` column names them).
 
     Parameters
     ----------
     spec : str or None
-        ``"a:b"``, ``"a:"``, ``":b"`` or a single frame ``"a"``; negative
-        values count from the end. ``None`` selects every frame.
-    n_frames : int
+        ``"a:b"`` (the frames numbered ``a <= frame < b``), ``"a:"``, ``":b"`` or a single frame ``"a"``
+        (it must be a frame of the take); negative values count rows from the end (``-1`` is the last
+        frame). ``None`` selects every frame.
+    numbers : int or ndarray, shape (T,), int
+        Each row's source frame number (``landmarks.npz`` ``frames``), increasing; an int T means 0 … T−1.
+
+    Returns
+    -------
+    range
+        Rows of the take.
 
     Raises
     ------
-    ValueError
-        For malformed text or an empty selection.
+    ParameterError
+        For malformed text, a single frame that is not one of the take's, or an empty selection; the message
+        names the take's frames.
     """
+    numbers = np.arange(numbers) if np.ndim(numbers) == 0 else np.asarray(numbers, dtype=np.int64)
+    T = len(numbers)
     if spec is None or spec.strip() in ("", ":"):
-        rng = range(n_frames)
+        return range(T)
+    a, sep, b = spec.partition(":")
+    try:
+        lo = int(a) if a.strip() else None
+        hi = int(b) if b.strip() else None
+    except ValueError:
+        raise ParameterError(f"--frames: expected a:b with integers, got {spec!r}") from None
+
+    def row(v, *, end=False):  # a frame number to the first row at or after it; a negative value counts rows
+        if v is None:
+            return T if end else 0
+        if v < 0:
+            return max(T + v, 0)
+        return int(np.searchsorted(numbers, v, side="left"))
+
+    if not sep:
+        r = row(lo)
+        if lo is not None and lo >= 0 and (r >= T or numbers[r] != lo):
+            raise ParameterError(f"--frames {spec}: frame {lo} is not a frame of the take ({T} frames, "
+                                 f"{describe_frames(numbers)})")
+        rng = range(r, min(r + 1, T))
     else:
-        a, sep, b = spec.partition(":")
-        try:
-            lo = int(a) if a.strip() else None
-            hi = int(b) if b.strip() else None
-        except ValueError:
-            raise ParameterError(f"--frames: expected a:b with integers, got {spec!r}") from None
-        if not sep:
-            hi = (lo + 1) if lo != -1 else None
-        rng = range(n_frames)[slice(lo, hi)]
+        rng = range(row(lo), max(row(lo), row(hi, end=True)))
     if len(rng) == 0:
-        raise ParameterError(f"--frames {spec}: selects no frame of the {n_frames}-frame take")
+        raise ParameterError(f"--frames {spec}: selects no frame of the {T}-frame take ({describe_frames(numbers)})")
     return rng
 
 
@@ -302,11 +336,32 @@ class RunData:
         self.fps = float(fps) if fps else 30.0
         self._mesh = None
 
+    def source_frames(self) -> np.ndarray:
+        """(n_frames,) int64: each row's source frame number (the landmarks', else the weights', else the row)."""
+        return self.numbers(self.n_frames)
+
+    def numbers(self, T: int) -> np.ndarray:
+        """(T,) int64: the source frame numbers of rows 0 … T−1 (the landmarks', else the weights', else the
+        rows themselves), for axes and tables that name frames."""
+        for src in (None if self.lm is None else self.lm.timing()[0], self.other.get("frame")):
+            if src is not None and len(src) >= T:
+                return np.asarray(src[:T], dtype=np.int64)
+        return np.arange(T, dtype=np.int64)
+
+    def row_of(self, frame: int) -> int | None:
+        """The row whose source frame number is *frame*, or None when no row has it."""
+        numbers = self.numbers(self.n_frames)
+        r = int(np.searchsorted(numbers, frame))
+        return r if r < len(numbers) and numbers[r] == frame else None
+
     def source_time(self, t: int) -> tuple[int, float]:
         """Row *t*'s source frame number and its time in seconds (the landmarks' timing, else ``t / fps``)."""
         if self.lm is not None and t < self.lm.n_frames:
             frames, times = self.lm.timing()
             return int(frames[t]), float(times[t])
+        times = self.other.get("time")
+        if times is not None and t < len(times) and self.other.get("frame") is not None:
+            return int(self.other["frame"][t]), float(times[t])
         return t, t / self.fps
 
     @property
@@ -420,7 +475,7 @@ def preview_frames(data: RunData, frames: range, *, height: int = 360, camera=No
                          MUTED)
             if bars_w:
                 out[:height, left_w + mesh_w:left_w + mesh_w + bars_w] = draw_weight_bars(
-                    (bars_w, height), data.weights_at(t), vmax, current_frame=t)
+                    (bars_w, height), data.weights_at(t), vmax, current_frame=number)
             yield out
     finally:
         src.close()
@@ -436,7 +491,7 @@ def write_preview(run: RunFiles, output: str | os.PathLike, *, frames: str | Non
     output : path-like
         ``.mp4`` (mp4v), ``.avi`` (MJPG), ...
     frames : str, optional
-        ``a:b`` frame range (see :func:`parse_frames`).
+        ``a:b`` range of source frame numbers (see :func:`parse_frames`).
     height : int
         Panel height in pixels (the video is about 2.9 times as wide).
     fps : float, optional
@@ -458,7 +513,7 @@ def write_preview(run: RunFiles, output: str | os.PathLike, *, frames: str | Non
     if data.n_frames == 0:
         raise InputError(f"{run.root}: no frames to preview")
     check_not_input(output, [run.video, run.landmarks, run.weights])
-    sel = parse_frames(frames, data.n_frames)
+    sel = parse_frames(frames, data.source_frames())
     it = preview_frames(data, sel, height=int(height), camera=camera, shading=shading)
     first = next(it)
     size = (first.shape[1], first.shape[0])

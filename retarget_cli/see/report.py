@@ -45,13 +45,13 @@ from ..io.atomic import check_not_input, load_npz, write_text
 from ..io.landmarks import load_landmarks
 from ..io.obj import read_obj
 from ..io.stagefiles import read_targets
-from ..io.video import VideoReader
 from ..methods.decomposition import mean_acceleration
 from ..methods.gaps import gap_summary
 from ..methods.render import Camera, MeshRenderer
 from ..run.pipeline import STAGES
 from ..run.runfiles import RunFiles
 from .preview import REGION_COLORS, RunData, _blank, draw_landmarks, put_text
+from .preview import FrameSource as RowFrames
 from .truth import load_truth_animation, mesh_against_truth, points_against_truth
 
 log = logging.getLogger(__name__)
@@ -92,6 +92,23 @@ def _figure(width=9.0, height=3.0, nrows=1, ncols=1, **kw):
     FigureCanvasAgg(fig)
     axes = fig.subplots(nrows, ncols, squeeze=False, **kw)
     return fig, axes
+
+
+def _frame_axis(a, data: RunData, T: int) -> None:
+    """Label the x axis of *a*, whose positions are rows 0 … T−1 of the take, with the rows' source frame
+    numbers (a take tracked from ``start: 100, step: 2`` reads 100, 110, … under rows 0, 5, …)."""
+    numbers = data.numbers(T)
+    if T == 0 or np.array_equal(numbers, np.arange(T)):
+        a.set_xlabel("frame")
+        return
+    def label(x, _pos):
+        r = int(round(x))
+        return str(int(numbers[r])) if 0 <= r < T and abs(x - r) < 1e-6 else ""
+
+    ticker = _matplotlib()[0].ticker
+    a.xaxis.set_major_locator(ticker.MaxNLocator(integer=True))  # ticks on rows, each labelled by its frame
+    a.xaxis.set_major_formatter(ticker.FuncFormatter(label))
+    a.set_xlabel("frame (source frame number)")
 
 
 def _png_fig(fig) -> bytes:
@@ -230,22 +247,25 @@ def _residual_rms(data: RunData, keys: dict) -> dict:
 # --------------------------------------------------------------------------- images from the take
 
 
-def grab_frames(video: Path | None, indices) -> dict:
-    """Decode the given frame indices of *video* in one pass (empty dict without a video)."""
+def grab_frames(video: Path | None, indices, numbers=None) -> dict:
+    """Decode the given rows of the take from *video* (a video or an image sequence) in one pass: row to image
+    (empty dict without a video).
+
+    *numbers* (T,): each row's source frame number (``landmarks.npz`` ``frames``; a take tracked from
+    ``start: 100, step: 2`` reads source frames 100, 102, …); default the row itself.
+    """
     wanted = sorted(set(int(i) for i in indices))
     if video is None or not wanted:
         return {}
-
     out = {}
-    with VideoReader(video) as reader:
-        try:
-            for t, frame in enumerate(reader):
-                if t in wanted:
-                    out[t] = frame
-                if t >= wanted[-1]:
-                    break
-        except InputError:
-            return out
+    src = RowFrames(video, (1, 1), numbers)
+    try:
+        for t in wanted:
+            img = src.get(t)
+            if img is not None:
+                out[t] = img
+    finally:
+        src.close()
     return out
 
 
@@ -444,7 +464,7 @@ def _tracking(data: RunData) -> str | None:
     im = b.imshow(conf.T, aspect="auto", cmap="RdYlGn", vmin=0, vmax=1, interpolation="nearest",
                   extent=(-0.5, T - 0.5, lm.n_points - 0.5, -0.5))
     b.set_ylabel("landmark")
-    b.set_xlabel("frame")
+    _frame_axis(b, data, T)
     fig.colorbar(im, ax=b, fraction=0.03, pad=0.01)
     n_lost = int(lost.any(1).sum())
     worst = int(np.argmin(conf.mean(1)))
@@ -493,10 +513,13 @@ def _gaps_html(gaps: list, lm) -> str:
 
 
 def _sheet_regions(data: RunData, keys: dict) -> dict:
-    """Regions with key frames: from ``keys.json``, else the weights file's key frames."""
-    regions = {n: r for n, r in keys.items() if r.get("frames")}
+    """Regions with key frames: from ``keys.json``, else the weights file's key frames; each with ``frames``
+    (source frame numbers) and ``rows`` (rows of the take, None for a frame that is not one of it)."""
+    regions = {n: dict(r) for n, r in keys.items() if r.get("frames")}
     if not regions and data.regions:
         regions = {n: {"frames": [int(f) for f in fr], "points": None} for n, (_, fr) in data.regions.items()}
+    for reg in regions.values():  # the frames decide (a keys.json edited by hand may hold stale rows)
+        reg["rows"] = [data.row_of(int(f)) for f in reg["frames"]]
     return regions
 
 
@@ -538,11 +561,12 @@ def _sheet_rows(data: RunData, frames: dict, regions: dict, targets, renderer) -
     for r, (name, reg) in enumerate(regions.items()):
         col = REGION_COLORS[r % len(REGION_COLORS)]
         fr = [int(f) for f in reg["frames"]]
+        rows_ = reg["rows"]
         if len(fr) > MAX_SHEET_KEYS:
             notes.append(f"{name}: first {MAX_SHEET_KEYS} of {len(fr)} keys shown")
-            fr = fr[:MAX_SHEET_KEYS]
-        top = [_label(source_thumb(data, frames, f, highlight=reg.get("points"), color=col), f"{name} {f}", col)
-               for f in fr]
+            fr, rows_ = fr[:MAX_SHEET_KEYS], rows_[:MAX_SHEET_KEYS]
+        top = [_label(source_thumb(data, frames, r, highlight=reg.get("points"), color=col) if r is not None
+                      else _blank((THUMB, THUMB), (60, 60, 60)), f"{name} {f}", col) for f, r in zip(fr, rows_)]
         rows.append(np.hstack(top))
         if renderer is not None:
             rows.append(np.hstack([_target_thumb(renderer, targets, name, f, col) for f in fr]))
@@ -669,12 +693,14 @@ def _weights(data: RunData) -> str | None:
         t = np.arange(W.shape[0])
         for k in range(W.shape[1]):
             a.plot(t, W[:, k], lw=0.9, color=cmap(k % 20), label=str(int(fr[k])))
-        for k, f in enumerate(fr):
-            a.plot([f], [W[:, k].max() if W.shape[0] else 0], marker="v", ms=4, color=cmap(k % 20), ls="none")
+        for k, f in enumerate(fr):  # a key is named by its source frame; drawn at its row
+            r = data.row_of(int(f))
+            if r is not None:
+                a.plot([r], [W[:, k].max() if W.shape[0] else 0], marker="v", ms=4, color=cmap(k % 20), ls="none")
         a.set_ylabel(f"{name}\nweight")
         a.legend(title="key frame", fontsize=6, title_fontsize=7, ncol=1 + (W.shape[1] > 8) + (W.shape[1] > 24),
                  loc="upper left", bbox_to_anchor=(1.005, 1.0), borderaxespad=0)
-    ax[-1, 0].set_xlabel("frame")
+    _frame_axis(ax[-1, 0], data, next(iter(data.regions.values()))[0].shape[0])
     body = _figure_html(_png_fig(fig), "Weights per region and key (triangles: each key's own frame, at its "
                                        "curve's maximum).")
     return _section("weights", "Weight curves", body)
@@ -723,7 +749,7 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     a.set_yscale("symlog", linthresh=max(float(np.percentile(jit_total, 50)), 1e-9))
     a.set_ylim(bottom=0)
     a.legend(fontsize=8)
-    ax[-1, 0].set_xlabel("frame")
+    _frame_axis(ax[-1, 0], data, T)
     caption = ("Per-frame residual of the weight fit (eq. 4) and jitter of the weights; vertical lines mark the "
                "frames listed below (red: residual, blue: jitter).")
     body = _figure_html(_png_fig(fig), caption)
@@ -731,16 +757,18 @@ def _residuals(data: RunData, keys: dict, frames: dict, worst: int, mesh_rendere
     if listed:
         rows = []
         for f, why in listed:
-            cells = [f, f"{f / data.fps:.2f}", why]
+            number, seconds = data.source_time(f)
+            cells = [number, f"{seconds:.2f}", why]
             cells += [f"{res[n][f]:.3g}" for n in res]
             cells += [f"{jit_total[f]:.3g}"]
             if data.lm is not None and f < data.lm.n_frames:
                 cells.append(f"{float(data.lm.confidence[f].mean()):.3f}")
             else:
                 cells.append("")
-            thumbs = [_img_tag(_png_img(source_thumb(data, frames, f, size=96)), f"source frame {f}")]
+            thumbs = [_img_tag(_png_img(source_thumb(data, frames, f, size=96)), f"source frame {number}")]
             if mesh_renderer is not None and f < data.n_character_frames:
-                thumbs.append(_img_tag(_png_img(mesh_renderer.render(data.frame_vertices(f))), f"target frame {f}"))
+                thumbs.append(_img_tag(_png_img(mesh_renderer.render(data.frame_vertices(f))),
+                                       f"target frame {number}"))
             cells.append(_Raw(f'<span class="thumb">{"".join(thumbs)}</span>'))
             rows.append(cells)
         header = ["frame", "time (s)", "listed for"] + [f"residual {n}" for n in res] + ["jitter", "confidence",
@@ -793,31 +821,45 @@ def _truth_mesh_rows(data: RunData, run: RunFiles, target: np.ndarray, notes: li
         notes.append(f"Meshes not compared: the frames have {n_v} vertices, the true animation {target.shape[1]}.")
         return [], None
     n = data.n_character_frames
-    T = min(n, len(target))
-    if T < n or T < len(target):
-        notes.append(f"Compared over the first {T} frames (frames {n}, truth {len(target)}).")
-    m = mesh_against_truth(np.stack([data.frame_vertices(t) for t in range(T)]), target[:T])
+    rows, at = _truth_rows(data, n, len(target))  # the truth is indexed by the video's frame numbers
+    if len(rows) < n or len(rows) < len(target):
+        notes.append(f"Compared over {len(rows)} frames (frames {n}, truth {len(target)}).")
+    if len(rows) < 2:
+        notes.append("Meshes not compared: fewer than 2 of the run's frames are frames of the truth.")
+        return [], None
+    m = mesh_against_truth(np.stack([data.frame_vertices(t) for t in rows]), target[at])
     row = ("target mesh (apply's frames)", f"{m['error_mean']:.4g} ({m['error_pct']:.1f} % of the mean true "
            "displacement)", f"{m['jitter']:.3g}", f"{m['jitter_truth']:.3g}", f"{m['jitter_ratio']:.2f}×")
     return [row], m["error_per_frame"]
+
+
+def _truth_rows(data: RunData, n: int, n_truth: int) -> tuple[np.ndarray, np.ndarray]:
+    """The run's rows (of its first *n*) whose source frame is a row of the truth (*n_truth* frames, one per frame
+    of the video), and those truth rows: a take tracked from ``start: 100, step: 2`` is compared with the truth's
+    frames 100, 102, …"""
+    numbers = data.numbers(n)
+    rows = np.flatnonzero((numbers >= 0) & (numbers < n_truth))
+    return rows, numbers[rows]
 
 
 def _truth_landmark_rows(data: RunData, keys: dict, truth_lm) -> list:
     """Rows of the tracked (filtered and raw) and the reconstructed landmarks against the true landmarks."""
 
     lm = data.lm
-    T = min(lm.n_frames, truth_lm.n_frames)
+    sel, at = _truth_rows(data, lm.n_frames, truth_lm.n_frames)
     rows = []
+    if len(sel) < 2:
+        return rows
     for label, P in (("landmarks (track)", lm.points), ("landmarks before the filter (points_raw)", lm.points_raw)):
         if P is not None and P.shape[1:] == truth_lm.points.shape[1:]:
-            m = points_against_truth(P[:T], truth_lm.points[:T])
+            m = points_against_truth(P[sel], truth_lm.points[at])
             rows.append((label, f"{m['error_px']:.3g} px", f"{m['jitter']:.3g}", f"{m['jitter_truth']:.3g}",
                          f"{m['jitter_ratio']:.2f}×"))
 
     for name, d in sorted((data.other["meta"].get("diagnostics") or {}).items()):
         pts = keys.get(name, {}).get("points")
         if isinstance(d, dict) and "shape_jitter_px" in d and pts:
-            truth_jit = mean_acceleration(truth_lm.stabilized[:T, np.asarray(pts, dtype=np.int64)])
+            truth_jit = mean_acceleration(truth_lm.stabilized[at][:, np.asarray(pts, dtype=np.int64)])
             if truth_jit > 0:
                 rows.append((f"reconstructed landmarks, {name} (decompose)", "", f"{d['shape_jitter_px']:.3g}",
                              f"{truth_jit:.3g}", f"{d['shape_jitter_px'] / truth_jit:.2f}×"))
@@ -923,10 +965,15 @@ def read_neutral(run: RunFiles) -> tuple[dict | None, dict]:
     return record, stages
 
 
-def _neutral_frame(run: RunFiles) -> int | None:
+def _neutral_frame(run: RunFiles, data: RunData) -> int | None:
+    """The neutral's row of the take (the row of its source frame)."""
     record, stages = read_neutral(run)
     rec = record or next(iter(stages.values()), None)
-    return None if rec is None else int(rec["frame"])
+    return None if rec is None else _record_row(rec, data)
+
+
+def _record_row(rec: dict, data: RunData) -> int | None:
+    return data.row_of(int(rec["frame"]))
 
 
 def _rest_pose(data: RunData, run: RunFiles, frames: dict, mesh_renderer) -> str | None:
@@ -935,7 +982,7 @@ def _rest_pose(data: RunData, run: RunFiles, frames: dict, mesh_renderer) -> str
     rec = record or next(iter(stages.values()), None)
     if rec is None:
         return None
-    f = int(rec["frame"])
+    f, row = int(rec["frame"]), _record_row(rec, data)
     body = f"<p>Neutral frame <b>{f}</b> ({html.escape(str(rec.get('source', '')))}): " \
            f"{html.escape(str(rec.get('reason', '')))}.</p>"
     if rec.get("at_rest") is False:
@@ -950,10 +997,14 @@ def _rest_pose(data: RunData, run: RunFiles, frames: dict, mesh_renderer) -> str
             body += "<p><b>The stages used different neutral frames.</b></p>"
     import cv2
 
-    tiles = [_label(source_thumb(data, frames, f), f"source {f}")]
+    if row is None:
+        body += f"<p>Frame {f} is not a frame of this take.</p>"
+        return _section("rest", "Rest pose", body)
+    tiles = [_label(source_thumb(data, frames, row), f"source {f}")]
     what = "the source frame"
-    if mesh_renderer is not None and f < data.n_character_frames:
-        img = cv2.resize(mesh_renderer.render(data.frame_vertices(f)), (THUMB, THUMB), interpolation=cv2.INTER_AREA)
+    if mesh_renderer is not None and row < data.n_character_frames:
+        img = cv2.resize(mesh_renderer.render(data.frame_vertices(row)), (THUMB, THUMB),
+                         interpolation=cv2.INTER_AREA)
         tiles.append(_label(img, f"character {f}"))
         what += " and the character there (at rest when the neutral is)"
     body += _figure_html(_png_img(np.hstack(tiles)), f"Neutral frame {f}: {what}.")
@@ -1003,12 +1054,9 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
     data = RunData(run)
     keys = _read_keys_lenient(run.keys)
     need = set()
-    for reg in keys.values():
-        need |= {int(f) for f in reg.get("frames", [])[:MAX_SHEET_KEYS]}
-    if not keys:
-        for _, fr in data.regions.values():
-            need |= {int(f) for f in fr[:MAX_SHEET_KEYS]}
-    neutral = _neutral_frame(run)
+    for reg in _sheet_regions(data, keys).values():
+        need |= {r for r in reg["rows"][:MAX_SHEET_KEYS] if r is not None}
+    neutral = _neutral_frame(run, data)
     if neutral is not None:
         need.add(neutral)
     mesh_renderer = None
@@ -1033,7 +1081,7 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
             if bar:
                 bar.update(1)
 
-        frames = grab_frames(run.video, need)
+        frames = grab_frames(run.video, need, data.numbers(data.n_frames))
         done()
         summary, _ = _summary(data, run, keys)
         sections.append(summary)

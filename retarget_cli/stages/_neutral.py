@@ -35,14 +35,15 @@ class Neutral:
     Attributes
     ----------
     frame : int
-        Row of the take; the key every region keeps (its label in keys.json and weights.npz).
+        Row of the take (``landmarks.npz``); the key every region keeps.
     shape : ndarray (L, 2) or None
         The neutral key's landmarks (stabilized coordinates of the take): the take's rest shape (the median
         of its calm frames nearest rest) or a calibration's; None: the frame's own landmarks (a frame given).
     confidence : ndarray (L,) or None
         Their confidence (with *shape*).
     record : dict
-        ``frame``, ``source`` (``given``, ``take``, ``calibration``), ``reason``, for ``take`` ``at_rest``,
+        ``frame`` (its source frame number: its label in keys.json, weights.npz and targets.yaml), ``row``,
+        ``source`` (``given``, ``take``, ``calibration``), ``reason``, for ``take`` ``at_rest``,
         ``measures`` and ``frames`` (those averaged), and ``shape`` and ``confidence`` as lists: what
         keys.json holds; the manifests and the report say it without the arrays.
     """
@@ -51,6 +52,11 @@ class Neutral:
     shape: np.ndarray | None
     confidence: np.ndarray | None
     record: dict
+
+    @property
+    def label(self) -> int:
+        """The neutral key's source frame number (``record["frame"]``)."""
+        return int(self.record["frame"])
 
     def landmarks(self, stabilized: np.ndarray) -> np.ndarray:
         """The neutral key's landmarks (L, 2): the calibration's shape, or the frame's own."""
@@ -65,11 +71,21 @@ class Neutral:
 ARRAY_KEYS = ("shape", "confidence")
 
 
-def _given(frame: int, n_frames: int, landmarks) -> Neutral:
-    if not 0 <= frame < n_frames:
-        raise InputError(f"neutral_frame: frame {frame} is outside the take ({n_frames} frames in {landmarks})")
-    return Neutral(int(frame), None, None, {"frame": int(frame), "source": "given",
-                                            "reason": f"frame {frame}: neutral_frame as given"})
+def _source(lm) -> np.ndarray:
+    """(T,) int64: the source frame number of each row of *lm*."""
+    return lm.timing()[0]
+
+
+def _given(frame: int, lm, landmarks) -> Neutral:
+    """``neutral_frame`` as given: a source frame number (``landmarks.npz`` ``frames``)."""
+    src = _source(lm)
+    rows = np.flatnonzero(src == frame)
+    if not len(rows):
+        raise InputError(f"neutral_frame: frame {frame} is not a frame of the take ({landmarks}: {lm.n_frames} "
+                         f"frames, source frames {int(src[0])}-{int(src[-1])})")
+    row = int(rows[0])
+    return Neutral(row, None, None, {"frame": int(frame), "row": row, "source": "given",
+                                     "reason": f"frame {frame}: neutral_frame as given"})
 
 
 def _with_arrays(record: dict, shape: np.ndarray, confidence: np.ndarray) -> dict:
@@ -82,7 +98,7 @@ def _found(lm, landmarks, candidates=None) -> Neutral:
     """The rest frame of the take and its rest shape (:func:`~retarget_cli.methods.neutral.find_rest_frame`),
     warned about when no frame is at rest."""
     try:
-        choice = find_rest_frame(lm.stabilized, lm.confidence, candidates=candidates)
+        choice = find_rest_frame(lm.stabilized, lm.confidence, candidates=candidates, numbers=_source(lm))
     except ValueError as exc:
         raise InputError(f"{landmarks}: neutral_frame auto: {exc}") from None
     n = len(choice.members)
@@ -92,15 +108,18 @@ def _found(lm, landmarks, candidates=None) -> Neutral:
         log.warning("%s: neutral_frame auto: %s", landmarks, reason)
     else:
         log.info("neutral_frame auto: %s", reason)
-    record = {**choice.record(), "source": "take", "reason": reason,
-              "frames": [int(f) for f in choice.members]}
+    src = _source(lm)
+    record = {**choice.record(), "frame": int(src[choice.frame]), "row": int(choice.frame), "source": "take",
+              "reason": reason, "frames": [int(src[f]) for f in choice.members],
+              "rows": [int(f) for f in choice.members]}
     return Neutral(choice.frame, choice.shape, choice.confidence, _with_arrays(record, choice.shape,
                                                                                choice.confidence))
 
 
 def _calibration(lm, landmarks) -> Neutral:
     """The calibration of ``track.neutral`` as the neutral key, labelled with the take's frame nearest it."""
-    frame = nearest_frame(lm.stabilized, lm.confidence, lm.neutral)
+    row = nearest_frame(lm.stabilized, lm.confidence, lm.neutral)
+    frame = int(_source(lm)[row])
     info = lm.meta.get("neutral") if isinstance(lm.meta.get("neutral"), dict) else {}
     what = info.get("file", "the calibration")
     reason = (f"the rest shape of {what} ({info.get('reason', 'tracked like the take')}), aligned to the take; "
@@ -108,9 +127,9 @@ def _calibration(lm, landmarks) -> Neutral:
     log.info("neutral_frame auto: %s", reason)
     shape = np.asarray(lm.neutral, dtype=np.float64)
     conf = np.asarray(lm.neutral_confidence, dtype=np.float64)
-    record = {"frame": frame, "source": "calibration", "file": what, "at_rest": bool(info.get("at_rest", True)),
+    record = {"frame": frame, "row": int(row), "source": "calibration", "file": what, "at_rest": bool(info.get("at_rest", True)),
               "reason": reason}
-    return Neutral(frame, shape, conf, _with_arrays(record, shape, conf))
+    return Neutral(int(row), shape, conf, _with_arrays(record, shape, conf))
 
 
 def summary(record: dict) -> dict:
@@ -128,24 +147,23 @@ def choose_neutral(neutral_frame, lm, *, landmarks) -> Neutral | None:
     if neutral_frame == AUTO:
         out = _calibration(lm, landmarks) if lm.neutral is not None else _found(lm, landmarks)
     else:
-        out = _given(int(neutral_frame), lm.n_frames, landmarks)
+        out = _given(int(neutral_frame), lm, landmarks)
     report_result("neutral", summary(out.record))
     return out
 
 
 def shared_key_frames(keys) -> list[int]:
-    """The key frames every region of *keys* (:class:`~retarget_cli.io.stagefiles.Keys`) has."""
-    sets = [set(r["frames"]) for r in keys.regions.values()]
+    """The key frames every region of *keys* (:class:`~retarget_cli.io.stagefiles.Keys`) has, as rows."""
+    sets = [set(r["rows"]) for r in keys.regions.values()]  # (after Keys.resolve_rows)
     return sorted(set.intersection(*sets)) if sets else []
 
 
 def _recorded(keys, lm, landmarks) -> Neutral:
     """The neutral keys.json records (its landmarks and confidence when it holds them)."""
     rec = keys.neutral
-    frame = int(rec["frame"])
-    if frame >= lm.n_frames:
-        raise InputError(f"{keys.path}: neutral frame {frame} is outside the take ({lm.n_frames} frames in "
-                         f"{landmarks})")
+    if rec.get("row") is None:
+        keys.resolve_rows(_source(lm), landmarks)
+    frame, row = int(rec["frame"]), int(rec["row"])
     shape = conf = None
     if rec.get("shape") is not None:
         try:
@@ -158,7 +176,7 @@ def _recorded(keys, lm, landmarks) -> Neutral:
             raise InputError(f"{keys.path}: neutral.shape must be {lm.n_points} [x, y] pairs (and neutral.confidence "
                              f"{lm.n_points} numbers), one per landmark of {landmarks}")
     log.info("neutral_frame auto: frame %d, as %s records", frame, keys.path)
-    return Neutral(frame, shape, conf, dict(rec))
+    return Neutral(row, shape, conf, dict(rec))
 
 
 def neutral_from_keys(neutral_frame, keys, lm, *, landmarks) -> Neutral:
@@ -168,7 +186,7 @@ def neutral_from_keys(neutral_frame, keys, lm, *, landmarks) -> Neutral:
     none). Reports the choice for the stage's manifest (``results.neutral``).
     """
     if neutral_frame != AUTO:
-        out = _given(int(neutral_frame), lm.n_frames, landmarks)
+        out = _given(int(neutral_frame), lm, landmarks)
     elif keys.neutral is not None:
         out = _recorded(keys, lm, landmarks)
     else:

@@ -202,28 +202,29 @@ def rig_key_sliders(regions, tg, targets, rig):
     return out
 
 
-def rig_frame_sliders(tg, rig, T: int) -> np.ndarray:
+def rig_frame_sliders(tg, rig, T: int, source=None) -> np.ndarray:
     """Every frame's sliders from ``targets.yaml``'s ``curves:`` (``auto-pose --frames all``), clipped to the
-    rig's ranges; shape (T, n). Its frames must be the weights' 0 … T−1."""
+    rig's ranges; shape (T, n). Its frames must be the weights' source frames *source* (T,) (default 0 … T−1)."""
     names, C, frames, _ = read_animation(tg.curves)
     unknown = [n for n in names if n not in rig.index]
     if unknown:
         raise InputError(f"{tg.curves}: slider {unknown[0]!r} is not a shape of {tg.rig}")
-    if len(frames) != T or not np.array_equal(frames, np.arange(T)):
+    source = np.arange(T) if source is None else np.asarray(source)
+    if len(frames) != T or not np.array_equal(frames, source):
         raise InputError(f"{tg.curves}: {len(frames)} frames ({int(frames[0]) if len(frames) else '-'} to "
-                         f"{int(frames[-1]) if len(frames) else '-'}), the weights have frames 0 to {T - 1}: "
-                         "rerun auto-pose")
+                         f"{int(frames[-1]) if len(frames) else '-'}), the weights have frames {int(source[0])} to "
+                         f"{int(source[-1])}: rerun auto-pose")
     out = np.zeros((T, rig.n_sliders))
     out[:, [rig.index[n] for n in names]] = C
     return np.clip(out, rig.lower, rig.upper)
 
 
-def _rig_driver(regions, tg, targets, cache_dir, gap_fill=None):
+def _rig_driver(regions, tg, targets, cache_dir, gap_fill=None, source=None):
     """Rig driving: curves from the weights (the gaps' frames by *gap_fill*), meshes from the rig at the curves."""
 
     rig = load_rig(tg.rig, cache_dir=cache_dir)
     if tg.curves is not None:
-        curves = rig_frame_sliders(tg, rig, next(iter(regions.values()))[0].shape[0])
+        curves = rig_frame_sliders(tg, rig, next(iter(regions.values()))[0].shape[0], source)
     else:
         S = rig_key_sliders(regions, tg, targets, rig)
         curves = rig_curves([W for _, (W, _, _) in sorted(regions.items())], S, rig.lower, rig.upper)
@@ -285,7 +286,7 @@ def run_apply(*, weights, targets, output, landmarks=None, formats=("obj",), hea
             if found is None:
                 return curves
             return fill_gaps(curves, found, behaviour=gaps, rest=rest, ease_frames=int(round(gap_ease * fps)))
-        positions, template, base, glb, rig_out = _rig_driver(regions, tg, targets, cache_dir, gap_fill)
+        positions, template, base, glb, rig_out = _rig_driver(regions, tg, targets, cache_dir, gap_fill, frames)
     else:
         positions, template, base, glb, rig_out = _key_driver(regions, tg, targets, weights)
     head = _head_transforms(landmarks, T, base, scale, pivot) if head_motion == "2d" else None

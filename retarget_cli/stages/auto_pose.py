@@ -73,7 +73,8 @@ PARAMS = [
           "stays out of the sliders); absolute: the landmark positions (Lewis & Anjyo eq. 3).",
           choices=("delta", "absolute")),
     Param("neutral_frame", "setting", int, "auto",
-          "The actor's neutral frame (the rig's rest pose): auto takes the one keys.json records (select's "
+          "The actor's neutral frame (the rig's rest pose; a source frame number): auto takes the one keys.json "
+          "records (select's "
           "neutral_frame), else finds the rest frame among the shared keys.", min=0, words=("auto",)),
     Param("frames", "setting", str, "all",
           "all: pose the rig at every frame (targets/curves.csv, which apply then drives it with); keys: "
@@ -244,7 +245,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     if frames == "all" and len(poses) < lm.n_frames:
         poses = _hold_gaps(poses, lm.n_frames)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
-                       None if neutral is None else neutral.frame, every_frame=frames == "all")
+                       None if neutral is None else neutral.label, lm.timing(), every_frame=frames == "all")
 
 
 def rig_face_model(rig, vertices) -> np.ndarray:
@@ -331,7 +332,7 @@ def _contact_rows(lm_ids, L: int):
 
 def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, skip_points, rigid_points, masks, base_dir):
     """Checks that need no OBJ: outputs that are not inputs, key frames inside the take, landmark
-    ids, masks. Returns the rig spec, the keys, the landmarks, the sorted key frames and the mask files."""
+    ids, masks. Returns the rig spec, the keys, the landmarks, the sorted key frames (rows) and the mask files."""
 
     spec = read_rig(rig_path)
     kf, lm = read_keys(keys), load_landmarks(landmarks)
@@ -342,10 +343,8 @@ def _check_inputs(keys, landmarks, rig_path, landmark_vertices, out, skip_points
     for name in ("targets.yaml", "sliders.csv", "curves.csv", *found_map) + ((NEUTRAL_OBJ,) if spec.neutral is None
                                                                              else ()):
         check_not_input(out / name, inputs)
-    key_frames = sorted({f for reg in kf.regions.values() for f in reg["frames"]})
-    bad = [f for f in key_frames if f >= lm.n_frames]
-    if bad:
-        raise InputError(f"{keys}: key frame {bad[0]} is outside {landmarks} ({lm.n_frames} frames)")
+    kf.resolve_rows(lm.timing()[0], landmarks)  # keys are named by source frame: their rows
+    key_frames = sorted({f for reg in kf.regions.values() for f in reg["rows"]})
     L = lm.n_points
     for label, pts in (("skip_points", skip_points), ("rigid_points", rigid_points)):
         if pts is not None and any(not isinstance(i, int) or not 0 <= i < L for i in pts):
@@ -422,7 +421,8 @@ def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contac
                 if contact else None
             cache[k] = (y0, c0, shot_refs)
             log.info("auto-pose: the shot of frames %d-%d (after a scene cut) is measured from its own rest shape "
-                     "(rest frame %d)", bounds[k], bounds[k + 1] - 1, int(rows[choice.frame]))
+                     "(rest frame %d)", *(int(lm.timing()[0][r]) for r in (bounds[k], bounds[k + 1] - 1,
+                                                                           rows[choice.frame])))
         out.append(cache[k])
     return out
 
@@ -491,9 +491,14 @@ def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
 
 
 def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit, neutral_frame,
-                every_frame=False):
+                timing, every_frame=False):
     """Key OBJs, region masks, ``sliders.csv``, ``curves.csv`` (*every_frame*: *poses* holds every frame) and
-    ``targets.yaml``; a failure part-way removes what it wrote."""
+    ``targets.yaml``; a failure part-way removes what it wrote.
+
+    *frames* and the keys of *poses* are rows of the take; *timing* (source frame numbers (T,), times (T,))
+    names them: the key OBJs, ``targets.yaml``'s keys and the CSVs' ``frame``/``time`` are source frames.
+    """
+    source, times = timing
 
     names = list(kf.regions)
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
@@ -508,9 +513,9 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
         for ri, name in enumerate(names):
             owned = np.isin(r.names, region_sliders[name])
             regions[name] = {"keys": {}, "sliders": region_sliders[name]}
-            for f in kf.regions[name]["frames"]:
+            for f, row in zip(kf.regions[name]["frames"], kf.regions[name]["rows"]):
                 rel = f"{name}/key_{f:05d}.obj"
-                write_obj(out / rel, r.template, r.evaluate(np.where(owned, poses[f], 0.0)))
+                write_obj(out / rel, r.template, r.evaluate(np.where(owned, poses[row], 0.0)))
                 regions[name]["keys"][f] = rel
                 written.append(out / rel)
             if name in mask_files:
@@ -520,12 +525,13 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
                 write_text(out / rel, _mask_text(derived[ri]))
                 regions[name]["vertices"] = rel
                 written.append(out / rel)
-        write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), frames,
+        write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), source[frames],
                         meta={"fit": fit, "neutral_frame": neutral_frame})
         written.append(out / "sliders.csv")
         if every_frame:
             every = sorted(poses)
-            write_animation(out / "curves.csv", r.names, np.stack([poses[f] for f in every]), every)
+            write_animation(out / "curves.csv", r.names, np.stack([poses[f] for f in every]), source[every],
+                            times[every])
             written.append(out / "curves.csv")
         nrel = targets_neutral(out, r, ledger.add)
         rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())

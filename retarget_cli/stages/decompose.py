@@ -47,7 +47,7 @@ PARAMS = [
           "Upper bound on every weight (bounded and ridge-clipped use 1 when null).", min=1e-6,
           nullable=True),
     Param("neutral_frame", "setting", int, "auto",
-          "Neutral frame S_0 of formulation delta (must be a key of every region): auto takes the one "
+          "Neutral frame S_0 of formulation delta (a source frame number; must be a key of every region): auto takes the one "
           "keys.json records (select's neutral_frame), else finds the rest frame among the shared keys.",
           min=0, words=("auto",)),
     Param("confidence", "setting", bool, True, "Weight each landmark by its tracking confidence."),
@@ -92,6 +92,8 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formu
         n_keys = max((len(r["frames"]) for r in kf.regions.values()), default=0)
         prefetch_kernel((peek_frames(landmarks) or 0) * n_keys, weighted=confidence)
     lm = load_landmarks(landmarks)
+    frames, times = lm.timing()
+    kf.resolve_rows(frames, landmarks)  # keys are named by source frame: their rows
     stab, conf = lm.stabilized, lm.confidence  # float32; a region's rows become float64 once, below
     neutral = neutral_from_keys(neutral_frame, kf, lm, landmarks=landmarks) if formulation == "delta" else None
     regions, extras, diagnostics = {}, {}, {}
@@ -103,11 +105,10 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formu
     meta = {"solver": solver, "formulation": formulation, "alpha": alpha, "upper": upper,
             "smooth_space": smooth_space if solver in ("temporal", "temporal-causal") else None,
             "robust": robust if solver == "temporal" else None,
-            "neutral_frame": None if neutral is None else neutral.frame,
+            "neutral_frame": None if neutral is None else neutral.label,
             "neutral": None if neutral is None else neutral.record, "confidence": confidence,
             "fps": lm.fps, "source_fps": lm.source_fps, "landmarks": Path(landmarks).name,
             "diagnostics": diagnostics}
-    frames, times = lm.timing()
     save_weights(output, regions, meta, extras, frames=frames, times=times)
     written = [Path(output)]
     if csv:
@@ -126,17 +127,15 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
 
     Returns
     -------
-    (W, key frames, residuals), {"cardinality", "lost"}, diagnostics : tuple
+    (W, key frames (source frame numbers), residuals), {"cardinality", "lost"}, diagnostics : tuple
     """
 
     T = lm.n_frames
-    bad = [f for f in reg["frames"] if f >= T]
-    if bad:
-        raise InputError(f"{keys}: region {name!r} key frame {bad[0]} is outside the take ({T} frames in {landmarks})")
     badp = [p for p in reg["points"] if p >= lm.n_points]
     if badp:
         raise InputError(f"{keys}: region {name!r} landmark {badp[0]} does not exist ({lm.n_points} points in {landmarks})")
-    pts, frames = reg["points"], np.array(reg["frames"])
+    pts, frames = reg["points"], np.array(reg["rows"])
+    label = dict(zip(reg["rows"], reg["frames"]))  # row -> source frame number, for messages
     # (a region of all the points in order needs no gather: at long takes every copy counts)
     every = list(pts) == list(range(lm.n_points))
     P = (stab if every else stab[:, pts]).astype(np.float64)
@@ -144,7 +143,7 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     nan = ~np.isfinite(P).all(-1)
     if np.any(nan & (C > 0)):
         t, i = np.argwhere(nan & (C > 0))[0]
-        raise InputError(f"{landmarks}: landmark {pts[i]} of region {name!r} is NaN in frame {t} "
+        raise InputError(f"{landmarks}: landmark {pts[i]} of region {name!r} is NaN in frame {lm.timing()[0][t]} "
                          f"but has confidence {C[t, i]:.3g}; expected finite coordinates or confidence 0")
     lost_pt = nan | (C <= LOST_CONFIDENCE)
     n_unknowns = len(frames) - (1 if formulation == "delta" else 0)
@@ -154,11 +153,11 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     lost = (lost_pt.mean(1) > lost_fraction) | (2 * (~lost_pt).sum(1) < n_unknowns)
     if lost.all():
         raise InputError(f"{landmarks}: region {name!r} is lost in every frame")
-    nan_keys = [int(f) for f in frames if nan[f].any()]
+    nan_keys = [label[int(f)] for f in frames if nan[f].any()]
     if nan_keys:
         raise InputError(f"{landmarks}: region {name!r} key frame {nan_keys[0]} has NaN landmarks; "
                          "a key shape needs every landmark")
-    lost_keys = [int(f) for f in frames if lost_pt[f].any()]
+    lost_keys = [label[int(f)] for f in frames if lost_pt[f].any()]
     if lost_keys:
         log.info("region %s: key frame %d has lost landmarks; its key shape may be inaccurate", name, lost_keys[0])
     X = (np.where(nan[..., None], 0.0, P) if nan.any() else P).reshape(T, -1)
@@ -170,10 +169,10 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     kw = {}
     K = X[frames]
     if formulation == "delta":
-        if neutral.frame not in reg["frames"]:
-            raise InputError(f"{keys}: region {name!r}: formulation 'delta' needs neutral_frame {neutral.frame} "
+        if neutral.frame not in reg["rows"]:
+            raise InputError(f"{keys}: region {name!r}: formulation 'delta' needs neutral_frame {neutral.label} "
                              f"among the key frames {reg['frames']} (set decompose.neutral_frame to one of them)")
-        j = reg["frames"].index(neutral.frame)
+        j = reg["rows"].index(neutral.frame)
         if neutral.shape is not None:  # a calibration's rest shape is the neutral key
             K = K.copy()
             K[j] = np.asarray(neutral.shape, dtype=np.float64)[pts].reshape(-1)
@@ -189,7 +188,7 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     if lost.any():
         W = interpolate_lost(W, lost)
         log.warning("region %s: lost in %d of %d frames (first: %d); weights interpolated",
-                    name, int(lost.sum()), T, int(np.flatnonzero(lost)[0]))
+                    name, int(lost.sum()), T, int(lm.timing()[0][np.flatnonzero(lost)[0]]))
     if lost.any() or formulation == "delta":  # (else decompose's residual is this one already)
         res = row_residuals(X, W, K)
     card = cardinality(W)
@@ -204,7 +203,7 @@ def _decompose_region(name, reg, lm, stab, conf, *, landmarks, keys, solver, for
     }
     log.info("region %s: %d frames, mean residual %.4g px, mean cardinality %.2f, jitter %.3g", name, T,
              diagnostics["mean_residual_px"], card.mean(), diagnostics["jitter"])
-    return (W, frames, res), {"cardinality": card, "lost": lost}, diagnostics
+    return (W, np.array(reg["frames"], dtype=np.int64), res), {"cardinality": card, "lost": lost}, diagnostics
 
 
 #: The pipeline stage (:mod:`retarget_cli.run.pipeline`).

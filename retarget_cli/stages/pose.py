@@ -60,10 +60,17 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=N
     missing = [n for n in names if n not in spec.shapes]
     if missing:
         raise InputError(f"{poses}: slider {missing[0]!r} is not a shape of {rig_path}")
+    # a key is named by its source frame: the poses' row of that frame (their 'frames', else row = frame number)
+    pose_frames = np.asarray(data["frames"]) if "frames" in data else np.arange(len(curves))
+    if pose_frames.shape != (len(curves),):
+        raise InputError(f"{poses}: 'frames' must have shape ({len(curves)},), one per row of 'curves'")
+    pose_row = {int(f): i for i, f in enumerate(pose_frames)}
     for reg in kf.regions.values():
         for f in reg["frames"]:
-            if f >= len(curves):
-                raise InputError(f"{keys}: key frame {f} is outside {poses} ({len(curves)} frames)")
+            if f not in pose_row:
+                raise InputError(f"{keys}: key frame {f} is outside {poses} ({len(curves)} frames, "
+                                 f"{int(pose_frames[0]) if len(curves) else '-'} to "
+                                 f"{int(pose_frames[-1]) if len(curves) else '-'})")
     mask_files = _check_masks(kf, keys, masks, base_dir)
     out = Path(output)
     if out.exists() and not out.is_dir():
@@ -88,7 +95,7 @@ def run_pose(*, keys, rig, poses, output, masks=None, base_dir=None, cache_dir=N
             for f in reg["frames"]:
                 rel = f"{name}/key_{f:05d}.obj"
                 w = np.zeros(rig.n_sliders)
-                w[cols] = curves[f]
+                w[cols] = curves[pose_row[f]]
                 write_obj(written.add(out / rel), rig.template, rig.evaluate(w))
                 regions[name]["keys"][f] = rel
         neutral = targets_neutral(out, rig, written.add)

@@ -42,7 +42,7 @@ PARAMS = [
           min=1, max=10),
     Param("evaluate_k", "setting", int, 40, "Largest k of the evaluation curve.", min=2, max=1000),
     Param("neutral_frame", "setting", int, "auto",
-          "Frame always kept as a key, the actor at rest: auto finds it (the calibration of track.neutral "
+          "Frame always kept as a key, the actor at rest (a source frame number, as landmarks.npz frames): auto finds it (the calibration of track.neutral "
           "when there is one, else the take's frame with closed lips and open eyes nearest its most common "
           "shape; recorded in keys.json for decompose and auto_pose); null to let the method choose all k.",
           min=0, nullable=True, words=("auto",)),
@@ -81,6 +81,7 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
         raise InputError(f"{contact_sheet}: a contact sheet needs the video (--video, or select.video)")
     lm = load_landmarks(landmarks)
     stab = lm.stabilized.astype(np.float64)
+    source = lm.timing()[0]  # each row's source frame number: keys are named by it
     neutral = choose_neutral(neutral_frame, lm, landmarks=landmarks)
     include = () if neutral is None else (neutral.frame,)
     specs = region_specs(regions, lm.n_points, k)
@@ -99,13 +100,15 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
                 if evaluate:
                     rows = evaluation_curve(Xk, max(evaluate_k, len(frames)), k=len(frames), include=inc,
                                             seed=seed, progress=bar.update)
-                    curves[name] = [{**r, "frames": [int(keep[f]) for f in r["frames"]]} for r in rows]
+                    curves[name] = [{**r, "frames": [int(source[keep[f]]) for f in r["frames"]]} for r in rows]
             except ValueError as exc:
                 raise InputError(f"{landmarks}: region {name!r}: {exc}") from exc
             err = key_error(Xk, [local[int(f)] for f in frames])
             chosen_k[name] = len(frames)
-            result[name] = {"points": idx, "method": method, "frames": [int(f) for f in frames], "error": round(err, 6)}
-            tmpl[name] = {"keys": {int(f): f"target/{name}/key_{int(f):05d}.obj" for f in frames}}
+            labels = [int(source[f]) for f in frames]
+            result[name] = {"points": idx, "method": method, "frames": labels, "rows": [int(f) for f in frames],
+                            "error": round(err, 6)}
+            tmpl[name] = {"keys": {f: f"target/{name}/key_{f:05d}.obj" for f in labels}}
             log.info("region %s: keys %s, E = %.4g (eq. 5)", name, result[name]["frames"], err)
     write_keys(output, landmarks, result, None if neutral is None else neutral.record)
     written = [Path(output)]
@@ -126,7 +129,7 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
         if not is_sequence(video):
             video = _require(video, "video file")
         write_contact_sheet(contact_sheet, video, lm.points,
-                            {n: (r["points"], r["frames"]) for n, r in result.items()}, source_frames=lm.frames,
+                            {n: (r["points"], r["rows"]) for n, r in result.items()}, source_frames=lm.frames,
                             fps=lm.source_fps)
         written.append(Path(contact_sheet))
     return written

@@ -104,7 +104,7 @@ def test_assuming_frame_0_carries_the_smile_into_every_rest_frame(take):
     res = run("run", d / "config.yaml", "--set", "select.neutral_frame=0", "--set", "output_dir=out0")
     assert res.exit_code == 0, res.output
     assert json.loads((d / "out0" / "keys.json").read_text())["neutral"] == {
-        "frame": 0, "source": "given", "reason": "frame 0: neutral_frame as given"}
+        "frame": 0, "row": 0, "source": "given", "reason": "frame 0: neutral_frame as given"}
     got = curves_of(d / "out0")
     # a permanent expression where the actor rests (issue 27's auto-pose keeps the lips in contact, so it is a
     # pucker of 0.08-0.15 on every rest frame rather than the 0.3+ stack of the key-frame fit; 0.12-0.15 before

@@ -339,3 +339,178 @@ def test_annotate_hint_names_its_own_options(tmp_path):
         cv2.imwrite(str(seq / f"b_{i:03d}.png"), np.full((120, 120, 3), 90, np.uint8))
     line = _one_error(_cli("annotate", seq / "b_%03d.png", "--frames", "1", "-o", tmp_path / "ann"))
     assert "frame 1: no face found" in line and "--frames" in line and "--init" not in line
+
+
+# --------------------------------------------------------------------------- every output names source frames
+
+
+def _video_frames(path: Path) -> int:
+    cap = cv2.VideoCapture(str(path))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    cap.release()
+    return n
+
+
+@pytest.fixture(scope="module")
+def from_100(tmp_path_factory):
+    """A 140-frame synthetic take run with ``track.start: 100, end: 140, step: 2`` (20 frames), the rig posed by
+    auto_pose, every export with frames written."""
+    from retarget_cli.synth.take import write_take
+
+    d = tmp_path_factory.mktemp("from100") / "take"
+    write_take(d, n_frames=140, size=(96, 96), seed=0)
+    write_pts(d / "face_00100.pts", np.load(d / "truth_landmarks.npz")["points"][100])
+
+    def edit(c):
+        c["track"].update(init="face_00100.pts", start=100, end=140, step=2)
+        c["select"]["k"] = 4
+        _auto_pose(c)
+        c["apply"]["formats"] = ["obj", "csv", "exr", "curves", "livelink"]
+
+    res = _cli("-q", "run", _config(d, "from100.yaml", edit))
+    assert res.exit_code == 0, res.output
+    return d
+
+
+def test_every_output_with_frames_names_the_source_frames(from_100):
+    """Issue #34: OBJ frame files, the EXR's rows, keys.json, targets.yaml, weights and curves of a
+    ``start: 100, step: 2`` run all name source frames 100, 102, … and line up with landmarks.npz."""
+    from retarget_cli.io.exr import read_vat, read_vat_frames
+    from retarget_cli.io.obj import read_obj
+
+    out = from_100 / "out"
+    lm = np.load(out / "landmarks.npz")
+    source = np.arange(100, 140, 2)
+    np.testing.assert_array_equal(lm["frames"], source)
+    fps = cv2.VideoCapture(str(from_100 / "face.mp4")).get(cv2.CAP_PROP_FPS)  # the video's own rate
+    np.testing.assert_allclose(lm["times"], source / fps)
+
+    # keys.json names key frames by source frame, and keeps their rows
+    keys = json.loads((out / "keys.json").read_text())
+    for name, reg in keys["regions"].items():
+        assert set(reg["frames"]) <= set(source.tolist()), (name, reg["frames"])
+        np.testing.assert_array_equal(lm["frames"][reg["rows"]], reg["frames"])
+    neutral = keys["neutral"]
+    assert neutral["frame"] == int(lm["frames"][neutral["row"]]) and neutral["frame"] >= 100
+    # ... and so do the weights' key columns, targets.yaml's keys and the key OBJs
+    w = np.load(out / "weights.npz")
+    targets = yaml.safe_load((out / "targets" / "targets.yaml").read_text())
+    for name, reg in keys["regions"].items():
+        np.testing.assert_array_equal(w[f"{name}_frames"], reg["frames"])
+        assert sorted(targets["regions"][name]["keys"]) == sorted(reg["frames"])
+        for f in reg["frames"]:
+            assert (out / "targets" / name / f"key_{f:05d}.obj").is_file()
+    assert (out / "frames/weights.csv").read_text().splitlines()[0].split(",")[2].split(":")[1] in \
+        {str(f) for r in keys["regions"].values() for f in r["frames"]}
+
+    # OBJ frames are named by source frame, one per row of curves.csv (its frame column)
+    objs = sorted((out / "frames").glob("frame_*.obj"))
+    assert [p.name for p in objs] == [f"frame_{f:05d}.obj" for f in source]
+    names, C, frames, times = read_animation(out / "frames/curves.csv")
+    np.testing.assert_array_equal(frames, source)
+    np.testing.assert_allclose(times, lm["times"], atol=1e-6)
+    sliders, S, sframes, _ = read_animation(out / "targets" / "curves.csv")  # auto-pose's every-frame curves
+    np.testing.assert_array_equal(sframes, source)
+
+    # the EXR's rows carry the same numbers (header and sidecar), row t being frame_<frames[t]>.obj
+    np.testing.assert_array_equal(read_vat_frames(out / "frames/animation.exr"), source)
+    side = json.loads((out / "frames/animation.json").read_text())
+    assert side["source_frames"] == source.tolist() and side["source_fps"] == pytest.approx(fps)
+    np.testing.assert_allclose(side["times"], lm["times"], atol=1e-6)
+    vat = read_vat(out / "frames/animation.exr")
+    first = read_obj(out / "frames/frame_00100.obj").vertices
+    for t in (3, 11, 19):
+        moved = read_obj(out / f"frames/frame_{source[t]:05d}.obj").vertices - first
+        np.testing.assert_allclose(vat[t] - vat[0], moved, atol=1e-4)
+
+    # frame_<f>.obj is the rig posed at curves.csv's row of frame f (apply drives the rig; no head motion)
+    from retarget_cli.io.rig import load_rig
+
+    rig = load_rig(from_100 / "rig.yaml", cache_dir=None)
+    npz = np.load(out / "frames/curves.npz")
+    np.testing.assert_array_equal(npz["frames"], source)
+    cols = [rig.index[n] for n in npz["names"]]
+    for t in (0, 7, 19):
+        w = np.zeros(rig.n_sliders)
+        w[cols] = npz["curves"][t]
+        np.testing.assert_allclose(read_obj(out / f"frames/frame_{source[t]:05d}.obj").vertices, rig.evaluate(w),
+                                   atol=2e-6)
+
+
+def test_pose_keys_poses_a_key_at_its_source_frame(from_100, tmp_path):
+    """The synthetic artist (``pose-keys --poses truth.npz``, the video's every frame) poses key frame f at the
+    truth's frame f, not at its row of a take tracked from frame 100."""
+    from retarget_cli.io.obj import read_obj
+    from retarget_cli.io.rig import load_rig
+
+    out = from_100 / "out"
+    masks = [a for r in ("brows-eyes", "mouth") for a in ("--mask", f"{r}={from_100}/target/regions/{r}.txt")]
+    res = _cli("pose-keys", out / "keys.json", from_100 / "rig.yaml", "--poses", from_100 / "truth.npz", *masks,
+               "-o", tmp_path / "keys")
+    assert res.exit_code == 0, res.output
+    truth = np.load(from_100 / "truth.npz")
+    rig = load_rig(from_100 / "rig.yaml", cache_dir=None)
+    cols = [rig.index[str(n)] for n in truth["names"]]
+    keys = json.loads((out / "keys.json").read_text())
+    name, reg = next(iter(keys["regions"].items()))
+    for f, row in zip(reg["frames"], reg["rows"]):
+        w = np.zeros(rig.n_sliders)
+        w[cols] = truth["curves"][f]
+        got = read_obj(tmp_path / "keys" / name / f"key_{f:05d}.obj").vertices
+        np.testing.assert_allclose(got, rig.evaluate(w), atol=2e-6)
+        if not np.allclose(truth["curves"][f], truth["curves"][row]):
+            w[cols] = truth["curves"][row]
+            assert not np.allclose(got, rig.evaluate(w), atol=2e-6)
+
+
+def test_preview_frames_are_source_frame_numbers(from_100, tmp_path):
+    """``preview --frames`` takes the numbers curves.csv's frame column shows; a frame not in the take is one
+    line naming the take's frames."""
+    from retarget_cli.run.runfiles import locate_run
+    from retarget_cli.see.preview import RunData, preview_frames
+
+    cfg = from_100 / "from100.yaml"
+    res = _cli("preview", cfg, "-o", tmp_path / "a.mp4", "--frames", "104:110", "--size", "96")
+    assert res.exit_code == 0, res.output
+    assert _video_frames(tmp_path / "a.mp4") == 3  # frames 104, 106, 108
+    res = _cli("preview", cfg, "-o", tmp_path / "b.mp4", "--frames", "138", "--size", "96")
+    assert res.exit_code == 0, res.output
+    assert _video_frames(tmp_path / "b.mp4") == 1
+    for spec, what in (("101", "frame 101 is not a frame of the take"), ("4", "frame 4 is not a frame of the take"),
+                       ("0:100", "selects no frame")):
+        res = _cli("preview", cfg, "-o", tmp_path / "c.mp4", "--frames", spec)
+        assert res.exit_code == 2, res.output
+        lines = [ln for ln in res.output.splitlines() if ln.startswith("Error")]  # (a usage error: click's form)
+        assert len(lines) == 1 and what in lines[0] and "source frames 100-138, every 2nd" in lines[0], res.output
+        assert "Traceback" not in res.output
+    assert not (tmp_path / "c.mp4").exists()
+
+    # the source panel of frame 120 is the video's frame 120 (not its row 10, nor frame 10)
+    data = RunData(locate_run(cfg))
+    row = data.row_of(120)
+    assert row == 10 and data.source_time(row)[0] == 120
+    panel = next(preview_frames(data, range(row, row + 1), height=96))[:96, :96].astype(int)
+    video = _frames_of(from_100 / "face.mp4")
+    yy, xx = np.mgrid[0:96, 0:96]  # away from the drawn landmarks and the two text lines
+    pts = data.lm.points[row]
+    far = (np.min(np.hypot(xx[..., None] - pts[:, 0], yy[..., None] - pts[:, 1]), -1) > 4) & (yy > 24) & (yy < 74)
+    diff = {f: np.abs(panel[far] - video[f][far].astype(int)).mean() for f in (120, 10, 110)}
+    assert diff[120] < 1.5 and diff[120] < 0.5 * min(diff[10], diff[110]), diff
+
+
+def test_report_names_source_frames(from_100, tmp_path):
+    """The report's key table, rest pose and worst frames name source frames 100, 102, … (and their times)."""
+    import re
+
+    pytest.importorskip("matplotlib", reason="the report needs the extra report (matplotlib)")
+    res = _cli("report", from_100 / "from100.yaml", "-o", tmp_path / "r.html", "--worst", "3")
+    assert res.exit_code == 0, res.output
+    page = (tmp_path / "r.html").read_text()
+    keys = json.loads((from_100 / "out/keys.json").read_text())
+    for reg in keys["regions"].values():
+        assert ", ".join(str(f) for f in reg["frames"]) in page
+    assert f"Neutral frame <b>{keys['neutral']['frame']}</b>" in page
+    listed = [int(f) for f in re.findall(r'alt="source frame (\d+)"', page)]
+    assert listed and set(listed) <= set(range(100, 140, 2)), listed
