@@ -210,6 +210,8 @@ STAGE = Stage(
 
 def _cli_select(values, out):
     kw = dict(values)
+    if kw.get("template") == _param("template").default and kw.get("output"):
+        kw["template"] = str(Path(kw["output"]).parent / kw["template"])  # beside the keys, not in the cwd
     if kw.pop("no_neutral"):
         kw["neutral_frame"] = None
     return run_select(**dict(kw, regions=dict(kw["regions"]) or None), progress=out.progress)
@@ -238,7 +240,8 @@ COMMAND = Command(
           help="A region, its landmarks and optionally its own k, e.g. mouth=48-67,3-13:8, face=all, or a "
                "68-point preset by name: brows-eyes, mouth, face (mouth:8). Repeatable; default face=all."),
      Flag("template", path="file", show_default=False,
-          help="Also write a targets.yaml template for the artist (never overwrites a file select did not write)."),
+          help="The targets.yaml template for the artist (default: targets.template.yaml beside the keys file; "
+               "never overwrites a file select did not write)."),
      Flag("evaluate", path="file", metavar="CURVE.csv", show_default=False),
      Flag("plot", path="file", metavar="CURVE.png", show_default=False),
      "evaluate_k",

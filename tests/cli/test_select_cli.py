@@ -70,3 +70,14 @@ def test_frames_with_lost_landmarks_are_left_out_of_selection(small_take, tmp_pa
         run_select(landmarks=tmp_path / "lost0.npz", output=tmp_path / "keys.json", k=6, neutral_frame=0)
     run_select(landmarks=tmp_path / "lost0.npz", output=tmp_path / "keys.json", k=6)  # auto: a frame with them all
     assert read_keys(tmp_path / "keys.json").neutral["frame"] not in (0, 7, 30)
+
+
+def test_the_template_goes_beside_the_keys_not_into_the_working_folder(small_take, tmp_path, monkeypatch):
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    out = tmp_path / "o"
+    r = CliRunner().invoke(main, ["select", str(small_take / "truth_landmarks.npz"), "-o", str(out / "keys.json"),
+                                  "-k", "3"])
+    assert r.exit_code == 0, r.output + r.stderr
+    assert (out / "targets.template.yaml").is_file() and list(cwd.iterdir()) == []
