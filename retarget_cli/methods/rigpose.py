@@ -44,7 +44,7 @@ from ..errors import InputError, ParameterError, ShapeError
 from .blas import small_blas
 from .decomposition import box_qp
 from .decomposition.boxqp import box_qp_weighted
-from .decomposition.temporal import _second_difference, event_terms, sparse_box_qp
+from .decomposition.temporal import _second_difference, event_terms, sparse_box_qp, take_windows
 from .editing import fit_orthographic
 
 log = logging.getLogger(__name__)
@@ -808,33 +808,19 @@ def _region_contacts(contact, refs, ids, L: int) -> list:
 
 
 def smoothing_windows(K: int, window: int | None = SMOOTH_WINDOW, margin: int = SMOOTH_MARGIN) -> list:
-    """The windows :func:`delta_pose` smooths a take of *K* frames in, as ``(a, b, lo, hi)``.
-
-    Rows ``[a, b)`` of the result come from the frames ``[lo, hi)`` fitted and smoothed together
-    (:func:`smooth_sliders`); the ``[a, b)`` tile ``[0, K)``. A take of at most ``window + margin`` frames
-    (or *window* None) is one window: the whole take smoothed at once (:func:`smooth_sliders`).
-    A longer one is cut every *window* frames, each window reaching *margin* frames into its neighbours, where
-    the smoothing's coupling (a second difference) has long died out: the result differs from smoothing the
-    whole take at once by what the QP solver's tolerance allows (``tests/unit/methods/test_rigpose_window.py``),
-    and the memory stays that of ``window + 2 * margin`` frames.
+    """The windows :func:`delta_pose` fits and smooths a take of *K* frames in, as ``(a, b, lo, hi)``
+    (:func:`~retarget_cli.methods.decomposition.temporal.take_windows`): rows ``[a, b)`` of the result come
+    from the frames ``[lo, hi)`` fitted and smoothed together (:func:`smooth_sliders`). A take of at most
+    ``window + margin`` frames is one window: the whole take smoothed at once. Windows and margins that are
+    multiples of ``_BATCH`` keep every frame's own fit bit for bit; the smoothing's coupling (a second
+    difference) dies out across the margin, so the result is the whole take's to rounding
+    (``tests/unit/methods/test_rigpose_window.py``).
 
     Returns
     -------
     list of (int, int, int, int)
     """
-    if window is None or K <= window + margin:
-        return [(0, K, 0, K)]
-    if window < 1 or margin < 0:
-        raise ShapeError(f"smoothing window: expected window >= 1 and margin >= 0, got {window} and {margin}")
-    out = []
-    for a in range(0, K, window):
-        b = min(K, a + window)
-        if K - b <= margin:  # a short tail joins this window rather than making its own
-            b = K
-        out.append((a, b, max(0, a - margin), min(K, b + margin)))
-        if b == K:
-            break
-    return out
+    return take_windows(K, window, margin)
 
 
 def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_closed, lip_closed):

@@ -48,7 +48,7 @@ def test_smoothing_windows_tile_the_take_and_keep_the_batches(K):
 
 
 def test_smoothing_windows_refuse_an_empty_window():
-    with pytest.raises(ShapeError, match="smoothing window"):
+    with pytest.raises(ShapeError, match="take windows"):
         smoothing_windows(100, 0, 10)
 
 
