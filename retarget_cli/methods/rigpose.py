@@ -588,12 +588,13 @@ def _exclusive_pairs(exclusive, rig, P0, B, contact):
 _BATCH = 256
 
 #: Frames of a long take whose sliders :func:`delta_pose` smooths together (:func:`smoothing_windows`): its
-#: per-frame fits (~50 KB a frame and region) and the smoothing's system are held for one window at a time, so
-#: the memory of a take does not grow with its length. Multiples of ``_BATCH``: every frame's own fit is the
-#: same whatever the window.
-SMOOTH_WINDOW = 4 * _BATCH
-#: Frames each side of a window fitted and smoothed with it but taken from the neighbouring window.
-SMOOTH_MARGIN = _BATCH
+#: per-frame fits (~50 KB a frame and region) and the smoothing's sparse system and LU (~350 KB a frame for the
+#: ICT rig's two regions) are held for one window at a time, so the memory of a take does not grow with its
+#: length (measured: ``bench/long_take.py``, docs/benchmarks.md).
+SMOOTH_WINDOW = 2 * _BATCH
+#: Frames each side of a window fitted and smoothed with it but taken from its neighbours: the smoothing's
+#: coupling (a second difference) is below rounding after a few tens of frames.
+SMOOTH_MARGIN = 64
 
 
 def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights=None, regions=None,
@@ -811,10 +812,10 @@ def smoothing_windows(K: int, window: int | None = SMOOTH_WINDOW, margin: int = 
     """The windows :func:`delta_pose` fits and smooths a take of *K* frames in, as ``(a, b, lo, hi)``
     (:func:`~retarget_cli.methods.decomposition.temporal.take_windows`): rows ``[a, b)`` of the result come
     from the frames ``[lo, hi)`` fitted and smoothed together (:func:`smooth_sliders`). A take of at most
-    ``window + margin`` frames is one window: the whole take smoothed at once. Windows and margins that are
-    multiples of ``_BATCH`` keep every frame's own fit bit for bit; the smoothing's coupling (a second
-    difference) dies out across the margin, so the result is the whole take's to rounding
-    (``tests/unit/methods/test_rigpose_window.py``).
+    ``window + margin`` frames is one window: the whole take smoothed at once. Each frame's own fit is the
+    whole take's to rounding (bit for bit when the windows and margins are multiples of ``_BATCH``, whose
+    batches they then keep), and so is the smoothing, whose coupling dies out across the margin; the event
+    test's normalisation (:func:`smooth_sliders`) is the window's own (``tests/unit/methods/test_rigpose_window.py``).
 
     Returns
     -------
