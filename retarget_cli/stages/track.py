@@ -203,6 +203,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     found, segment, gaps = _coverage(coverage, len(points), frame_numbers, source, video)
     points, raw, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
                                          anchors=[i for i in index if i < len(points)])
+    # the take's per-frame arrays kept once each: what is only saved is kept as the file stores it (float32)
+    raw = None if raw is None else raw.astype(np.float32)
     head, stab = estimate_head(points, held_confidence(conf, found), rigid_points=rigid_points)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
@@ -211,6 +213,7 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
                                      fps=fps)
+    stab = stab.astype(np.float32)
     meta = {
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
@@ -530,13 +533,16 @@ def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), 
                                          anchors=[i - lo for i in anchors if lo <= i < hi])
             out[a + wa:a + wb] = part[a + wa - lo:a + wb - lo]
             del part
-    raw = None if settings["filter"] == "none" else np.array(points, dtype=np.float64)
+    # the tracker's points themselves (no copy when they are float64: the caller keeps them as the raw points)
+    raw = None if settings["filter"] == "none" else np.asarray(points, dtype=np.float64)
     if whole:
         return out, raw, meta
     # a gap holds the last found frame's landmarks (after filtering), the first found frame's before any
     found = np.asarray(segment) >= 0
     last = np.maximum.accumulate(np.where(found, np.arange(len(out)), -1))
-    out = out[np.where(last >= 0, last, int(np.argmax(found)))]
+    src = np.where(last >= 0, last, int(np.argmax(found)))
+    gap = np.flatnonzero(src != np.arange(len(out)))
+    out[gap] = out[src[gap]]  # in place: the rows copied from are found ones, which this does not change
     return out, raw, meta
 
 
