@@ -12,9 +12,15 @@ take's length, the ICT rig of ``build/ict-facekit``; track -> select -> decompos
 curves, Live Link and glb) in a fresh child process into a fresh output folder. The child wraps
 :func:`retarget_cli.run.pipeline.run_stage` to read its own peak RSS (``VmHWM`` of ``/proc/self/status``) at
 the end of each stage and reset it (``/proc/self/clear_refs``, 5) at the start of the next, so each stage's
-peak is its own; the whole run's peak is the largest (and ``getrusage``'s ``ru_maxrss`` of the child, which is
-never reset, is printed beside it as a check). Printed: frames, wall time, peak RSS per stage and overall,
-gaps made and reported (start and length right), and each figure's growth against the first (shortest) take.
+peak is its own (it includes what the process already held when the stage started: the modules, the
+detector, memory an earlier stage freed but the allocator kept); the whole run's peak is the largest.
+Printed: frames, wall time, peak RSS per stage and overall, gaps made and reported (start and length right),
+and the whole run's peak against the first (shortest) take's.
+
+``--from-landmarks FILE`` skips ``track`` (a 10-minute 1080p take is hours of tracking on a loaded 2-core
+machine): the rows of *FILE* (a shorter run's ``landmarks.npz``) before its first gap, looped back and forth
+to each length without gaps (one segment: the longest case for the solvers across frames), written into a
+fresh output folder, then ``retarget run --from select``.
 
 Target (#31): the 10-minute take's peak under 1 GB and within 10 % of the 1-minute take's.
 
@@ -247,8 +253,8 @@ def report(rows: list) -> str:
     first = rows[0]
     names = [s["stage"] for s in first["stages"]]
     lines = ["| take | frames | curve rows | gaps made / reported right | wall time | "
-             + " | ".join(f"{n} peak" for n in names) + " | whole run peak (ru_maxrss) | vs first |",
-             "|---" * (6 + len(names)) + "|"]
+             + " | ".join(f"{n} peak" for n in names) + " | whole run peak | vs first |",
+             "|---" * (7 + len(names)) + "|"]
     for r in rows:
         per = {s["stage"]: s["peak_mb"] for s in r["stages"]}
         cells = " | ".join(f"{per.get(n, float('nan')):.1f} MB" for n in names)
@@ -256,7 +262,7 @@ def report(rows: list) -> str:
         lines.append(f"| {r['minutes']:g} min | {r['frames']:,} | {r['curve_rows']:,}{'' if r['finite'] else ' NOT finite'}"
                      f" | {r['gaps']} / {r['reported']} ({'yes' if r['all_reported'] else 'NO'}) | "
                      f"{r['seconds']:.0f} s ({r['frames'] / r['seconds']:.1f} fps) | {cells} | "
-                     f"{r['peak_mb']:.1f} MB ({r['ru_maxrss_mb']:.1f} MB) | {growth:+.1f} % |")
+                     f"{r['peak_mb']:.1f} MB | {growth:+.1f} % |")
     return "\n".join(lines)
 
 
@@ -296,10 +302,12 @@ def main(argv=None) -> int:
     rows = []
     for m in minutes:
         rows.append(run_take(video, fps, m, args))
-        log(f"{m:g} min: peak {rows[-1]['peak_mb']:.1f} MB, {rows[-1]['seconds']:.0f} s")
-    print(f"Long take: {CLIP} at {SIZE[0]}x{SIZE[1]} looped, a 1-3 s black gap every 30 s; "
-          f"`retarget run {args.config.name}` (video swapped, init auto) in a fresh process; peak RSS per stage "
-          "(VmHWM, reset at each stage's start):\n")
+        log(f"{m:g} min: peak {rows[-1]['peak_mb']:.1f} MB, {rows[-1]['seconds']:.0f} s; "
+            + ", ".join(f"{st['stage']} {st['peak_mb']:.0f} MB" for st in rows[-1]["stages"]))
+    what = (f"{args.from_landmarks.name} looped without gaps, `retarget run {args.config.name} --from select`"
+            if args.from_landmarks else f"{CLIP} at {SIZE[0]}x{SIZE[1]} looped, a 1-3 s black gap every 30 s; "
+            f"`retarget run {args.config.name}` (video swapped, init auto)")
+    print(f"Long take: {what}, in a fresh process; peak RSS per stage (VmHWM, reset at each stage's start):\n")
     print(report(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

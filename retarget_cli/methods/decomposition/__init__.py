@@ -58,8 +58,8 @@ from .temporal import (
     _sequential,
     _temporal_causal,
     temporal_events,  # noqa: F401
-    temporal_windows,
     temporal_whole,  # noqa: E402, F401
+    temporal_windows,
 )
 
 #: Solvers available to :func:`decompose`.
