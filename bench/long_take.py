@@ -302,6 +302,8 @@ def main(argv=None) -> int:
     rows = []
     for m in minutes:
         rows.append(run_take(video, fps, m, args))
+        if args.json:  # after each take: a long series stopped half way keeps what it measured
+            args.json.write_text(json.dumps(rows, indent=1))
         log(f"{m:g} min: peak {rows[-1]['peak_mb']:.1f} MB, {rows[-1]['seconds']:.0f} s; "
             + ", ".join(f"{st['stage']} {st['peak_mb']:.0f} MB" for st in rows[-1]["stages"]))
     what = (f"{args.from_landmarks.name} looped without gaps, `retarget run {args.config.name} --from select`"
