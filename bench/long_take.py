@@ -4,7 +4,7 @@ The take: d12 (``../shared/realdata/videos``, 512x512, 25 fps) scaled uniformly 
 centred on a black 1920x1080 frame (as ``bench/speed_peer.py`` upscales), looped back and forth (no cut of its
 own), with a black gap of 1-3 s (seeded) every 30 s from 15 s on: twenty gaps in 10 minutes, as
 ``bench/gaps.py --long`` makes them at 256x256. One video as long as the longest take asked for is written
-once with OpenCV (mp4v) to ``build/long_take/`` (10 minutes: 15,000 frames, ~0.5 GB, a few minutes to make);
+once with OpenCV (mp4v) to ``build/long_take/`` (11 MB a half minute; 10 minutes: 15,000 frames, ~0.2 GB);
 the shorter takes are its first frames (``track.end``), whose gaps are the longer take's first gaps.
 
 Each take runs ``retarget run configs/real.yaml`` (video swapped, ``track.init: auto``, ``track.end`` the
