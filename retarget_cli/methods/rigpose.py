@@ -44,7 +44,7 @@ from ..errors import InputError, ParameterError, ShapeError
 from .blas import small_blas
 from .decomposition import box_qp
 from .decomposition.boxqp import box_qp_weighted
-from .decomposition.temporal import _second_difference, event_terms, sparse_box_qp
+from .decomposition.temporal import _second_difference, event_terms, sparse_box_qp, take_windows
 from .editing import fit_orthographic
 
 log = logging.getLogger(__name__)
@@ -588,13 +588,27 @@ def _exclusive_pairs(exclusive, rig, P0, B, contact):
     return np.unique(np.vstack([np.asarray(pairs, np.int64).reshape(-1, 2), lid_pairs]), axis=0)
 
 
+#: Frames of :func:`delta_pose` whose per-frame QPs are solved together (bounds the memory of a long take).
+_BATCH = 256
+
+#: Frames of a long take whose sliders :func:`delta_pose` smooths together (:func:`smoothing_windows`): its
+#: per-frame fits (~50 KB a frame and region) and the smoothing's sparse system and LU (~350 KB a frame for the
+#: ICT rig's two regions) are held for one window at a time, so the memory of a take does not grow with its
+#: length (measured: ``bench/long_take.py``, docs/benchmarks.md).
+SMOOTH_WINDOW = 2 * _BATCH
+#: Frames each side of a window fitted and smoothed with it but taken from its neighbours: the smoothing's
+#: coupling (a second difference) is below rounding after a few tens of frames.
+SMOOTH_MARGIN = 64
+
+
 def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights=None, regions=None,
                sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE, exclusive=None,
                region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
                contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
                lid_closed: float = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
                smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, contact_tol: float = DEFAULT_CONTACT_TOL,
-               contact_refs=None, front=None, spill: float = DEFAULT_SPILL) -> dict:
+               contact_refs=None, front=None, spill: float = DEFAULT_SPILL, smooth_window: int | None = SMOOTH_WINDOW,
+               smooth_margin: int = SMOOTH_MARGIN) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
 
     The delta transfer of the module docstring: one scaled orthographic
@@ -658,6 +672,10 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         λ of :func:`smooth_sliders` (the targets are then consecutive frames; 0: each frame alone).
     smooth_robust : float
         Its event threshold.
+    smooth_window, smooth_margin : int
+        A take longer than ``smooth_window + smooth_margin`` frames is fitted and smoothed in windows of
+        *smooth_window* frames reaching *smooth_margin* frames into their neighbours (:func:`smoothing_windows`),
+        so that its memory does not grow with its length; None: the whole take at once.
     contact_tol : float
     contact_refs : list of ndarray, optional
         :func:`contact_references` of the take (default: of the neutral and target frames).
@@ -718,27 +736,31 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     W = np.zeros((K, rig.n_sliders))
     sq = np.zeros(K)
     cnt = np.zeros(K)
-    fits = [[] for _ in ids]
-    with small_blas():  # many small solves: BLAS threads only add overhead (methods/blas.py)
-        for k0 in range(0, K, _BATCH):  # frames in batches: their QPs are solved together
-            frames = [_frame(Y[k], C[k], c0, X0, DL, e0, (s, R, t), rig_ids, P0n, Bn)
-                      for k in range(k0, min(K, k0 + _BATCH))]
-            for ri, (i, sr) in enumerate(zip(ids, scales)):
-                free = owner == ri
-                if not free.any():
-                    continue
-                fits[ri] += _fit_region_frames(rig, frames, i, sr, free, groups[ri], others=others[ri], **opts)
     B0 = project(DL, R)
-    for ri, i in enumerate(ids):
-        if not fits[ri]:
-            continue
-        Bi = B0[i].reshape(-1, rig.n_sliders)
-        Wr = smooth_sliders(fits[ri], Bi.T @ Bi, rig.lower, rig.upper, lam=smooth, robust=smooth_robust)
-        for k, (f, w) in enumerate(zip(fits[ri], Wr)):
-            W[k] += w
-            e2, n2 = f.residual(w)
-            sq[k] += e2
-            cnt[k] += n2
+    for a, b, lo, hi in smoothing_windows(K, smooth_window, smooth_margin if smooth > 0 else 0):
+        # frames [lo, hi) fitted and smoothed together; rows [a, b) of W kept (the whole take unless it is long)
+        fits = [[] for _ in ids]
+        with small_blas():  # many small solves: BLAS threads only add overhead (methods/blas.py)
+            for k0 in range(lo, hi, _BATCH):  # frames in batches: their QPs are solved together
+                frames = [_frame(Y[k], C[k], c0, X0, DL, e0, (s, R, t), rig_ids, P0n, Bn)
+                          for k in range(k0, min(hi, k0 + _BATCH))]
+                for ri, (i, sr) in enumerate(zip(ids, scales)):
+                    free = owner == ri
+                    if not free.any():
+                        continue
+                    fits[ri] += _fit_region_frames(rig, frames, i, sr, free, groups[ri], others=others[ri], **opts)
+        for ri, i in enumerate(ids):
+            if not fits[ri]:
+                continue
+            Bi = B0[i].reshape(-1, rig.n_sliders)
+            Wr = smooth_sliders(fits[ri], Bi.T @ Bi, rig.lower, rig.upper, lam=smooth, robust=smooth_robust)
+            for k in range(a, b):
+                f, w = fits[ri][k - lo], Wr[k - lo]
+                W[k] += w
+                e2, n2 = f.residual(w)
+                sq[k] += e2
+                cnt[k] += n2
+        del fits
     rms = np.sqrt(sq / np.maximum(cnt, 1e-300))
     return {"w": W, "owner": owner, "regions": names, "scale": float(s), "region_scales": scales * s,
             "rotation": R, "translation": t, "rms": rms}
@@ -790,8 +812,22 @@ def _region_contacts(contact, refs, ids, L: int) -> list:
     return out
 
 
-#: Frames of :func:`delta_pose` whose per-frame QPs are solved together (bounds the memory of a long take).
-_BATCH = 256
+
+
+def smoothing_windows(K: int, window: int | None = SMOOTH_WINDOW, margin: int = SMOOTH_MARGIN) -> list:
+    """The windows :func:`delta_pose` fits and smooths a take of *K* frames in, as ``(a, b, lo, hi)``
+    (:func:`~retarget_cli.methods.decomposition.temporal.take_windows`): rows ``[a, b)`` of the result come
+    from the frames ``[lo, hi)`` fitted and smoothed together (:func:`smooth_sliders`). A take of at most
+    ``window + margin`` frames is one window: the whole take smoothed at once. Each frame's own fit is the
+    whole take's to rounding (bit for bit when the windows and margins are multiples of ``_BATCH``, whose
+    batches they then keep), and so is the smoothing, whose coupling dies out across the margin; the event
+    test's normalisation (:func:`smooth_sliders`) is the window's own (``tests/unit/methods/test_rigpose_window.py``).
+
+    Returns
+    -------
+    list of (int, int, int, int)
+    """
+    return take_windows(K, window, margin)
 
 
 def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_closed, lip_closed, others=()):

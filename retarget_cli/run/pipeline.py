@@ -9,6 +9,7 @@ stage while all of it still matches, as make and DVC do.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import time
@@ -195,6 +196,22 @@ def run_stage(cfg: Config, name: str, kw: dict, progress=None, cache: bool = Tru
     return outputs
 
 
+def release_memory() -> bool:
+    """Give the memory a finished stage freed back to the system: glibc's ``malloc_trim(0)``; elsewhere nothing.
+
+    numpy arrays smaller than glibc's mmap threshold (which rises to 32 MB as larger arrays are freed) come
+    from the heap, and what a stage frees there stays in the process: without a trim each stage of a long
+    take starts from what the stages before it peaked at (measured: ``bench/long_take.py``,
+    docs/benchmarks.md). Returns whether anything was trimmed.
+    """
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return False
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    return bool(trim(0))
+
+
 def select_stages(cfg: Config, start: str | None = None, stop: str | None = None) -> list[str]:
     """Stages present in *cfg*, in pipeline order, restricted to ``start..stop``."""
     names = [n for n in ORDER if n in cfg.sections]
@@ -250,6 +267,7 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
                 continue
             log.info("%s: running (%s)", n, why)
             run_stage(cfg, n, kw, progress, cache=cache)
+            release_memory()
             report.append((n, "ran", declared))
     return report
 

@@ -221,7 +221,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     Y = lm.stabilized[:, lm_ids].astype(np.float64)
     Cf = lm.confidence[:, lm_ids].astype(np.float64)
     # frames all: each segment of the take (found frames between gaps and cuts) is posed and smoothed apart
-    posed = [list(range(a, b)) for a, b in lm.segments] if frames == "all" else [key_frames]
+    posed = [range(a, b) for a, b in lm.segments] if frames == "all" else [key_frames]
     if fit == "delta":
         Y0 = neutral.landmarks(lm.stabilized)[lm_ids].astype(np.float64)
         C0 = neutral.weights(lm.confidence)[lm_ids].astype(np.float64)
@@ -446,7 +446,8 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
     for i, part in enumerate(frames):  # a list of frames per segment of the take, each smoothed on its own
         y0, c0, o = (*neutral, opts) if shots is None else (shots[i][0], shots[i][1],
                                                             {**opts, "contact_refs": shots[i][2]})
-        res = delta_pose(r, vx, y0, Y[part], weights=Cf[part], neutral_weights=c0,
+        rows = slice(part.start, part.stop) if isinstance(part, range) else part  # a segment: views, no copies
+        res = delta_pose(r, vx, y0, Y[rows], weights=Cf[rows], neutral_weights=c0,
                          regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **o)
         poses.update(zip(part, res["w"]))
         rms.extend(res["rms"])

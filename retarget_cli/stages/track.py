@@ -18,6 +18,7 @@ from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
 from ..io.landmarks import Landmarks, save_landmarks
 from ..io.overlay import write_overlay
+from ..methods.decomposition.temporal import MARGIN, WINDOW, take_windows
 from ..methods.gaps import describe_gaps, gap_summary, segment_ids, segments_of
 from ..methods.neutral import align_shape, find_rest_frame
 from ..methods.tracking import TRACKERS, method_choices, method_help, tracker_params
@@ -209,6 +210,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     found, segment, gaps = _coverage(coverage, len(points), frame_numbers, source, video)
     points, raw, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
                                          anchors=[i for i in index if i < len(points)])
+    # the take's per-frame arrays kept once each: what is only saved is kept as the file stores it (float32)
+    raw = None if raw is None else raw.astype(np.float32)
     head, stab = estimate_head(points, held_confidence(conf, found), rigid_points=rigid_points)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
@@ -218,6 +221,7 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
                                      fps=fps)
+    stab = stab.astype(np.float32)
     meta = {
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
@@ -538,24 +542,39 @@ def _coverage(coverage, T: int, frame_numbers, source, video):
     return coverage.found[:T].astype(bool), segment, gaps
 
 
-def filter_segments(points, conf, segment, *, fps, settings, where, anchors=()):
+def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), window=WINDOW, margin=MARGIN):
     """:func:`~._landmark_filter.apply_filter` on each segment of the take apart (the whole take without
     *segment*), so that nothing is smoothed across a gap or a scene cut; frames in gaps stay as they are.
+    A segment longer than :data:`~retarget_cli.methods.decomposition.temporal.WINDOW` + ``MARGIN`` frames is
+    filtered in overlapping windows (:func:`~retarget_cli.methods.decomposition.temporal.take_windows`), so the
+    smoother's per-frame state (~16 KB a frame for 68 points) is held for one window at a time; the smoother's
+    gain forgets its start within the margin, so the result is the whole segment's to rounding.
 
     Returns (points (T, L, 2), raw (T, L, 2) or None, meta) like ``apply_filter``.
     """
-    if segment is None or len(segments_of(segment)) == 1 and (segment >= 0).all():
+    whole = segment is None or len(segments_of(segment)) == 1 and (segment >= 0).all()
+    if whole and len(take_windows(len(points), window, margin)) == 1:
         return apply_filter(points, conf, fps=fps, settings=settings, where=where, anchors=anchors)
     out = np.array(points, dtype=np.float64)
     meta = {"method": settings["filter"]}
-    for a, b in segments_of(segment):
-        out[a:b], _, meta = apply_filter(points[a:b], conf[a:b], fps=fps, settings=settings, where=where,
-                                         anchors=[i - a for i in anchors if a <= i < b])
-    raw = None if settings["filter"] == "none" else np.array(points, dtype=np.float64)
+    for a, b in [(0, len(points))] if whole else segments_of(segment):
+        # a long segment is filtered window by window (the smoother's state of one window held at a time)
+        for wa, wb, lo, hi in take_windows(b - a, window, margin):
+            lo, hi = a + lo, a + hi
+            part, _, meta = apply_filter(points[lo:hi], conf[lo:hi], fps=fps, settings=settings, where=where,
+                                         anchors=[i - lo for i in anchors if lo <= i < hi])
+            out[a + wa:a + wb] = part[a + wa - lo:a + wb - lo]
+            del part
+    # the tracker's points themselves (no copy when they are float64: the caller keeps them as the raw points)
+    raw = None if settings["filter"] == "none" else np.asarray(points, dtype=np.float64)
+    if whole:
+        return out, raw, meta
     # a gap holds the last found frame's landmarks (after filtering), the first found frame's before any
     found = np.asarray(segment) >= 0
     last = np.maximum.accumulate(np.where(found, np.arange(len(out)), -1))
-    out = out[np.where(last >= 0, last, int(np.argmax(found)))]
+    src = np.where(last >= 0, last, int(np.argmax(found)))
+    gap = np.flatnonzero(src != np.arange(len(out)))
+    out[gap] = out[src[gap]]  # in place: the rows copied from are found ones, which this does not change
     return out, raw, meta
 
 

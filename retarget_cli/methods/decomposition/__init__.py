@@ -57,8 +57,9 @@ from .measures import (  # noqa: E402, F401
 from .temporal import (
     _sequential,
     _temporal_causal,
-    temporal_events,
+    temporal_events,  # noqa: F401
     temporal_whole,  # noqa: E402, F401
+    temporal_windows,
 )
 
 #: Solvers available to :func:`decompose`.
@@ -268,7 +269,7 @@ def _solve(S, B, C, *, solver, convex, lam, upper, shape_space=False, robust=0.0
     T, K = len(S), len(B)
     eq = 1.0 if convex else None
     if solver == "temporal":
-        return temporal_events(S, B, lam=lam, upper=upper, confidence=C, shape_space=shape_space, robust=robust)
+        return temporal_windows(S, B, lam=lam, upper=upper, confidence=C, shape_space=shape_space, robust=robust)
     if solver == "temporal-causal":
         return _temporal_causal(S, B, C, lam=lam, upper=upper, eq=eq, shape_space=shape_space)
     if solver == "sequential":

@@ -13,9 +13,81 @@ import logging
 import numpy as np
 
 from ..._validate import check_array
+from ...errors import ShapeError
 from .boxqp import _active_set_one, box_qp, box_qp_weighted, weighted_hessians
 
 log = logging.getLogger(__name__)
+
+
+#: Frames of a long take solved together by :func:`temporal_windows` (and the other solvers across frames that
+#: cut a take with :func:`take_windows`): a take's memory is then that of one window, whatever its length.
+WINDOW = 1024
+#: Frames each side of a window solved with it but taken from its neighbours.
+MARGIN = 256
+
+
+def take_windows(T: int, window: int | None = WINDOW, margin: int = MARGIN) -> list:
+    """The windows a solver across frames cuts a take of *T* frames into, as ``(a, b, lo, hi)``.
+
+    Rows ``[a, b)`` of the result come from the frames ``[lo, hi)`` solved together; the ``[a, b)`` tile
+    ``[0, T)``. A take of at most ``window + margin`` frames (or *window* None) is one window, the whole take.
+    A longer one is cut every *window* frames, each window reaching *margin* frames into its neighbours (a
+    short tail joins the last window), so that no more than ``window + 2 * margin`` frames are held at once.
+    Where the coupling between frames (a second difference, a Kalman smoother's gain) dies out within
+    *margin* frames, the result is that of the whole take to rounding.
+
+    Returns
+    -------
+    list of (int, int, int, int)
+    """
+    if window is None or T <= window + margin:
+        return [(0, T, 0, T)]
+    if window < 1 or margin < 0:
+        raise ShapeError(f"take windows: expected window >= 1 and margin >= 0, got {window} and {margin}")
+    out = []
+    for a in range(0, T, window):
+        b = min(T, a + window)
+        if T - b <= margin:
+            b = T
+        out.append((a, b, max(0, a - margin), min(T, b + margin)))
+        if b == T:
+            break
+    return out
+
+
+def temporal_windows(frames, keys, *, confidence=None, window: int | None = WINDOW, margin: int = MARGIN,
+                     **kw) -> np.ndarray:
+    """:func:`temporal_events` of a long take, window by window (:func:`take_windows`).
+
+    A take of at most ``window + margin`` frames is solved at once, as :func:`temporal_events` does. A longer
+    one is solved in windows of *window* frames reaching *margin* frames into their neighbours: its memory stays
+    that of one window (the banded Hessian and its LU grow with the frames solved together), the second
+    difference's coupling has died out across the margin, and the event test's normalisation (the median
+    residual) is the window's own rather than the whole take's.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, D)
+    keys : ndarray, shape (K, D)
+    confidence : ndarray, shape (T, D), optional
+    window, margin : int
+    **kw
+        The other arguments of :func:`temporal_events`.
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+    """
+    S = check_array(frames, "frames", ndim=2)
+    B = check_array(keys, "keys", ndim=2)
+    wins = take_windows(len(S), window, margin)
+    if len(wins) == 1:
+        return temporal_events(S, B, confidence=confidence, **kw)
+    C = None if confidence is None else np.asarray(confidence, dtype=np.float64)
+    W = np.empty((len(S), len(B)))
+    for a, b, lo, hi in wins:
+        W[a:b] = temporal_events(S[lo:hi], B, confidence=None if C is None else C[lo:hi], **kw)[a - lo:b - lo]
+    return W
 
 
 def _temporal_causal(S, B, C, *, lam, upper, eq, shape_space=False):

@@ -500,10 +500,13 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         raise FaceLostError(f"frame 0: no face found by the detector, nor in any of the {len(track.pts)} frames "
                             "of the take", 0, np.zeros((0, 68, 2)), np.zeros((0, 68)))
     out = track.points()
+    track.pts = []  # each frame's row is in *out* now: a long take's rows are not held twice
     for t in ann:  # annotated frames exactly as given
         if t < len(out):
             out[t] = ann[t]
-    conf = np.clip(np.stack(track.conf), 0, 1)
+    conf = np.stack(track.conf)
+    track.conf = []
+    np.clip(conf, 0, 1, out=conf)
     if not gaps:
         return out, conf
     return out, conf, Coverage(np.array(track.found, bool), np.array(track.status, np.int8),
@@ -604,7 +607,8 @@ class _DetectTrack:
             last = np.maximum.accumulate(np.where(found, np.arange(len(out)), -1))
             first = int(np.argmax(found))
             src = np.where(last >= 0, last, first)
-            out = out[src]
+            gap = np.flatnonzero(src != np.arange(len(out)))
+            out[gap] = out[src[gap]]  # in place: the rows copied from are found ones, which this does not change
         return out
     def _follow(self, t: int, g):
         """Fit twice from the previous frame's box: (points, confidence), or (None, None) when they look lost."""
