@@ -13,6 +13,7 @@ from ..config import Command, Flag, Param, check_indices, check_size, check_stri
 from ..errors import FaceLostError, InputError, ParameterError, TruncatedInputError
 from ..io.annotations import read_annotations, read_csv_landmarks
 from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file, tracked_outputs
+from ..io.face_detector import face_detector_file
 from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
 from ..io.landmarks import Landmarks, save_landmarks
@@ -289,7 +290,7 @@ def _track_neutral(neutral, spec, objects, settings, stab, conf, *, rigid_points
     index = {}
     if "detector" not in spec.needs:  # the tracker needs its first frame annotated: the detector does it
         if "detector" not in objects:
-            objects["detector"] = Detector()
+            objects["detector"] = Detector(faces_file=face_detector_file())
         index[0] = detect_frame(frames[0], detector=objects["detector"], where=f"{neutral}: frame 0")
     track = spec.load()
     kw = {k: settings[k] for k in spec.settings} | {k: objects[k] for k in spec.needs}
@@ -336,7 +337,8 @@ def _prepare(spec, method, *, need_auto, ann, src, model, init) -> dict:
     n_ann = len(next(iter(ann.values()))) if ann else None
     if need_auto or "detector" in spec.needs:
 
-        objects["detector"] = Detector()  # fails here, before any decoding, when the extra is not installed
+        # fails here, before any decoding, when the extra is not installed
+        objects["detector"] = Detector(faces_file=face_detector_file())
         if n_ann is not None and "detector" in spec.needs and n_ann != Detector.n_points:
             raise InputError(f"{src[next(iter(ann))]}: method {method} places {Detector.n_points} points but the "
                              f"annotation has {n_ann}")

@@ -64,15 +64,20 @@ def predictor_model_path() -> Path:
     """The installed ``shape_predictor_68_face_landmarks.dat`` of ``face_recognition_models``.
 
     Found without importing the package (its ``__init__`` imports ``pkg_resources``, absent from
-    Python 3.12+ virtual environments): first among the files its distribution records
-    (``importlib.metadata``), else beside the package as the import system would find it
-    (``importlib.util.find_spec``, which does not run the package's code).
+    Python 3.12+ virtual environments): first beside the package as the import system would find it
+    (``importlib.util.find_spec``, which does not run the package's code; instant), else among the files its
+    distribution records (``importlib.metadata``, which reads its whole RECORD: up to a second).
 
     Raises
     ------
     MissingExtraError
         If the package is not installed or has no model file (names the extra to install).
     """
+    spec = importlib.util.find_spec(MODEL_PACKAGE)
+    for folder in (spec.submodule_search_locations or []) if spec else []:
+        path = Path(folder) / "models" / MODEL_FILE
+        if path.is_file():
+            return path
     try:
         files = importlib.metadata.files(MODEL_PACKAGE) or []
     except importlib.metadata.PackageNotFoundError:
@@ -80,11 +85,6 @@ def predictor_model_path() -> Path:
     for f in files:
         if f.name == MODEL_FILE and Path(f.locate()).is_file():
             return Path(f.locate())
-    spec = importlib.util.find_spec(MODEL_PACKAGE)
-    for folder in (spec.submodule_search_locations or []) if spec else []:
-        path = Path(folder) / "models" / MODEL_FILE
-        if path.is_file():
-            return path
     what = f"{MODEL_PACKAGE} is not installed" if spec is None else f"{MODEL_PACKAGE} has no {MODEL_FILE}"
     raise MissingExtraError(f"the landmark detector needs its model ({what}): {INSTALL_HINT}")
 
@@ -108,6 +108,11 @@ class Detector:
     upsample : int
         Times the frame is upsampled before face detection when no face is found at its size
         (HOG finds faces of about 80 pixels and up).
+    faces_file : path-like, optional
+        The frontal face detector saved by dlib (``fhog_object_detector.save``;
+        :func:`retarget_cli.io.face_detector.face_detector_file` keeps one in the user's cache): loaded in
+        milliseconds instead of rebuilt from dlib's compiled-in copy (seconds). A file dlib cannot read is
+        logged and the copy is used.
 
     Raises
     ------
@@ -117,7 +122,7 @@ class Detector:
 
     n_points = 68
 
-    def __init__(self, upsample: int = 1):
+    def __init__(self, upsample: int = 1, faces_file=None):
         try:
             import dlib
         except ImportError as exc:
@@ -125,7 +130,15 @@ class Detector:
         self._dlib = dlib
         self.upsample = int(upsample)
         self.model_path = predictor_model_path()
-        self.faces = dlib.get_frontal_face_detector()
+        self.faces = None
+        if faces_file is not None:
+            try:
+                self.faces = dlib.fhog_object_detector(str(faces_file))
+            except RuntimeError as exc:
+                log.warning("%s: not a face detector dlib can read (%s); using dlib's own", faces_file,
+                            (str(exc).strip().splitlines() or ["RuntimeError"])[0])
+        if self.faces is None:
+            self.faces = dlib.get_frontal_face_detector()
         try:
             self.predictor = dlib.shape_predictor(str(self.model_path))
         except RuntimeError as exc:  # dlib's deserialize error on a truncated or foreign file
