@@ -63,7 +63,7 @@ PARAMS = [
           "Track on frames scaled by this factor (coordinates stay at full resolution). auto: method detect "
           "reduces the frames by the largest whole factor that keeps the first frame's eye-corner span at least "
           "90 pixels (a 512x512 talking head stays at full resolution, the same face filling a 1080p frame is "
-          "tracked at half); the other methods track at full resolution.",
+          "tracked at a half or a third); the other methods track at full resolution.",
           min=0.05, max=1.0, words=("auto",)),
     Param("fps", "setting", float, None,
           "Frame rate: of an image sequence (default 30), or of a video instead of its container's (which is "

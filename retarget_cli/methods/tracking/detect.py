@@ -298,7 +298,7 @@ LID_LIP_POINTS = tuple(range(36, 48)) + tuple(range(60, 68))
 #: ``downscale="auto"``: frames are reduced by the largest whole factor ``n`` that keeps the face's eye-corner span
 #: at least this many pixels (``n = floor(span / AUTO_SPAN)``, at least 1). The three shared clips at their own
 #: size (512x512) have spans of 91 (d12), 118 (d9) and 131 (d3) pixels on their first frame, so they are tracked
-#: at full resolution, and the same clips upscaled to 1920x1080 (spans 192-275) at half.
+#: at full resolution, and the same clips upscaled to 1920x1080 (spans 192-275) at a half (d9, d12) or a third (d3).
 AUTO_SPAN = 90.0
 #: ``downscale="auto"``: the first frame's face is looked for on the frame reduced by the whole factor that brings
 #: its shorter side to at most this many pixels (the detector upsamples it once when it finds no face there).
