@@ -59,11 +59,11 @@ PARAMS = [
     Param("end", "setting", int, None, "Stop before this frame (default: the last).", min=1,
           nullable=True),
     Param("step", "setting", int, 1, "Track every step-th frame.", min=1, max=1000),
-    Param("downscale", "setting", float, "auto",
+    Param("downscale", "setting", float, 1.0,
           "Track on frames scaled by this factor (coordinates stay at full resolution). auto: method detect "
           "reduces the frames by the largest whole factor that keeps the first frame's eye-corner span at least "
-          "90 pixels (a 512x512 talking head stays at full resolution, the same face filling a 1080p frame is "
-          "tracked at a half or a third); the other methods track at full resolution.",
+          "90 pixels (faster on large frames, but on the shared clips upscaled to 1080p it tracked d12's eyes "
+          "less well: docs/benchmarks.md); the other methods track at full resolution.",
           min=0.05, max=1.0, words=("auto",)),
     Param("fps", "setting", float, None,
           "Frame rate: of an image sequence (default 30), or of a video instead of its container's (which is "
@@ -136,7 +136,7 @@ def _all_track_params() -> list:
 
 @validate_params(_all_track_params)
 def run_track(*, video, init=None, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
-              rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale="auto",
+              rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
               fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, neutral=None,
               base_dir=None,
               progress=_no_progress, filter=FILTER_DEFAULTS["filter"], filter_model=FILTER_DEFAULTS["filter_model"],
