@@ -13,6 +13,7 @@ from ..config import Command, Flag, Param, output_flag, validate_params
 from ..errors import InputError
 from ..io.annotations import pts_text, write_pts
 from ..io.atomic import check_not_input, sha256_file
+from ..io.face_detector import face_detector_file
 from ..io.frames import FrameSource, TruncatedInputError
 from ..methods.tracking.detect import Detector, detect_landmarks
 
@@ -94,7 +95,7 @@ def run_annotate(*, video, frames, output, fps=None) -> list[Path]:
         raise InputError("annotate: give at least one frame number (--frames 0,120,...)")
     if frames[0] < 0:
         raise InputError(f"annotate: frame {frames[0]} is negative; frames are 0-based")
-    detector = Detector()
+    detector = Detector(faces_file=face_detector_file())
     out = Path(output)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a directory")

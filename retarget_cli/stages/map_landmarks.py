@@ -21,6 +21,7 @@ import numpy as np
 from ..config import Command, Flag, Param, output_flag, validate_params
 from ..errors import InputError, MissingExtraError
 from ..io.atomic import check_not_input, digest_files, write_bytes, write_text
+from ..io.face_detector import face_detector_file
 from ..io.rig import load_rig, read_rig
 from ..methods import landmark_map as lm
 from ..methods.tracking.detect import Detector, detector_installed
@@ -67,7 +68,7 @@ def _detector():
                     "placing the landmarks from the sliders")
         return None
     try:
-        return Detector()
+        return Detector(faces_file=face_detector_file())
     except MissingExtraError as exc:
         log.warning("map-landmarks: %s; placing the landmarks from the sliders", exc)
         return None

@@ -14,6 +14,7 @@ from ..config import Command, Flag, Param, check_indices, check_size, check_stri
 from ..errors import FaceLostError, InputError, ParameterError, TruncatedInputError
 from ..io.annotations import read_annotations, read_csv_landmarks
 from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file, tracked_outputs
+from ..io.face_detector import face_detector_file
 from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
 from ..io.landmarks import Landmarks, save_landmarks
@@ -63,8 +64,11 @@ PARAMS = [
           nullable=True),
     Param("step", "setting", int, 1, "Track every step-th frame.", min=1, max=1000),
     Param("downscale", "setting", float, 1.0,
-          "Track on frames scaled by this factor (coordinates stay at full resolution).",
-          min=0.05, max=1.0),
+          "Track on frames scaled by this factor (coordinates stay at full resolution). auto: method detect "
+          "reduces the frames by the largest whole factor that keeps the first frame's eye-corner span at least "
+          "90 pixels (faster on large frames, but on the shared clips upscaled to 1080p it tracked d12's eyes "
+          "less well: docs/benchmarks.md); the other methods track at full resolution.",
+          min=0.05, max=1.0, words=("auto",)),
     Param("fps", "setting", float, None,
           "Frame rate: of an image sequence (default 30), or of a video instead of its container's (which is "
           "refused outside 1-480 fps, e.g. a remux claiming 2344; a missing one is taken as 30 with a warning).",
@@ -181,6 +185,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         init = _require(init, "annotation file")
     extra = [_require(Path(base_dir or ".") / a, "annotation file") for a in (annotations or [])]
     method, spec = _tracker(method)
+    if downscale == "auto" and method != "detect" and "downscale" in spec.settings:
+        tracker_settings["downscale"] = 1.0  # only the detector picks its scale from the face
     given = extra if auto else [init, *extra]
     ann, src = read_annotations(given, frame=init_frame) if given else ({}, {})
     need_auto = auto and start not in ann
@@ -320,7 +326,7 @@ def _track_neutral(neutral, spec, objects, settings, stab, conf, *, rigid_points
     index = {}
     if "detector" not in spec.needs:  # the tracker needs its first frame annotated: the detector does it
         if "detector" not in objects:
-            objects["detector"] = Detector()
+            objects["detector"] = Detector(faces_file=face_detector_file())
         index[0] = detect_frame(frames[0], detector=objects["detector"], where=f"{neutral}: frame 0")
     track = spec.load()
     kw = {k: settings[k] for k in spec.settings} | {k: objects[k] for k in spec.needs}
@@ -367,7 +373,8 @@ def _prepare(spec, method, *, need_auto, ann, src, model, init) -> dict:
     n_ann = len(next(iter(ann.values()))) if ann else None
     if need_auto or "detector" in spec.needs:
 
-        objects["detector"] = Detector()  # fails here, before any decoding, when the extra is not installed
+        # fails here, before any decoding, when the extra is not installed
+        objects["detector"] = Detector(faces_file=face_detector_file())
         if n_ann is not None and "detector" in spec.needs and n_ann != Detector.n_points:
             raise InputError(f"{src[next(iter(ann))]}: method {method} places {Detector.n_points} points but the "
                              f"annotation has {n_ann}")

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import importlib.util
+import itertools
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -63,15 +64,20 @@ def predictor_model_path() -> Path:
     """The installed ``shape_predictor_68_face_landmarks.dat`` of ``face_recognition_models``.
 
     Found without importing the package (its ``__init__`` imports ``pkg_resources``, absent from
-    Python 3.12+ virtual environments): first among the files its distribution records
-    (``importlib.metadata``), else beside the package as the import system would find it
-    (``importlib.util.find_spec``, which does not run the package's code).
+    Python 3.12+ virtual environments): first beside the package as the import system would find it
+    (``importlib.util.find_spec``, which does not run the package's code; instant), else among the files its
+    distribution records (``importlib.metadata``, which reads its whole RECORD: up to a second).
 
     Raises
     ------
     MissingExtraError
         If the package is not installed or has no model file (names the extra to install).
     """
+    spec = importlib.util.find_spec(MODEL_PACKAGE)
+    for folder in (spec.submodule_search_locations or []) if spec else []:
+        path = Path(folder) / "models" / MODEL_FILE
+        if path.is_file():
+            return path
     try:
         files = importlib.metadata.files(MODEL_PACKAGE) or []
     except importlib.metadata.PackageNotFoundError:
@@ -79,11 +85,6 @@ def predictor_model_path() -> Path:
     for f in files:
         if f.name == MODEL_FILE and Path(f.locate()).is_file():
             return Path(f.locate())
-    spec = importlib.util.find_spec(MODEL_PACKAGE)
-    for folder in (spec.submodule_search_locations or []) if spec else []:
-        path = Path(folder) / "models" / MODEL_FILE
-        if path.is_file():
-            return path
     what = f"{MODEL_PACKAGE} is not installed" if spec is None else f"{MODEL_PACKAGE} has no {MODEL_FILE}"
     raise MissingExtraError(f"the landmark detector needs its model ({what}): {INSTALL_HINT}")
 
@@ -107,6 +108,11 @@ class Detector:
     upsample : int
         Times the frame is upsampled before face detection when no face is found at its size
         (HOG finds faces of about 80 pixels and up).
+    faces_file : path-like, optional
+        The frontal face detector saved by dlib (``fhog_object_detector.save``;
+        :func:`retarget_cli.io.face_detector.face_detector_file` keeps one in the user's cache): loaded in
+        milliseconds instead of rebuilt from dlib's compiled-in copy (seconds). A file dlib cannot read is
+        logged and the copy is used.
 
     Raises
     ------
@@ -116,7 +122,7 @@ class Detector:
 
     n_points = 68
 
-    def __init__(self, upsample: int = 1):
+    def __init__(self, upsample: int = 1, faces_file=None):
         try:
             import dlib
         except ImportError as exc:
@@ -124,7 +130,15 @@ class Detector:
         self._dlib = dlib
         self.upsample = int(upsample)
         self.model_path = predictor_model_path()
-        self.faces = dlib.get_frontal_face_detector()
+        self.faces = None
+        if faces_file is not None:
+            try:
+                self.faces = dlib.fhog_object_detector(str(faces_file))
+            except RuntimeError as exc:
+                log.warning("%s: not a face detector dlib can read (%s); using dlib's own", faces_file,
+                            (str(exc).strip().splitlines() or ["RuntimeError"])[0])
+        if self.faces is None:
+            self.faces = dlib.get_frontal_face_detector()
         try:
             self.predictor = dlib.shape_predictor(str(self.model_path))
         except RuntimeError as exc:  # dlib's deserialize error on a truncated or foreign file
@@ -217,7 +231,7 @@ def box_from_points(points, calibration=DEFAULT_BOX) -> np.ndarray:
     return np.array([centre[0] - w / 2, centre[1] - w / 2, w, w])
 
 
-def detect_landmarks(gray, *, detector: Detector, previous=None):
+def detect_landmarks(gray, *, detector: Detector, previous=None, boxes=None):
     """Find a face on one frame and place its 68 landmarks.
 
     Parameters
@@ -226,6 +240,9 @@ def detect_landmarks(gray, *, detector: Detector, previous=None):
     detector : Detector
     previous : ndarray (4,), optional
         Box ``[left, top, w, h]`` to stay near among several faces (default: the largest face).
+    boxes : ndarray (K, 4), optional
+        The face detector's boxes on *gray* when already known (as :meth:`Detector.detect` returns them):
+        the detector is not run again.
 
     Returns
     -------
@@ -235,7 +252,7 @@ def detect_landmarks(gray, *, detector: Detector, previous=None):
         The detected face box.
     """
     g = _gray(gray)
-    boxes = detector.detect(g)
+    boxes = detector.detect(g) if boxes is None else boxes
     i = choose_face(boxes, previous)
     if i is None:
         return None, None
@@ -276,6 +293,50 @@ class FusionSettings:
 #: points lean on the detections (blinks keep the detector's amplitude; the corners move with the lids
 #: so the measured openings stay consistent). Chosen on the shared clips: see bench/track_real.py.
 LID_LIP_POINTS = tuple(range(36, 48)) + tuple(range(60, 68))
+
+
+#: ``downscale="auto"``: frames are reduced by the largest whole factor ``n`` that keeps the face's eye-corner span
+#: at least this many pixels (``n = floor(span / AUTO_SPAN)``, at least 1). The three shared clips at their own
+#: size (512x512) have spans of 91 (d12), 118 (d9) and 131 (d3) pixels on their first frame, so they are tracked
+#: at full resolution, and the same clips upscaled to 1920x1080 (spans 192-275) at a half (d9, d12) or a third (d3).
+AUTO_SPAN = 90.0
+#: ``downscale="auto"``: the first frame's face is looked for on the frame reduced by the whole factor that brings
+#: its shorter side to at most this many pixels (the detector upsamples it once when it finds no face there).
+PROBE_SIDE = 540
+
+
+def auto_downscale(span: float, target: float = AUTO_SPAN) -> float:
+    """The factor ``1 / n`` of ``downscale="auto"`` for a face of eye-corner span *span* pixels.
+
+    ``n = max(1, floor(span / target))``: the largest whole reduction that keeps the span at least *target*
+    pixels (a whole factor keeps area averaging exact and fast, and pixel centres map back exactly).
+    """
+    if not np.isfinite(span) or span <= 0:
+        return 1.0
+    return 1.0 / max(1, int(span // float(target)))
+
+
+def _probe_scale(first, annotation, detector: Detector) -> tuple[float, np.ndarray | None]:
+    """``downscale="auto"``: the factor for a take whose first frame is *first* (gray, full resolution).
+
+    The eye-corner span comes from *annotation* (68, 2) when the first frame is annotated, else from the
+    detector's fit on the frame reduced to at most :data:`PROBE_SIDE` pixels on its shorter side. Returns the
+    factor (1.0 when no face is found) and the detector's boxes at that factor when the probe ran at it (so
+    the first frame is not searched twice), else None.
+    """
+    if annotation is not None:
+        return auto_downscale(_frame_of(np.asarray(annotation, np.float64))[1]), None
+    k0 = 1.0 / max(1, min(first.shape[:2]) // PROBE_SIDE)
+    g0 = _scaled(first, k0)
+    boxes = detector.detect(g0)
+    i = choose_face(boxes)
+    if i is None:
+        log.info("downscale auto: no face on the first frame; tracking at full resolution")
+        return 1.0, None
+    span = _frame_of(detector.landmarks(g0, boxes[i]))[1] / k0
+    k = auto_downscale(span)
+    log.info("downscale auto: eye-corner span %.0f px on the first frame; tracking at 1/%d", span, round(1 / k))
+    return k, (boxes if k == k0 else None)
 
 
 #: While no face is there (``gaps=True``), after *lost_frames* frames the whole-frame face detector runs on
@@ -416,7 +477,7 @@ class FlowFusion:
 
 
 def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: Detector | None = None,
-                 downscale: float = 1.0, tau: float = 0.05, max_jump: float = 0.5, max_disagreement: float = 0.08,
+                 downscale: float | str = 1.0, tau: float = 0.05, max_jump: float = 0.5, max_disagreement: float = 0.08,
                  lost_frames: int = 25, fuse: bool = True, fusion: FusionSettings | None = None, progress=None,
                  gaps: bool = False, search_every: int = SEARCH_EVERY, min_confidence: float = MIN_FOUND_CONFIDENCE,
                  cuts: CutDetector | None = None):
@@ -443,8 +504,10 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         Annotated frames by index in *frames* (0-based pixel centres).
     detector : Detector, optional
         Default: a new :class:`Detector`.
-    downscale : float
+    downscale : float or "auto"
         Detect and fit on frames scaled by this factor (0 < downscale <= 1); coordinates stay at full resolution.
+        ``"auto"``: ``1 / n`` for the face of the first frame (:func:`auto_downscale`: the largest whole ``n``
+        keeping its eye-corner span at least :data:`AUTO_SPAN` pixels; found as :func:`_probe_scale` says).
     tau, max_jump, max_disagreement : float
     lost_frames : int
         Raise :class:`~retarget_cli.methods.tracking.lk.FaceLostError` after this many frames in a row without a face.
@@ -482,13 +545,25 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         No face on the first frame (``frame`` 0, nothing tracked) or for *lost_frames* frames in a row;
         with ``gaps=True``, no face in any frame.
     """
-    ann = _checked_annotations(annotations, downscale)
     det = detector or Detector()
+    hint = None
+    if isinstance(downscale, str):
+        if downscale != "auto":
+            raise ShapeError(f"downscale: expected a value in (0, 1] or 'auto', got {downscale!r}")
+        frames = iter(frames)
+        first = next(frames, None)
+        if first is None:
+            raise ShapeError("frames: the sequence is empty")
+        ann0 = (annotations or {}).get(0)
+        first = _gray(first)
+        downscale, hint = _probe_scale(first, None if ann0 is None else np.asarray(ann0, np.float64), det)
+        frames = itertools.chain([first], frames)
+    ann = _checked_annotations(annotations, downscale)
     k = float(downscale)
     track = _DetectTrack(det, ann, k, (lambda: FlowFusion(fusion)) if fuse else None, tau=tau, max_jump=max_jump,
                          max_disagreement=max_disagreement, lost_frames=lost_frames, gaps=gaps,
                          search_every=search_every, min_confidence=min_confidence,
-                         cuts=(cuts or CutDetector()) if gaps else None)
+                         cuts=(cuts or CutDetector()) if gaps else None, hint=hint)
     for t, frame in enumerate(frames):
         track.frame(t, _scaled(_gray(frame), k))
         if progress is not None:
@@ -535,8 +610,9 @@ class _DetectTrack:
     """
 
     def __init__(self, det, ann, k, fusion, *, tau, max_jump, max_disagreement, lost_frames, gaps=False,
-                 search_every=SEARCH_EVERY, min_confidence=MIN_FOUND_CONFIDENCE, cuts=None):
+                 search_every=SEARCH_EVERY, min_confidence=MIN_FOUND_CONFIDENCE, cuts=None, hint=None):
         self.det, self.ann, self.k, self.fusion = det, ann, k, fusion
+        self.hint = hint  # the face detector's boxes on the first frame at scale k, when already known
         self.tau, self.max_jump, self.max_disagreement, self.lost_frames = tau, max_jump, max_disagreement, lost_frames
         self.gaps, self.search_every, self.min_confidence, self.cuts = gaps, max(1, int(search_every)), \
             float(min_confidence), cuts
@@ -550,6 +626,8 @@ class _DetectTrack:
 
     def frame(self, t: int, g) -> None:
         """Landmarks of frame *t* (grayscale at the detection scale) appended to :attr:`pts` and :attr:`conf`."""
+        if t > 0:
+            self.hint = None
         cut = bool(self.cuts(g)) and t > 0 if self.cuts is not None else False
         self.cut.append(cut)
         P, c, fresh, status = None, None, False, NO_FACE
@@ -630,7 +708,8 @@ class _DetectTrack:
     def _detect(self, g):
         """The face detector on the whole frame (and the box recalibrated): (points, confidence), or (None, None)."""
         det = self.det
-        found, fbox = detect_landmarks(g, detector=det, previous=self.box_prev)
+        hint, self.hint = self.hint, None
+        found, fbox = detect_landmarks(g, detector=det, previous=self.box_prev, boxes=hint)
         if found is None:
             return None, None
         self.calib = calibrate_box(found, fbox)

@@ -36,7 +36,7 @@ def test_reference_shows_defaults_ranges_and_links():
     assert "| `k` | setting | int | `12` | [1, 1000] |" in text
     assert "| `landmarks` | input | str | from `track.output` |" in text
     assert "`rts`, `one-euro`, `none`" in text
-    assert "| `downscale` | setting | float | `1.0` | [0.05, 1] |" in text
+    assert "| `downscale` | setting | float | `1.0` | [0.05, 1]; or `auto` |" in text
 
 
 def test_a_changed_declaration_changes_the_reference(monkeypatch):
