@@ -67,6 +67,13 @@ class Landmarks:
         Segment of each frame (a run of found frames between gaps and scene
         cuts, smoothed on its own), -1 in the gaps. Absent: one segment of
         the found frames (:attr:`segments`).
+    gaze : ndarray, shape (T, 2, 2), float32, optional
+        Each iris's offset from its eye corners' midpoint in eye widths (``track.gaze``;
+        :func:`retarget_cli.methods.tracking.gaze.gaze`, filtered like the landmarks): eye 0 is the actor's
+        right (image left), ``[..., 0]`` along the corner line (> 0 toward the image's right: the actor looks
+        to their left), ``[..., 1]`` across it (> 0 down). Held through blinks, lost frames and gaps.
+    gaze_valid : ndarray, shape (T, 2), bool, optional
+        Whether the eye's iris was seen in the frame (False: held from a frame where it was).
     """
 
     points: np.ndarray
@@ -84,6 +91,8 @@ class Landmarks:
     times: np.ndarray | None = None
     found: np.ndarray | None = None
     segment: np.ndarray | None = None
+    gaze: np.ndarray | None = None
+    gaze_valid: np.ndarray | None = None
 
     @property
     def found_mask(self) -> np.ndarray:
@@ -164,9 +173,22 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
             arrays[key] = np.asarray(value, dtype=dtype)
             if arrays[key].shape != (T,):
                 raise ParameterError(f"{key}: expected shape {(T,)}, got {arrays[key].shape}")
+    arrays.update(_gaze_arrays(lm, T))
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)
+
+
+def _gaze_arrays(lm: Landmarks, T: int) -> dict:
+    """``gaze`` (T, 2, 2) float32 and ``gaze_valid`` (T, 2) bool of *lm*, checked; {} without a gaze."""
+    if lm.gaze is None:
+        return {}
+    valid = np.ones((T, 2), bool) if lm.gaze_valid is None else lm.gaze_valid
+    out = {"gaze": np.asarray(lm.gaze, dtype=np.float32), "gaze_valid": np.asarray(valid, dtype=bool)}
+    if out["gaze"].shape != (T, 2, 2) or out["gaze_valid"].shape != (T, 2):
+        raise ParameterError(f"gaze: expected shapes {(T, 2, 2)} and {(T, 2)}, got {out['gaze'].shape} "
+                             f"and {out['gaze_valid'].shape}")
+    return out
 
 
 def _numeric(data: dict, key: str, path) -> np.ndarray:
@@ -241,6 +263,24 @@ def _neutral(data: dict, path, L: int) -> tuple[np.ndarray | None, np.ndarray | 
     if not (np.isfinite(shape).all() and np.isfinite(conf).all() and (conf >= 0).all() and (conf <= 1).all()):
         raise InputError(f"{path}: 'neutral' must be finite and 'neutral_confidence' in [0, 1]")
     return shape.astype(np.float32), conf.astype(np.float32)
+
+
+def _gaze(data: dict, path, T: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``gaze`` (T, 2, 2) finite and ``gaze_valid`` (T, 2) bool, or (None, None) when absent."""
+    if "gaze" not in data:
+        return None, None
+    g = _numeric(data, "gaze", path)
+    if g.shape != (T, 2, 2):
+        raise InputError(f"{path}: 'gaze' must have shape {(T, 2, 2)} (frames, eyes, along/across), got {g.shape}")
+    if not np.isfinite(g).all():
+        t = int(np.flatnonzero(~np.isfinite(g).reshape(T, -1).all(1))[0])
+        raise InputError(f"{path}: 'gaze' must be finite; frame {t} is not")
+    v = data.get("gaze_valid")
+    if v is None:
+        v = np.ones((T, 2), bool)
+    elif v.dtype.kind not in "biu" or v.shape != (T, 2) or not np.isin(v, (0, 1)).all():
+        raise InputError(f"{path}: 'gaze_valid' must be booleans of shape {(T, 2)}, got {v.dtype} of shape {v.shape}")
+    return g.astype(np.float32), v.astype(bool)
 
 
 def _fps(data: dict, path) -> float:
@@ -377,6 +417,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     meta = _meta(data, path)
     neutral, neutral_conf = _neutral(data, path, L)
     found, segment = _found(data, path, T)
+    gz, gz_valid = _gaze(data, path, T)
     return Landmarks(
         points=points,
         confidence=conf.astype(np.float32, copy=False),
@@ -393,4 +434,6 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         neutral_confidence=neutral_conf,
         found=found,
         segment=segment,
+        gaze=gz,
+        gaze_valid=gz_valid,
     )
