@@ -816,7 +816,7 @@ _TRACK_FLAGS = (
     Flag("rigid_points", decls=("--rigid-points",), value="indices", metavar="SPEC", show_default=False,
          help="Landmarks that define head motion, e.g. 27-31,33,35,36,39,42,45 (default: eye corners "
               "and nose for 68 points, else all)."),
-    "keep_partial", *_FILTER_FLAGS,
+    "keep_partial", "gaze", *_FILTER_FLAGS,
 )
 
 #: ``track``, ``train-tracker`` and ``import`` (the CLI builds them: :mod:`retarget_cli.cli.commands`).
