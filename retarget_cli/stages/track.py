@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -555,7 +556,7 @@ def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings
     T = len(points)
     with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=True, warn_missing=False) as src, \
             progress(T, "gaze") as bar:
-        g = gaze_fn(src, points, confidence=conf, progress=bar.update)
+        g = gaze_fn(islice(src, T), points, confidence=conf, progress=bar.update)  # only the T tracked (truncated video)
     valid = ~g.held
     P = np.asarray(points, dtype=np.float64)
     width = np.array([np.nanmedian(np.hypot(*(P[:, e[1]] - P[:, e[0]]).T)) for e in EYES_68])
