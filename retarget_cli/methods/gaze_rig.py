@@ -6,8 +6,9 @@ ahead", so an actor whose irises sit a little off the corners' midpoint at
 rest (or a locator with a bias of its own) does not make the character squint
 sideways. Against the rig: each gaze slider's own range, the distance its
 shape moves the rig's iris at full weight in the rig's eye widths, measured on
-the rig's eyeball vertices (:func:`rig_gaze_gains`); a rig without eyeball
-vertices takes :data:`DEFAULT_GAZE_RANGE`. So the character's iris moves by
+the rig's eyeball vertices (:func:`rig_gaze_gains`); a rig whose gaze shapes
+turn no eyeball (the ICT FaceKit's move the skin around it) takes
+:data:`DEFAULT_GAZE_RANGE`. So the character's iris moves by
 the same fraction of its eye as the actor's.
 
 The gaze sliders are then set, not fitted: the expression fit
@@ -44,6 +45,12 @@ DEFAULT_GAZE_RANGE = 0.2
 #: A vertex belongs to an eyeball when each of its eye's four gaze sliders moves it by at least this fraction
 #: of that slider's largest displacement (lids move with up/down, not with in/out).
 _EYEBALL_SHARE = 0.2
+#: A slider whose iris moves less than this (eye widths, relative to the corners) at full weight moves no eyeball:
+#: its shape is the skin's response to the gaze (the ICT FaceKit's: its eyeballs, vertices 21451-24590, are turned
+#: by a transform, and its eyeLook shapes move the lids and corners with the eye-blend mesh in front of them).
+_MIN_TRAVEL = 0.02
+#: The eyeball's vertices must move rigidly under each gaze slider (:func:`_rigid_residual` at most this).
+_RIGID_RESIDUAL = 0.05
 #: The eye's opening at rest, in eye widths from the corners' midpoint: (along the eye, across it).
 _OPENING = (0.3, 0.12)
 
@@ -74,16 +81,31 @@ def _column(rig, j: int) -> np.ndarray:
     return col.reshape(-1, 3)
 
 
+def _rigid_residual(X: np.ndarray, D: np.ndarray) -> float:
+    """How far the move ``X`` (N, 3) -> ``X + D`` is from a rigid one: the residual of the best rotation and
+    translation (Kabsch's least-squares fit) over the displacement's norm (0 for an eyeball turned whole)."""
+    Y = X + D
+    a, b = X - X.mean(axis=0), Y - Y.mean(axis=0)
+    U, _, Vt = np.linalg.svd(a.T @ b)
+    R = (U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt).T
+    return float(np.linalg.norm(a @ R.T - b) / max(float(np.linalg.norm(D)), 1e-300))
+
+
 def rig_gaze_gains(rig, index: dict, corners=None) -> GazeGains:
     """Each gaze slider's iris travel at full weight, measured on the rig's eyeball vertices.
 
     An eye's eyeball is the set of vertices that all four of its gaze sliders (in, out, up, down) move (by at
-    least :data:`_EYEBALL_SHARE` of each slider's largest displacement, so the lids, which in/out leave alone,
-    are out); its iris, those of them seen in the eye's opening at rest (within 0.3 eye widths of the
-    corners' midpoint along the eye, 0.12 across it: :data:`_OPENING`) on the front half of their depth (the
-    rig's +z faces the viewer, +y is up). A slider's gain is its iris vertices' mean displacement along the
-    eye's axis (from corner to corner, or down across it) over the eye's width. On the ICT FaceKit: in/out
-    0.073-0.076, down 0.125-0.127, up 0.073-0.074 eye widths.
+    least :data:`_EYEBALL_SHARE` of each slider's largest displacement), provided each slider moves that set
+    rigidly (:func:`_rigid_residual` at most :data:`_RIGID_RESIDUAL`: an eyeball turned whole, not skin);
+    its iris, those of them seen in the eye's opening at rest (within 0.3 eye widths of the corners' midpoint
+    along the eye, 0.12 across it: :data:`_OPENING`) on the front half of their depth (the rig's +z faces
+    the viewer, +y is up). A slider's gain is its iris vertices' mean displacement relative to the corners'
+    along the eye's axis (from corner to corner, or down across it) over the eye's width, as the actor's
+    gaze is measured. Where no eyeball is found, or a slider moves its iris less than :data:`_MIN_TRAVEL`,
+    the gain is :data:`DEFAULT_GAZE_RANGE` (the ARKit meaning of a gaze slider at 1: the eye turned about as
+    far as it goes). The ICT FaceKit takes the default: its eyeballs (vertices 21451-24590) are turned by a
+    transform, not by its eyeLook shapes, which move the lids, the corners and the eye-blend mesh in front
+    of the eyeball (residual 0.16-0.42 of a rigid move).
 
     Parameters
     ----------
@@ -118,15 +140,18 @@ def rig_gaze_gains(rig, index: dict, corners=None) -> GazeGains:
         along /= width
         down = np.array([0.0, -1.0, 0.0]) - along * (-along[1])  # the rig's down, square to the eye's axis
         down /= max(float(np.linalg.norm(down)), 1e-300)
+        if max(_rigid_residual(X[ball], c[ball]) for c in cols.values()) > _RIGID_RESIDUAL:
+            continue  # not an eyeball turned by the shapes: the skin's response to the gaze (the default gain)
         rel = X - (X[a] + X[b]) / 2.0
         seen = ball & (np.abs(rel @ along) < _OPENING[0] * width) & (np.abs(rel @ down) < _OPENING[1] * width)
         if seen.sum() < 8:
             continue
         iris = seen & (X[:, 2] >= np.median(X[seen, 2]))
         for k in keys:
-            d = cols[k][iris].mean(axis=0)
+            # the iris's travel relative to the eye's corners, as the actor's gaze is measured
+            d = cols[k][iris].mean(axis=0) - (cols[k][a] + cols[k][b]) / 2.0
             g = float(d @ (along if k[1] == 0 else down)) / width
-            if g * k[2] > 1e-6:  # moves the iris the way its name says
+            if g * k[2] > _MIN_TRAVEL:  # moves the iris within the eye, the way its name says
                 gain[k], measured[k] = g, True
     return GazeGains(dict(index), gain, measured)
 
