@@ -36,18 +36,61 @@ def test_ict_gaze_sliders_are_found_by_their_arkit_names(ict):
     assert names["EyeLookDownLeft"] == "eyeLookDown_L" and names["EyeLookUpRight"] == "eyeLookUp_R"
 
 
-def test_ict_iris_travel_is_measured_on_its_eyeballs(ict):
+def test_ict_gaze_shapes_turn_no_eyeball_so_it_takes_the_default_travel(ict):
+    """The ICT's eyeballs (vertices 21451-24590) are turned by a transform; its eyeLook shapes move the skin."""
     rig, vx, index = ict
+    for j in index.values():
+        assert np.abs(rig.D[21451 * 3:24591 * 3, [j]]).max() == 0
     g = rig_gaze_gains(rig, index, ((vx[36], vx[39]), (vx[42], vx[45])))
+    assert not any(g.measured.values())
+    assert all(v == k[2] * DEFAULT_GAZE_RANGE for k, v in g.gain.items())
+
+
+def _eyeball_rig(angle=0.35, radius=1.2, width=3.0):
+    """Two spheres (eyeballs) between corner vertices, turned by +-angle about y (in/out) and x (up/down) by
+    eight shapes in ARKit naming; the corners and a lid strip stay put."""
+    rng = np.random.default_rng(0)
+    S = rng.normal(size=(200, 3))
+    S = radius * S / np.linalg.norm(S, axis=1)[:, None]
+    V, D, names = [], [], []
+    centres = {"R": np.array([-3.0, 0.0, 0.0]), "L": np.array([3.0, 0.0, 0.0])}
+    for side, c in centres.items():
+        V += [c + S, c + np.array([[-width / 2, 0, radius], [width / 2, 0, radius]])]
+    X = np.concatenate(V)
+    corners = ((200, 201), (402, 403))  # the actor's right eye (image left) is the character's _R
+
+    def turned(side, axis, a):
+        c = centres[side]
+        ca, sa = np.cos(a), np.sin(a)
+        R = (np.array([[ca, 0, sa], [0, 1, 0], [-sa, 0, ca]]) if axis == "y"
+             else np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]]))
+        out = np.zeros_like(X)
+        rows = slice(0, 200) if side == "R" else slice(202, 402)
+        out[rows] = (X[rows] - c) @ R.T + c - X[rows]
+        return out
+
+    # +z faces the viewer, x toward the image's right: turning about +y by +a moves the front toward +x
+    for side in "RL":
+        toward_nose = 1.0 if side == "R" else -1.0
+        for name, axis, a in (("In", "y", toward_nose * angle), ("Out", "y", -toward_nose * angle),
+                              ("Up", "x", -angle), ("Down", "x", angle)):
+            D.append(turned(side, axis, a))
+            names.append(f"eyeLook{name}_{side}")
+    from retarget_cli.methods.rig import BlendshapeRig
+
+    return BlendshapeRig(X, np.stack(D), names), corners
+
+
+def test_a_rig_whose_shapes_turn_its_eyeballs_gets_its_own_travel():
+    rig, corners = _eyeball_rig()
+    mapping = arkit_mapping(rig.names)
+    index = {k: mapping[c][0] for k, c in GAZE_ARKIT.items()}
+    g = rig_gaze_gains(rig, index, corners)
     assert all(g.measured.values())
+    # the front half of a sphere of radius 1.2 turned by 0.35 rad moves by about 0.75 * 1.2 sin 0.35 = 0.31,
+    # over an eye width of 3: about 0.1 eye widths, each slider the way its name says
     for k, v in g.gain.items():
-        assert np.sign(v) == k[2]  # each slider moves the iris the way its ARKit name says
-        assert 0.03 < abs(v) < 0.3  # a fraction of the eye's width, not the lids' travel
-    # the two eyes mirror each other
-    assert g.gain[(0, 0, 1)] == pytest.approx(-g.gain[(1, 0, -1)], rel=0.05)
-    # without the corners: the documented default
-    d = rig_gaze_gains(rig, index)
-    assert not any(d.measured.values()) and {abs(v) for v in d.gain.values()} == {DEFAULT_GAZE_RANGE}
+        assert np.sign(v) == k[2] and 0.07 < abs(v) < 0.14
 
 
 def test_actor_looking_to_their_left_drives_look_out_left_and_look_in_right(ict):
