@@ -54,7 +54,7 @@ def _eyeball_rig(angle=0.35, radius=1.2, width=3.0):
     S = radius * S / np.linalg.norm(S, axis=1)[:, None]
     V, D, names = [], [], []
     centres = {"R": np.array([-3.0, 0.0, 0.0]), "L": np.array([3.0, 0.0, 0.0])}
-    for side, c in centres.items():
+    for c in centres.values():
         V += [c + S, c + np.array([[-width / 2, 0, radius], [width / 2, 0, radius]])]
     X = np.concatenate(V)
     corners = ((200, 201), (402, 403))  # the actor's right eye (image left) is the character's _R
