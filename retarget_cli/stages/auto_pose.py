@@ -101,8 +101,9 @@ PARAMS = [
           "auto: when landmarks.npz has the gaze (track.gaze) and the rig has gaze sliders (eyeLookIn/Out/Up/Down "
           "_L/_R, or named so in rig.yaml's names:), set them from each iris, calibrated on the take's rest "
           "frames and the rig's own iris travel, before the delta fit, which takes what they move as a fixed "
-          "offset (so their lids are not fitted twice); off: the gaze sliders stay as exclude has them.",
-          choices=("auto", "off")),
+          "offset (so their lids are not fitted twice); horizontal: the in/out sliders only (the up/down "
+          "reading of the iris is entangled with the lids); off: the gaze sliders stay as exclude has them.",
+          choices=("auto", "horizontal", "off")),
     Param("skip_points", "setting", list, None,
           "Landmarks left out of the fit (default for 68 points: the jaw contour but the chin).",
           nullable=True, validate=check_indices),
@@ -193,9 +194,9 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
     rigid_points : sequence of int, optional
         Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
-    gaze : {"auto", "off"}
+    gaze : {"auto", "horizontal", "off"}
         ``auto`` (delta fit): the rig's gaze sliders set from the landmarks' ``gaze`` (:func:`_gaze_preset`) and
-        held as a fixed offset by the fit (``delta_pose``'s *preset*).
+        held as a fixed offset by the fit (``delta_pose``'s *preset*); ``horizontal``: the in/out ones only.
 
     Besides the poses, ``coverage.json`` lists each slider as driven, cannot (no fitted landmark moves with it)
     or excluded (left at 0 by choice), per region (:func:`slider_coverage`).
@@ -501,7 +502,8 @@ def _gaze_preset(mode, fit, lm, r, spec, lm_ids, vx):
         log.info("auto-pose: the landmarks have no gaze (track.gaze), so the gaze sliders are not driven")
         return none
     mapping = arkit_mapping(r.names, spec.names or {})
-    index = {k: mapping[c][0] for k, c in GAZE_ARKIT.items() if c in mapping and len(mapping[c]) == 1}
+    index = {k: mapping[c][0] for k, c in GAZE_ARKIT.items() if c in mapping and len(mapping[c]) == 1
+             and (mode != "horizontal" or k[1] == 0)}
     if not index:
         log.info("auto-pose: the rig has no gaze slider (eyeLookIn/Out/Up/Down_L/R or rig.yaml names:), so the "
                  "take's gaze drives nothing")
