@@ -59,6 +59,10 @@ ACTIVE = 1e-3
 OPPOSING_COSINE = -0.7
 #: Huber threshold of :func:`delta_pose`'s reweighting, in image pixels.
 ROBUST_PX = 2.0
+#: Default weight of the other regions' landmarks in a region's fit (:func:`delta_pose`'s *spill*): each region's
+#: sliders are fitted on its own landmarks, and what they move elsewhere is error there that no other region's fit
+#: sees (a VRM ``angry`` owned by the eyes parts the lips); those landmarks are rows with target 0 at this weight.
+DEFAULT_SPILL = 1.0
 
 
 def rig_landmarks(rig, vertices) -> tuple[np.ndarray, np.ndarray]:
@@ -590,7 +594,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
                lid_closed: float = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
                smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, contact_tol: float = DEFAULT_CONTACT_TOL,
-               contact_refs=None, front=None, preset=None) -> dict:
+               contact_refs=None, front=None, spill: float = DEFAULT_SPILL, preset=None) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
 
     The delta transfer of the module docstring: one scaled orthographic
@@ -713,7 +717,9 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     Rc = R if front is None else frontal_rotation(X0, *front)
     P0n, Bn = X0 @ Rc[:2].T, project(DL, Rc)  # the rig seen from the front: where its contact gaps are measured
     pairs = _exclusive_pairs(exclusive, rig, P0n, Bn, [c for g in groups for c, _ in g])
-    opts = dict(sparsity=sparsity, ridge=ridge, exclusive=pairs, robust_iterations=robust_iterations,
+    fitted = np.unique(np.concatenate(ids))
+    others = [np.setdiff1d(fitted, i) if spill > 0 else fitted[:0] for i in ids]
+    opts = dict(sparsity=sparsity, ridge=ridge, exclusive=pairs, robust_iterations=robust_iterations, spill=spill,
                 contact_weight=contact_weight, contact_tol=contact_tol, lid_closed=lid_closed, lip_closed=lip_closed)
     W = np.zeros((K, rig.n_sliders))
     sq = np.zeros(K)
@@ -727,7 +733,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                 free = owner == ri
                 if not free.any():
                     continue
-                fits[ri] += _fit_region_frames(rig, frames, i, sr, free, groups[ri], **opts)
+                fits[ri] += _fit_region_frames(rig, frames, i, sr, free, groups[ri], others=others[ri], **opts)
     B0 = project(DL, R)
     for ri, i in enumerate(ids):
         if not fits[ri]:
@@ -806,10 +812,10 @@ def _region_contacts(contact, refs, ids, L: int) -> list:
 _BATCH = 256
 
 
-def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_closed, lip_closed):
+def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_closed, lip_closed, others=()):
     """The rows of one region of one frame: ``A`` (r, n), ``b`` (r,) (the landmark coordinates' displacements,
-    then a row per contact pair), and per pair its landmark weight, tolerance and closed gap, and the frame's
-    pixels per rig unit."""
+    then the *others* landmarks' coordinates with target 0, then a row per contact pair), and per pair its
+    landmark weight, tolerance and closed gap, and the frame's pixels per rig unit."""
     n = rig.n_sliders
     scale = fr.s * sr
     m = ((fr.Y[i] - fr.rest[i]) / scale)  # (|i|, 2) the delta fit's displacements, rig units
@@ -838,8 +844,9 @@ def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_close
         g_t.append(target)
         g_closed.append(closed)
         g_tol += [contact_tol * float(np.linalg.norm(fr.P0n[c.corners[1]] - fr.P0n[c.corners[0]]))] * len(c.pairs)
-    A = Br.reshape(-1, n)
-    b = m.ravel()
+    others = np.asarray(others, dtype=np.int64)
+    A = np.vstack([Br.reshape(-1, n), fr.B[others].reshape(-1, n)])
+    b = np.concatenate([m.ravel(), np.zeros(2 * len(others))])
     if G_rows:
         A = np.vstack([A, *G_rows])
         b = np.concatenate([b, *g_t])
@@ -848,26 +855,29 @@ def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_close
 
 
 def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exclusive, robust_iterations,
-                       contact_weight, contact_tol, lid_closed, lip_closed) -> list:
+                       contact_weight, contact_tol, lid_closed, lip_closed, others=(), spill=DEFAULT_SPILL) -> list:
     """One region of each of *frames*: a :class:`_RegionFit` per frame.
 
-    Per frame, the sliders of :func:`fit_sliders` on the region's rows (:func:`_region_rows`), then
+    Per frame, the sliders of :func:`fit_sliders` on the region's rows (:func:`_region_rows`: the region's
+    landmarks, and the *others* (the other regions' landmarks) with target 0 at weight *spill*, since what the
+    region's sliders move there is error that the other regions' fits do not see), then
     ``robust_iterations`` Huber reweightings per landmark (a point the tracker lost, tens of pixels off, must not
     pose the face: the threshold is ROBUST_PX pixels, or twice the median residual when that is larger), then up
     to CONTACT_PASSES passes where a gap that crosses (below the closed one by more than *contact_tol* of its
     feature's width), or that is not closed where the actor's is, weighs CONTACT_BOOST times more, until none
     is. Each step's QPs are solved for every frame at once (:func:`_slider_qps`).
     """
+    others = np.asarray(others, dtype=np.int64)
     rows = [_region_rows(rig, fr, i, sr, groups, free, contact_tol=contact_tol, lid_closed=lid_closed,
-                         lip_closed=lip_closed) for fr in frames]
+                         lip_closed=lip_closed, others=others) for fr in frames]
     A = np.stack([r[0] for r in rows])
     b = np.stack([r[1] for r in rows])
     g_c = np.stack([r[2] for r in rows])
     tol = np.stack([r[3] for r in rows])
     closed = np.stack([r[4] for r in rows])
     scale = np.array([r[5] for r in rows])
-    cl = np.stack([fr.c[i] for fr in frames])
-    T, n_lm = len(frames), 2 * len(i)
+    cl = np.stack([np.concatenate([fr.c[i], spill * fr.c[others]]) for fr in frames])
+    T, n_own, n_lm = len(frames), 2 * len(i), 2 * (len(i) + len(others))
     pos = {int(p): j for j, p in enumerate(i)}
     ups = np.array([pos[up] for c, _ in groups for up, _ in c.pairs], dtype=np.int64)
     los = np.array([pos[lo] for c, _ in groups for _, lo in c.pairs], dtype=np.int64)
@@ -881,9 +891,9 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
         return cw
 
     every = np.arange(T)
-    h = np.ones((T, len(i)))
+    h = np.ones((T, len(i) + len(others)))
     cw = row_weights(h, every)
-    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free, scale_rows=n_lm)
+    qp = dict(sparsity=sparsity, ridge=ridge, exclusive=exclusive, free=free, scale_rows=n_own)
     w, H, q, used = _slider_qps(A, b, rig.lower, rig.upper, cw, **qp)
     for _ in range(robust_iterations):
         e = np.linalg.norm((np.einsum("trn,tn->tr", A[:, :n_lm], w) - b[:, :n_lm]).reshape(T, -1, 2), axis=2)
@@ -911,7 +921,7 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
         for j, k in enumerate(todo):
             H[k] = Ht[j]
     return [_RegionFit(w[k], H[k], q[k] if H[k] is not None else None, used[k], A[k], b[k], cw[k], n_lm,
-                       float(scale[k])) for k in range(T)]
+                       float(scale[k]), n_own) for k in range(T)]
 
 
 def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, scale_rows=None):
@@ -980,7 +990,8 @@ def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, sca
 class _RegionFit:
     """One region of one frame, fitted (:func:`_fit_region`): the sliders ``w`` (n,), the QP they solve (``H``
     (n, n) or None, ``q`` (n,), the sliders ``free`` in it), its rows ``A`` (r, n), ``b`` (r,) and weights ``cw``
-    (r,), of which the first ``n_lm`` are landmark coordinates, and the pixels per rig unit ``scale``."""
+    (r,), of which the first ``n_lm`` are landmark coordinates (the first ``n_own`` the region's own, the others'
+    after them), and the pixels per rig unit ``scale``."""
 
     w: np.ndarray
     H: np.ndarray | None
@@ -991,6 +1002,7 @@ class _RegionFit:
     cw: np.ndarray
     n_lm: int
     scale: float
+    n_own: int | None = None
 
     def point_residuals(self, w) -> np.ndarray:
         """Weighted squared residual of *w* per landmark (its two rows together) and per gap row, (P,)."""
@@ -998,9 +1010,10 @@ class _RegionFit:
         return np.concatenate([e[:self.n_lm].reshape(-1, 2).sum(axis=1), e[self.n_lm:]])
 
     def residual(self, w) -> tuple[float, float]:
-        """The landmark rows' weighted squared residual of *w* in pixels² and their total weight / 2."""
-        res = (self.A[:self.n_lm] @ w - self.b[:self.n_lm]) * self.scale
-        return float(np.sum(self.cw[:self.n_lm] * res**2)), float(self.cw[:self.n_lm].sum()) / 2
+        """The region's own landmark rows' weighted squared residual of *w* in pixels² and their total weight / 2."""
+        k = self.n_lm if self.n_own is None else self.n_own
+        res = (self.A[:k] @ w - self.b[:k]) * self.scale
+        return float(np.sum(self.cw[:k] * res**2)), float(self.cw[:k].sum()) / 2
 
 
 def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT_SMOOTH_ROBUST, passes: int = 3,

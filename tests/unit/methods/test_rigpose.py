@@ -355,3 +355,41 @@ def test_batched_slider_qps_match_one_frame_at_a_time():
             np.testing.assert_allclose(q[k], qk, rtol=1e-12)
         dropped += int((~Fk & free).sum())
     assert H[3] is None and not F[3].any() and dropped > 0  # the exclusive pairs were exercised
+
+
+def test_a_slider_owned_by_one_region_does_not_move_another_regions_landmarks_for_free():
+    # A VRM-style "angry": it closes the eye's lids (its region) and parts the lips a little (another region's
+    # points); "squint" closes the lids alone, to 90 % of angry's travel. The actor's lids travel as far as
+    # angry's and the lips stay closed. Fitted on the eye's landmarks only, angry wins and the character's lips
+    # part; with the other regions' landmarks as rows of target 0, the squint does most of the work.
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    D = np.zeros((2, 68, 3))
+    for up, lo in ((37, 41), (38, 40)):
+        D[:, up, 1] = 0.6 * (V[lo, 1] - V[up, 1])
+    D[1, [37, 38], 1] *= 0.9
+    part = 0.2 * abs(D[0, 37, 1])  # the rig's y is up: the upper lip rises
+    D[0, [61, 62, 63], 1] = part
+    D[0, [65, 66, 67], 1] = -part
+    rig = BlendshapeRig(V, D, ["angry", "eyeSquint_R"])
+    Y0 = 140.0 * n + [150.0, 160.0]
+    T = 6
+    X = np.stack([rig.evaluate(np.array([1.0, 0.0]))] * T)
+    Y = 140.0 * np.stack([X[:, :, 0], -X[:, :, 1]], axis=2) + [150.0, 160.0]
+    Y[:, 60:68] = Y0[60:68]  # ... with closed lips
+    kw = dict(regions={"eye": list(range(36, 42)), "mouth": list(range(48, 68))}, sparsity=0.01, ridge=1e-6,
+              contact_weight=0.0)
+    alone = delta_pose(rig, np.arange(68), Y0, Y, spill=0.0, **kw)
+    fit = delta_pose(rig, np.arange(68), Y0, Y, **kw)
+    assert list(alone["owner"]) == [0, 0]  # both sliders belong to the eye
+
+    def lip_gap(W):  # the inner lips' parting from rest
+        return np.array([((rig.evaluate(w) - V)[[61, 62, 63], 1] - (rig.evaluate(w) - V)[[67, 66, 65], 1]).mean()
+                         for w in W])
+
+    def lid_travel(W):
+        return np.array([(rig.evaluate(w) - V)[[37, 38], 1].mean() / D[0, [37, 38], 1].mean() for w in W])
+
+    assert lip_gap(alone["w"]).min() > 1.8 * part  # eye-only rows: angry at ~1, the lips part
+    assert lip_gap(fit["w"]).max() < 0.6 * part  # other regions' rows: the lips stay nearly closed ...
+    assert lid_travel(fit["w"]).min() > 0.85  # ... and the lids still close (the squint does it)
