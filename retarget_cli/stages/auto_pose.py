@@ -98,12 +98,15 @@ PARAMS = [
           "pupils, which landmarks without pupils cannot see (the gaze sliders are then set from the iris by "
           "auto_pose.gaze).", validate=check_strings),
     Param("gaze", "setting", str, "auto",
-          "auto: when landmarks.npz has the gaze (track.gaze) and the rig has gaze sliders (eyeLookIn/Out/Up/Down "
+          "on: when landmarks.npz has the gaze (track.gaze) and the rig has gaze sliders (eyeLookIn/Out/Up/Down "
           "_L/_R, or named so in rig.yaml's names:), set them from each iris, calibrated on the take's rest "
           "frames and the rig's own iris travel, before the delta fit, which takes what they move as a fixed "
-          "offset (so their lids are not fitted twice); horizontal: the in/out sliders only (the up/down "
-          "reading of the iris is entangled with the lids); off: the gaze sliders stay as exclude has them.",
-          choices=("auto", "horizontal", "off")),
+          "offset (so their lids are not fitted twice); auto: as on when the rig's gaze sliders turn its "
+          "eyeballs (their travel measured), else as off (a rig whose gaze shapes only move lids and skin, "
+          "like the ICT FaceKit's, fits its lids better without them; Live Link's eye columns carry the gaze "
+          "either way); horizontal: the in/out sliders only (the up/down reading of the iris is entangled with "
+          "the lids); off: the gaze sliders stay as exclude has them.",
+          choices=("auto", "on", "horizontal", "off")),
     Param("skip_points", "setting", list, None,
           "Landmarks left out of the fit (default for 68 points: the jaw contour but the chin).",
           nullable=True, validate=check_indices),
@@ -194,9 +197,10 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
     rigid_points : sequence of int, optional
         Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
-    gaze : {"auto", "horizontal", "off"}
-        ``auto`` (delta fit): the rig's gaze sliders set from the landmarks' ``gaze`` (:func:`_gaze_preset`) and
-        held as a fixed offset by the fit (``delta_pose``'s *preset*); ``horizontal``: the in/out ones only.
+    gaze : {"auto", "on", "horizontal", "off"}
+        ``on`` (delta fit): the rig's gaze sliders set from the landmarks' ``gaze`` (:func:`_gaze_preset`) and
+        held as a fixed offset by the fit (``delta_pose``'s *preset*); ``auto``: as ``on`` when the rig's gaze
+        sliders turn its eyeballs, else as ``off``; ``horizontal``: the in/out ones only.
 
     Besides the poses, ``coverage.json`` lists each slider as driven, cannot (no fitted landmark moves with it)
     or excluded (left at 0 by choice), per region (:func:`slider_coverage`).
@@ -516,6 +520,11 @@ def _gaze_preset(mode, fit, lm, r, spec, lm_ids, vx):
     if lm.n_points == 68 and all(p in pos for p in (36, 39, 42, 45)):
         corners = ((int(vx[pos[36]]), int(vx[pos[39]])), (int(vx[pos[42]]), int(vx[pos[45]])))
     gains = rig_gaze_gains(r, index, corners)
+    if mode == "auto" and not all(gains.measured.values()):
+        log.info("auto-pose: the rig's gaze sliders (%s) do not turn its eyeballs, so the gaze does not drive them "
+                 "(auto_pose.gaze: on drives them with the default iris travel; Live Link's eye columns carry the "
+                 "gaze either way)", ", ".join(r.names[j] for j in index.values()))
+        return none
     rest = find_rest_frame(lm.stabilized, lm.confidence)
     look_ahead = rest_gaze(lm.gaze, lm.gaze_valid, rest.members)
     P = gaze_sliders(lm.gaze, look_ahead, gains, r.n_sliders, upper=r.upper)

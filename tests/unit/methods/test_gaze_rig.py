@@ -146,3 +146,31 @@ def test_gaze_down_preset_is_not_fitted_again_as_a_blink(ict):
     assert held["w"][0, lids].max() < 0.02
     assert held["w"][0, n["eyeLookDown_L"]] == pytest.approx(0.8)
     assert held["rms"][0] < alone["rms"][0]
+
+
+def _take_with_gaze(T=12, L=68):
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(1)
+    g = 0.05 * rng.standard_normal((T, 2, 2))
+    return SimpleNamespace(gaze=g, gaze_valid=np.ones((T, 2), bool), n_points=L,
+                           stabilized=np.zeros((T, L, 2), np.float32) + rng.normal(0, 0.01, (T, L, 2)),
+                           confidence=np.ones((T, L)))
+
+
+def test_gaze_auto_drives_only_a_rig_whose_gaze_shapes_turn_its_eyeballs(ict):
+    from types import SimpleNamespace
+
+    from retarget_cli.stages.auto_pose import _gaze_preset
+
+    rig, vx, index = ict
+    lm = _take_with_gaze()
+    auto = _gaze_preset("auto", "delta", lm, rig, rig.spec, np.arange(68), vx)
+    on = _gaze_preset("on", "delta", lm, rig, rig.spec, np.arange(68), vx)
+    assert auto[0] is None and not auto[1].any()  # the ICT's eyeLook shapes move skin only: left to the fit's 0
+    assert on[0] is not None and on[1].sum() == 8 and np.abs(on[0]).max() > 0
+    eyes, corners = _eyeball_rig()
+    vx2 = np.zeros(68, np.int64)
+    vx2[[36, 39, 42, 45]] = [corners[0][0], corners[0][1], corners[1][0], corners[1][1]]
+    P, mask = _gaze_preset("auto", "delta", lm, eyes, SimpleNamespace(names={}), np.arange(68), vx2)
+    assert P is not None and mask.sum() == 8  # its shapes turn the eyeballs: driven
