@@ -27,13 +27,15 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..methods.gaze_rig import rest_gaze
+from ..methods.neutral import find_rest_frame
 from .atomic import check_not_input, write_text
 from .editfiles import write_animation
 from .exr import write_vat
 from .gltf import write_glb
 from .gltf_animation import copy_groups, is_vrm, write_animated_copy, write_vrma
 from .landmarks import load_landmarks
-from .livelink import head_rotation_from_pose, head_rotation_from_similarity, livelink_csv
+from .livelink import eye_rotation_from_gaze, head_rotation_from_pose, head_rotation_from_similarity, livelink_csv
 from .obj import obj_frame_name, read_obj, write_obj
 from .objsurface import obj_surface
 from .rig.gltf import read_gltf_rig
@@ -434,6 +436,21 @@ def head_rotation(landmarks, T: int):
     return head_rotation_from_similarity(lm.head)
 
 
+def eye_rotation(landmarks, T: int):
+    """(T, 6) the Live Link eye columns (radians, :func:`~.livelink.eye_rotation_from_gaze`) from
+    ``landmarks.npz``'s gaze, looking ahead at its median over the take's rest frames
+    (:func:`~retarget_cli.methods.gaze_rig.rest_gaze`, as auto-pose calibrates it); None without a gaze."""
+
+    if landmarks is None:
+        return None
+    lm = load_landmarks(landmarks)
+    if lm.gaze is None or lm.n_frames != T:
+        log.info("Live Link Face CSV: %s has no gaze (track.gaze), so the eye rotation columns are 0", landmarks)
+        return None
+    rest = rest_gaze(lm.gaze, lm.gaze_valid, find_rest_frame(lm.stabilized, lm.confidence).members)
+    return eye_rotation_from_gaze(lm.gaze, rest)
+
+
 def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks=None, frames=None,
                    rows=None, head_pose=None) -> Path:
     """Write the rig's curves as a Live Link Face CSV (:func:`retarget_cli.io.livelink.livelink_csv`).
@@ -458,13 +475,16 @@ def write_livelink(path: Path, rig, curves: np.ndarray, fps: float, *, landmarks
         head_rotation_from_pose(np.asarray(head_pose)[:, :3])
     if rot is None:
         log.info("Live Link Face CSV: no landmarks file, so the head rotation columns are 0")
+    eyes = eye_rotation(landmarks, len(curves))
     if rows is not None and not np.all(rows):
         keep = np.asarray(rows, bool)
         curves = np.asarray(curves)[keep]
         frames = (np.arange(len(keep)) if frames is None else np.asarray(frames))[keep]
         rot = None if rot is None else rot[keep]
+        eyes = None if eyes is None else eyes[keep]
     names = rig.spec.names if rig.spec is not None else {}
-    write_text(path, livelink_csv(curves, rig.names, fps, names=names, head_rotation=rot, frames=frames))
+    write_text(path, livelink_csv(curves, rig.names, fps, names=names, head_rotation=rot, frames=frames,
+                                  eye_rotation=eyes))
     return path
 
 

@@ -76,6 +76,13 @@ class Landmarks:
     head_translation : ndarray, shape (T, 3), float32, optional
         The face's origin (between the eye corners) in camera axes (x right, y down, z away), in the 3D
         face's units (cm for the generic face); given with *head_angles*.
+    gaze : ndarray, shape (T, 2, 2), float32, optional
+        Each iris's offset from its eye corners' midpoint in eye widths (``track.gaze``;
+        :func:`retarget_cli.methods.tracking.gaze.gaze`, filtered like the landmarks): eye 0 is the actor's
+        right (image left), ``[..., 0]`` along the corner line (> 0 toward the image's right: the actor looks
+        to their left), ``[..., 1]`` across it (> 0 down). Held through blinks, lost frames and gaps.
+    gaze_valid : ndarray, shape (T, 2), bool, optional
+        Whether the eye's iris was seen in the frame (False: held from a frame where it was).
     """
 
     points: np.ndarray
@@ -95,6 +102,8 @@ class Landmarks:
     segment: np.ndarray | None = None
     head_angles: np.ndarray | None = None
     head_translation: np.ndarray | None = None
+    gaze: np.ndarray | None = None
+    gaze_valid: np.ndarray | None = None
 
     @property
     def found_mask(self) -> np.ndarray:
@@ -177,9 +186,22 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
             arrays[key] = np.asarray(value, dtype=dtype)
             if arrays[key].shape != shape:
                 raise ParameterError(f"{key}: expected shape {shape}, got {arrays[key].shape}")
+    arrays.update(_gaze_arrays(lm, T))
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)
+
+
+def _gaze_arrays(lm: Landmarks, T: int) -> dict:
+    """``gaze`` (T, 2, 2) float32 and ``gaze_valid`` (T, 2) bool of *lm*, checked; {} without a gaze."""
+    if lm.gaze is None:
+        return {}
+    valid = np.ones((T, 2), bool) if lm.gaze_valid is None else lm.gaze_valid
+    out = {"gaze": np.asarray(lm.gaze, dtype=np.float32), "gaze_valid": np.asarray(valid, dtype=bool)}
+    if out["gaze"].shape != (T, 2, 2) or out["gaze_valid"].shape != (T, 2):
+        raise ParameterError(f"gaze: expected shapes {(T, 2, 2)} and {(T, 2)}, got {out['gaze'].shape} "
+                             f"and {out['gaze_valid'].shape}")
+    return out
 
 
 def _numeric(data: dict, key: str, path) -> np.ndarray:
@@ -254,6 +276,24 @@ def _neutral(data: dict, path, L: int) -> tuple[np.ndarray | None, np.ndarray | 
     if not (np.isfinite(shape).all() and np.isfinite(conf).all() and (conf >= 0).all() and (conf <= 1).all()):
         raise InputError(f"{path}: 'neutral' must be finite and 'neutral_confidence' in [0, 1]")
     return shape.astype(np.float32), conf.astype(np.float32)
+
+
+def _gaze(data: dict, path, T: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``gaze`` (T, 2, 2) finite and ``gaze_valid`` (T, 2) bool, or (None, None) when absent."""
+    if "gaze" not in data:
+        return None, None
+    g = _numeric(data, "gaze", path)
+    if g.shape != (T, 2, 2):
+        raise InputError(f"{path}: 'gaze' must have shape {(T, 2, 2)} (frames, eyes, along/across), got {g.shape}")
+    if not np.isfinite(g).all():
+        t = int(np.flatnonzero(~np.isfinite(g).reshape(T, -1).all(1))[0])
+        raise InputError(f"{path}: 'gaze' must be finite; frame {t} is not")
+    v = data.get("gaze_valid")
+    if v is None:
+        v = np.ones((T, 2), bool)
+    elif v.dtype.kind not in "biu" or v.shape != (T, 2) or not np.isin(v, (0, 1)).all():
+        raise InputError(f"{path}: 'gaze_valid' must be booleans of shape {(T, 2)}, got {v.dtype} of shape {v.shape}")
+    return g.astype(np.float32), v.astype(bool)
 
 
 def _fps(data: dict, path) -> float:
@@ -409,6 +449,7 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
     neutral, neutral_conf = _neutral(data, path, L)
     found, segment = _found(data, path, T)
     head_angles, head_translation = _head_3d(data, path, T)
+    gz, gz_valid = _gaze(data, path, T)
     return Landmarks(
         points=points,
         confidence=conf.astype(np.float32, copy=False),
@@ -427,4 +468,6 @@ def load_landmarks(path: str | os.PathLike, *, rigid_points=None) -> Landmarks:
         segment=segment,
         head_angles=head_angles,
         head_translation=head_translation,
+        gaze=gz,
+        gaze_valid=gz_valid,
     )

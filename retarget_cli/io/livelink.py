@@ -6,7 +6,8 @@ One header line, then one line per frame::
     00:00:00:00.000,61,0.000000,...
 
 ``BlendShapeCount`` is 61: the 52 ARKit blendshape coefficients followed by
-the head's yaw, pitch and roll and the two eyes' yaw, pitch and roll. The
+the head's yaw, pitch and roll and the two eyes' yaw, pitch and roll (radians; the eyes' from the
+tracked gaze, :func:`eye_rotation_from_gaze`). The
 ``Timecode`` is ``HH:MM:SS:FF.mmm``: hours, minutes, seconds, the frame within
 the second at the take's frame rate, and the thousandths of a frame.
 
@@ -171,7 +172,8 @@ def parse_timecode(text: str, fps: float) -> float:
     return h * 3600 + mi * 60 + s + (ff + sub) / fps
 
 
-def livelink_table(curves, sliders, *, names=None, head_rotation=None) -> tuple[np.ndarray, list[str]]:
+def livelink_table(curves, sliders, *, names=None, head_rotation=None,
+                   eye_rotation=None) -> tuple[np.ndarray, list[str]]:
     """The 61 value columns per frame.
 
     Parameters
@@ -183,6 +185,9 @@ def livelink_table(curves, sliders, *, names=None, head_rotation=None) -> tuple[
         Checked ``names:`` mapping (:func:`check_names_mapping`).
     head_rotation : ndarray, shape (T, 3), optional
         Head yaw, pitch, roll in radians; zeros when None.
+    eye_rotation : ndarray, shape (T, 6), optional
+        LeftEyeYaw, LeftEyePitch, LeftEyeRoll, RightEyeYaw, RightEyePitch, RightEyeRoll in radians
+        (:func:`eye_rotation_from_gaze`); zeros when None.
 
     Returns
     -------
@@ -208,10 +213,16 @@ def livelink_table(curves, sliders, *, names=None, head_rotation=None) -> tuple[
         if H.shape != (T, 3):
             raise ShapeError(f"head_rotation: expected shape ({T}, 3), got {H.shape}")
         values[:, len(ARKIT_SHAPES):len(ARKIT_SHAPES) + 3] = H
+    if eye_rotation is not None:
+        E = np.asarray(eye_rotation, dtype=np.float64)
+        if E.shape != (T, 6):
+            raise ShapeError(f"eye_rotation: expected shape ({T}, 6), got {E.shape}")
+        values[:, len(ARKIT_SHAPES) + 3:] = E
     return values, unmapped
 
 
-def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None, frames=None) -> str:
+def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None, frames=None,
+                 eye_rotation=None) -> str:
     """A Live Link Face CSV (text) of slider curves; see the module docstring for the layout.
 
     Parameters are those of :func:`livelink_table`, plus *fps*, the source's
@@ -221,7 +232,8 @@ def livelink_csv(curves, sliders, fps: float, *, names=None, head_rotation=None,
     """
     if not fps > 0:
         raise ShapeError(f"fps: expected > 0, got {fps}")
-    values, unmapped = livelink_table(curves, sliders, names=names, head_rotation=head_rotation)
+    values, unmapped = livelink_table(curves, sliders, names=names, head_rotation=head_rotation,
+                                      eye_rotation=eye_rotation)
     if unmapped:
         log.warning("Live Link Face CSV: no rig slider maps to %d ARKit columns (written as 0): %s; "
                     "map them with 'names:' in rig.yaml", len(unmapped), ", ".join(unmapped))
@@ -283,6 +295,43 @@ def head_rotation_from_pose(angles) -> np.ndarray:
     return np.radians(A) * np.array([1.0, 1.0, -1.0])
 
 
-__all__ = ["ARKIT_SHAPES", "BLENDSHAPE_COUNT", "COLUMNS", "ROTATIONS", "arkit_mapping", "canonical_name",
-           "check_names_mapping", "head_rotation_from_pose", "head_rotation_from_similarity", "livelink_csv", "livelink_table",
+#: Eyeball radius in eye widths (about 12 mm over a 30 mm eye): an iris offset of *d* eye widths is a turn of
+#: ``asin(d / EYEBALL_RADIUS)``.
+EYEBALL_RADIUS = 0.4
+
+
+def eye_rotation_from_gaze(gaze, rest=None) -> np.ndarray:
+    """The Live Link eye columns from the tracked gaze (``landmarks.npz``'s ``gaze``), radians.
+
+    Each iris's offset from *rest* (looking ahead), in eye widths, is the eyeball's turn
+    ``asin(offset / EYEBALL_RADIUS)`` (clipped at ±90°). The signs are ARKit's face frame (x toward the
+    actor's left, y up, z toward the camera, right-handed): yaw > 0 turns the eye toward the actor's left,
+    pitch > 0 turns it down. Roll is 0.
+
+    Parameters
+    ----------
+    gaze : ndarray, shape (T, 2, 2)
+        Eye 0 the actor's right (image left), ``[..., 0]`` > 0 toward the image's right, ``[..., 1]`` > 0 down.
+    rest : ndarray, shape (2, 2), optional
+        The gaze looking ahead (default 0).
+
+    Returns
+    -------
+    ndarray, shape (T, 6)
+        LeftEyeYaw, LeftEyePitch, LeftEyeRoll, RightEyeYaw, RightEyePitch, RightEyeRoll.
+    """
+    G = np.asarray(gaze, dtype=np.float64)
+    if G.ndim != 3 or G.shape[1:] != (2, 2):
+        raise ShapeError(f"gaze: expected shape (T, 2, 2), got {G.shape}")
+    d = G - (0.0 if rest is None else np.asarray(rest, dtype=np.float64)[None])
+    a = np.arcsin(np.clip(d / EYEBALL_RADIUS, -1.0, 1.0))
+    out = np.zeros((len(G), 6))
+    out[:, 0:2] = a[:, 1]  # the actor's left eye: image right
+    out[:, 3:5] = a[:, 0]
+    return out
+
+
+__all__ = ["ARKIT_SHAPES", "BLENDSHAPE_COUNT", "COLUMNS", "EYEBALL_RADIUS", "ROTATIONS", "arkit_mapping",
+           "canonical_name", "check_names_mapping", "eye_rotation_from_gaze", "head_rotation_from_pose",
+           "head_rotation_from_similarity", "livelink_csv", "livelink_table",
            "parse_timecode", "timecode"]

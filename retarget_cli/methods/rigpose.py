@@ -607,8 +607,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
                lid_closed: float = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
                smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, contact_tol: float = DEFAULT_CONTACT_TOL,
-               contact_refs=None, front=None, spill: float = DEFAULT_SPILL, smooth_window: int | None = SMOOTH_WINDOW,
-               smooth_margin: int = SMOOTH_MARGIN) -> dict:
+               contact_refs=None, front=None, spill: float = DEFAULT_SPILL, preset=None,
+               smooth_window: int | None = SMOOTH_WINDOW, smooth_margin: int = SMOOTH_MARGIN) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
 
     The delta transfer of the module docstring: one scaled orthographic
@@ -682,6 +682,11 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     front : (int, int, int), optional
         Landmarks that give the rig's front view (:func:`frontal_rotation`; for 68 points :data:`FRONT_68`), in
         which the contact gaps are measured; default the neutral frame's view.
+    preset : array_like, shape (K, n), optional
+        Slider values set before the fit (the gaze sliders of :mod:`retarget_cli.methods.gaze_rig`), for
+        sliders that are *fixed*: their landmark displacement is a fixed offset, taken off each frame's
+        displacement and off its contact gaps' targets before the other sliders are fitted, so what they
+        already move (a rig's eyeLookDown lowering the lids) is not fitted twice; they are added to ``w``.
 
     Returns
     -------
@@ -712,6 +717,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     for r, i in zip(names, ids):
         if i.size == 0 or i.min() < 0 or i.max() >= L:
             raise ShapeError(f"regions: {r!r} must list landmark ids in [0, {L})")
+    P = _check_preset(preset, K, rig.n_sliders)
     if contact_weight > 0 and contact and contact_refs is None:
         contact_refs = contact_references(np.concatenate([Y0[None], Y]), contact, np.concatenate([c0[None], C]),
                                           neutral=Y0, lid_closed=lid_closed)
@@ -742,7 +748,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         fits = [[] for _ in ids]
         with small_blas():  # many small solves: BLAS threads only add overhead (methods/blas.py)
             for k0 in range(lo, hi, _BATCH):  # frames in batches: their QPs are solved together
-                frames = [_frame(Y[k], C[k], c0, X0, DL, e0, (s, R, t), rig_ids, P0n, Bn)
+                frames = [_frame(Y[k], C[k], c0, X0, DL, e0, (s, R, t), rig_ids, P0n, Bn, None if P is None else P[k])
                           for k in range(k0, min(hi, k0 + _BATCH))]
                 for ri, (i, sr) in enumerate(zip(ids, scales)):
                     free = owner == ri
@@ -761,9 +767,20 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                 sq[k] += e2
                 cnt[k] += n2
         del fits
+    W += 0.0 if P is None else np.where(owner < 0, P, 0.0)  # the preset sliders, as they were set
     rms = np.sqrt(sq / np.maximum(cnt, 1e-300))
     return {"w": W, "owner": owner, "regions": names, "scale": float(s), "region_scales": scales * s,
             "rotation": R, "translation": t, "rms": rms}
+
+
+def _check_preset(preset, K: int, n: int):
+    """:func:`delta_pose`'s *preset* as float (K, n), or None."""
+    if preset is None:
+        return None
+    P = check_array(preset, "preset", ndim=2)
+    if P.shape != (K, n):
+        raise ShapeError(f"preset: expected shape ({K}, {n}), got {P.shape}")
+    return P
 
 
 @dataclass(frozen=True)
@@ -781,9 +798,10 @@ class _Frame:
     s: float
     P0n: np.ndarray
     Bn: np.ndarray
+    preset: np.ndarray | None = None
 
 
-def _frame(Yk, Ck, c0, X0, DL, e0, camera, rig_ids, P0n, Bn) -> _Frame:
+def _frame(Yk, Ck, c0, X0, DL, e0, camera, rig_ids, P0n, Bn, preset=None) -> _Frame:
     """Target frame *Yk* (L, 2) with confidences *Ck* (L,) as :func:`_fit_region_frames` needs it: seen through
     its own camera fitted on the *rig_ids* landmarks (the neutral frame's *camera* ``(s, R, t)`` without them)."""
     s, R, t = camera
@@ -794,7 +812,7 @@ def _frame(Yk, Ck, c0, X0, DL, e0, camera, rig_ids, P0n, Bn) -> _Frame:
         sk, Rk, tk = fit_orthographic(X0[rig_ids], Yk[rig_ids] - e0[rig_ids], ck if np.count_nonzero(ck) >= 3
                                       else None)
     rest_k = sk * X0 @ Rk[:2].T + tk + (sk / s) * e0  # the neutral face in frame k's pose
-    return _Frame(Yk, rest_k, X0 @ Rk[:2].T, project(DL, Rk), np.minimum(Ck, c0), sk, P0n, Bn)
+    return _Frame(Yk, rest_k, X0 @ Rk[:2].T, project(DL, Rk), np.minimum(Ck, c0), sk, P0n, Bn, preset)
 
 
 def _region_contacts(contact, refs, ids, L: int) -> list:
@@ -838,15 +856,19 @@ def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_close
     scale = fr.s * sr
     m = ((fr.Y[i] - fr.rest[i]) / scale)  # (|i|, 2) the delta fit's displacements, rig units
     Br = fr.B[i]
+    if fr.preset is not None:  # the preset sliders' displacement is a fixed offset
+        m = m - np.einsum("lbn,n->lb", Br, fr.preset)
     pos = {int(p): j for j, p in enumerate(i)}
     G_rows, g_t, g_c, g_tol, g_closed = [], [], [], [], []
     for c, ref in groups:
         # the pair's gap in the frame's view replaces the delta's (their mean displacement is kept) ...
-        _, target_k, _ = contact_targets(c, fr.Y, ref, fr.P0, fr.B, free, rig.lower, rig.upper,
-                                         lid_closed=lid_closed, lip_closed=lip_closed)
+        G_k, target_k, _ = contact_targets(c, fr.Y, ref, fr.P0, fr.B, free, rig.lower, rig.upper,
+                                           lid_closed=lid_closed, lip_closed=lip_closed)
         # ... and the gap seen in the neutral frame's view is a row of its own (contact is the face's, not the view's)
         G, target, closed = contact_targets(c, fr.Y, ref, fr.P0n, fr.Bn, free, rig.lower, rig.upper,
                                             lid_closed=lid_closed, lip_closed=lip_closed)
+        if fr.preset is not None:  # the gap the preset sliders already make is taken off the targets
+            target_k, target = target_k - G_k @ fr.preset, target - G @ fr.preset
         nrm = _normal(fr.P0, *c.corners)
         for (up, lo), tg in zip(c.pairs, target_k):
             # keep the pair's mean displacement, replace its gap change by the target

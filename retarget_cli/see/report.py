@@ -50,6 +50,7 @@ from ..methods.gaps import gap_summary
 from ..methods.render import Camera, MeshRenderer
 from ..run.pipeline import STAGES
 from ..run.runfiles import RunFiles
+from ..stages.auto_pose import COVERAGE_JSON
 from .preview import REGION_COLORS, RunData, _blank, draw_landmarks, put_text
 from .preview import FrameSource as RowFrames
 from .truth import load_truth_animation, mesh_against_truth, points_against_truth
@@ -945,6 +946,28 @@ def _rig(data: RunData, run: RunFiles) -> str | None:
     return _section("rig", "Cardinality and objective", body)
 
 
+def _coverage(run: RunFiles) -> str | None:
+    """Per region, the rig sliders auto-pose drives, cannot drive and left at 0 by choice (its ``coverage.json``)."""
+    if run.targets is None:
+        return None
+    path = run.targets.parent / COVERAGE_JSON
+    if not path.is_file():
+        return None
+    try:
+        cov = json.loads(path.read_text())
+        regions = cov["regions"]
+        rows = [(name, str(len(g["driven"])), ", ".join(g["cannot"]) or "-", ", ".join(g["excluded"]) or "-")
+                for name, g in sorted(regions.items())]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("%s: not a coverage file (%s); the report leaves it out", path, exc)
+        return None
+    body = _table(("region", "driven", "cannot be driven", "left at 0 by choice"), rows, num_cols=(1,))
+    body += (f"<p>Which of the rig's sliders the landmark path moves ({html.escape(_show(path))}): "
+             f"{html.escape(str(cov.get('rule', '')))}. Driven: "
+             + html.escape(", ".join(n for g in regions.values() for n in g["driven"]) or "-") + ".</p>")
+    return _section("coverage", "Slider coverage", body)
+
+
 # --------------------------------------------------------------------------- assembly
 
 
@@ -1027,7 +1050,7 @@ SECTION_TITLES = {
     "summary": "Run summary", "tracking": "Tracking confidence", "rest": "Rest pose", "keys": "Key shapes",
     "curve": "Reconstruction error against k", "weights": "Weight curves",
     "residuals": "Residual and jitter per frame", "rig": "Cardinality and objective",
-    "truth": "Against the truth",
+    "truth": "Against the truth", "coverage": "Slider coverage",
 }
 
 
@@ -1073,7 +1096,7 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
                                          or np.shape(data.extras[n]["jitter"]) != (T,)
                                          else np.asarray(data.extras[n]["jitter"], dtype=np.float64)
                                          for n, (W, _) in data.regions.items()], axis=0), worst))
-    steps = ["frames", "summary", "tracking", "rest", "keys", "curve", "weights", "residuals", "rig", "truth"]
+    steps = ["frames", "summary", "tracking", "rest", "keys", "curve", "coverage", "weights", "residuals", "rig", "truth"]
     bar_cm = progress(len(steps), "report") if progress else nullcontext(None)
     sections = []
     with bar_cm as bar:
@@ -1090,6 +1113,7 @@ def build_report(run: RunFiles, *, worst: int = 6, camera=None, shading: str = "
                    lambda: _rest_pose(data, run, frames, mesh_renderer),
                    lambda: _keys_sheet(data, run, keys, frames, camera, shading),
                    lambda: _curve(run, keys),
+                   lambda: _coverage(run),
                    lambda: _weights(data),
                    lambda: _residuals(data, keys, frames, worst, mesh_renderer),
                    lambda: _rig(data, run),

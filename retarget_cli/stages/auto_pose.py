@@ -13,6 +13,7 @@ slider curves. The math is in :mod:`retarget_cli.methods.rigpose` (delta fit, de
 from __future__ import annotations
 
 import fnmatch
+import json
 import logging
 import os
 from dataclasses import replace
@@ -25,11 +26,13 @@ from ..errors import InputError
 from ..io.atomic import check_not_input, tracked_outputs, write_text
 from ..io.editfiles import write_animation
 from ..io.landmarks import load_landmarks
+from ..io.livelink import arkit_mapping
 from ..io.obj import write_obj
 from ..io.rig import load_rig, read_rig
 from ..io.rig.vertexmap import read_vertex_map
 from ..io.stagefiles import read_keys, write_targets
 from ..methods.editing import auto_pose
+from ..methods.gaze_rig import DEFAULT_GAZE_RANGE, GAZE_ARKIT, gaze_sliders, rest_gaze, rig_gaze_gains
 from ..methods.neutral import find_rest_frame
 from ..methods.rigpose import (
     CONTACT_68,
@@ -98,8 +101,19 @@ PARAMS = [
     Param("ridge", "setting", float, None, "Ridge weight, relative likewise (null: 0.001).",
           min=0, nullable=True),
     Param("exclude", "setting", list, ["eyeLook*", "*pupil*"],
-          "Slider-name patterns (fnmatch, any case) kept at 0: by default gaze and pupils, which "
-          "landmarks without pupils cannot see.", validate=check_strings),
+          "Slider-name patterns (fnmatch, any case) kept out of the landmark fit and at 0: by default gaze and "
+          "pupils, which landmarks without pupils cannot see (the gaze sliders are then set from the iris by "
+          "auto_pose.gaze).", validate=check_strings),
+    Param("gaze", "setting", str, "auto",
+          "on: when landmarks.npz has the gaze (track.gaze) and the rig has gaze sliders (eyeLookIn/Out/Up/Down "
+          "_L/_R, or named so in rig.yaml's names:), set them from each iris, calibrated on the take's rest "
+          "frames and the rig's own iris travel, before the delta fit, which takes what they move as a fixed "
+          "offset (so their lids are not fitted twice); auto: as on when the rig's gaze sliders turn its "
+          "eyeballs (their travel measured), else as off (a rig whose gaze shapes only move lids and skin, "
+          "like the ICT FaceKit's, fits its lids better without them; Live Link's eye columns carry the gaze "
+          "either way); horizontal: the in/out sliders only (the up/down reading of the iris is entangled with "
+          "the lids); off: the gaze sliders stay as exclude has them.",
+          choices=("auto", "on", "horizontal", "off")),
     Param("skip_points", "setting", list, None,
           "Landmarks left out of the fit (default for 68 points: the jaw contour but the chin).",
           nullable=True, validate=check_indices),
@@ -169,7 +183,7 @@ def _mask_text(weights: np.ndarray) -> str:
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame="auto", sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=3.0, contact_weight=4.0,
-                  lip_closed=0.02, lid_closed=0.15, frontalize=True, base_dir=None, cache_dir=None) -> list[Path]:
+                  lip_closed=0.02, lid_closed=0.15, frontalize=True, gaze="auto", base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
     ``sliders.csv``, masks, ``targets.yaml`` (and ``curves.csv``).
 
@@ -196,6 +210,13 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         Landmarks that give each frame's head pose (default for 68 points: :data:`RIGID_68`).
     frontalize : bool
         Fit the frontalized landmarks (:func:`frontal_landmarks`) instead of ``stabilized``.
+    gaze : {"auto", "on", "horizontal", "off"}
+        ``on`` (delta fit): the rig's gaze sliders set from the landmarks' ``gaze`` (:func:`_gaze_preset`) and
+        held as a fixed offset by the fit (``delta_pose``'s *preset*); ``auto``: as ``on`` when the rig's gaze
+        sliders turn its eyeballs, else as ``off``; ``horizontal``: the in/out ones only.
+
+    Besides the poses, ``coverage.json`` lists each slider as driven, cannot (no fitted landmark moves with it)
+    or excluded (left at 0 by choice), per region (:func:`slider_coverage`).
     """
 
     if fit not in FITS:
@@ -216,8 +237,10 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
     if frontalize:
         lm, neutral = frontal_landmarks(lm, r, vx, lm_ids, neutral)
-    fixed = excluded_sliders(r.names, exclude)
+    excluded = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
+    preset, gaze_mask = _gaze_preset(gaze, fit, lm, r, spec, lm_ids, vx)
+    fixed = excluded | gaze_mask
     Y = lm.stabilized[:, lm_ids].astype(np.float64)
     Cf = lm.confidence[:, lm_ids].astype(np.float64)
     # frames all: each segment of the take (found frames between gaps and cuts) is posed and smoothed apart
@@ -238,14 +261,17 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
                                opts["contact_refs"], keep_home=neutral.record.get("source") != "take") \
             if frames == "all" else None
         poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, (Y0, C0), region_rows, fixed,
-                                                    rigid, opts, shots=shots)
+                                                    rigid, opts, shots=shots, preset=preset)
     else:
         poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, [f for part in posed for f in part],
                                                        list(kf.regions), region_rows, fixed, alpha, mu)
     if frames == "all" and len(poses) < lm.n_frames:
         poses = _hold_gaps(poses, lm.n_frames)
+    coverage = slider_coverage(r, vx, list(kf.regions), region_rows, owner, excluded, gaze_mask)
+    _log_coverage(coverage)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
-                       None if neutral is None else neutral.label, lm.timing(), every_frame=frames == "all")
+                       None if neutral is None else neutral.label, lm.timing(), every_frame=frames == "all",
+                       coverage=coverage)
 
 
 def rig_face_model(rig, vertices) -> np.ndarray:
@@ -427,7 +453,7 @@ def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contac
     return out
 
 
-def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts, shots=None):
+def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts, shots=None, preset=None):
     """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*
     (a list of frame lists, each fitted and smoothed on its own): poses by frame, slider owners, sliders by region.
 
@@ -448,7 +474,8 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
                                                             {**opts, "contact_refs": shots[i][2]})
         rows = slice(part.start, part.stop) if isinstance(part, range) else part  # a segment: views, no copies
         res = delta_pose(r, vx, y0, Y[rows], weights=Cf[rows], neutral_weights=c0,
-                         regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid, **o)
+                         regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,
+                         preset=None if preset is None else preset[rows], **o)
         poses.update(zip(part, res["w"]))
         rms.extend(res["rms"])
         for f, e in zip(part, res["rms"]):
@@ -492,7 +519,7 @@ def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
 
 
 def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit, neutral_frame,
-                timing, every_frame=False):
+                timing, every_frame=False, coverage=None):
     """Key OBJs, region masks, ``sliders.csv``, ``curves.csv`` (*every_frame*: *poses* holds every frame) and
     ``targets.yaml``; a failure part-way removes what it wrote.
 
@@ -507,6 +534,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
     planned += [out / f"masks/{name}.txt" for name in names] + [out / "sliders.csv", out / "targets.yaml"]
     planned += [out / NEUTRAL_OBJ] if spec.neutral is None else []
     planned += [out / "curves.csv"] if every_frame else []
+    planned += [out / COVERAGE_JSON] if coverage is not None else []
     regions = {}
     # a failure part-way removes the files written so far; a rerun with other keys removes the old keys' OBJs
     with tracked_outputs(out, "auto-pose", planned=planned) as ledger:
@@ -534,6 +562,9 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
             write_animation(out / "curves.csv", r.names, np.stack([poses[f] for f in every]), source[every],
                             times[every])
             written.append(out / "curves.csv")
+        if coverage is not None:
+            write_text(out / COVERAGE_JSON, json.dumps(coverage, indent=1, sort_keys=True) + "\n")
+            written.append(out / COVERAGE_JSON)
         nrel = targets_neutral(out, r, ledger.add)
         rrel = os.path.relpath(Path(rig_path).resolve(), out.resolve())
         where = "" if neutral_frame is None else f", neutral frame {neutral_frame}"
@@ -545,8 +576,133 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
     return written
 
 
-__all__ = ["CONTOUR_68", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders", "no_landmark_map_error",
-           "run_auto_pose"]
+def _gaze_preset(mode, fit, lm, r, spec, lm_ids, vx):
+    """The gaze sliders' values per frame (T, n) and their mask (n,), or (None, all False) when the gaze is off,
+    the fit absolute, the take without gaze or the rig without gaze sliders.
+
+    The rig's gaze sliders are the ARKit columns :data:`~retarget_cli.methods.gaze_rig.GAZE_ARKIT` found among
+    its slider names (``eyeLookIn_L``, ``EyeLookInLeft``, ``eyeLookIn.L`` …) or in rig.yaml's ``names:``
+    (:func:`~retarget_cli.io.livelink.arkit_mapping`); their iris travel is measured on the rig
+    (:func:`~retarget_cli.methods.gaze_rig.rig_gaze_gains`, from the landmark vertices of the eye corners, 68
+    points) and the actor's gaze is taken from its median over the take's rest frames
+    (:func:`~retarget_cli.methods.neutral.find_rest_frame`'s members).
+    """
+    none = None, np.zeros(r.n_sliders, bool)
+    if mode == "off":
+        return none
+    if lm.gaze is None:
+        log.info("auto-pose: the landmarks have no gaze (track.gaze), so the gaze sliders are not driven")
+        return none
+    mapping = arkit_mapping(r.names, spec.names or {})
+    index = {k: mapping[c][0] for k, c in GAZE_ARKIT.items() if c in mapping and len(mapping[c]) == 1
+             and (mode != "horizontal" or k[1] == 0)}
+    if not index:
+        log.info("auto-pose: the rig has no gaze slider (eyeLookIn/Out/Up/Down_L/R or rig.yaml names:), so the "
+                 "take's gaze drives nothing")
+        return none
+    if fit != "delta":
+        log.warning("auto-pose: the gaze sliders are driven by the delta fit only (fit: %s leaves them at 0)", fit)
+        return none
+    pos = {int(p): i for i, p in enumerate(lm_ids)}
+    corners = None
+    if lm.n_points == 68 and all(p in pos for p in (36, 39, 42, 45)):
+        corners = ((int(vx[pos[36]]), int(vx[pos[39]])), (int(vx[pos[42]]), int(vx[pos[45]])))
+    gains = rig_gaze_gains(r, index, corners)
+    if mode == "auto" and not all(gains.measured.values()):
+        log.info("auto-pose: the rig's gaze sliders (%s) do not turn its eyeballs, so the gaze does not drive them "
+                 "(auto_pose.gaze: on drives them with the default iris travel; Live Link's eye columns carry the "
+                 "gaze either way)", ", ".join(r.names[j] for j in index.values()))
+        return none
+    rest = find_rest_frame(lm.stabilized, lm.confidence)
+    look_ahead = rest_gaze(lm.gaze, lm.gaze_valid, rest.members)
+    P = gaze_sliders(lm.gaze, look_ahead, gains, r.n_sliders, upper=r.upper)
+    mask = np.zeros(r.n_sliders, bool)
+    mask[list(index.values())] = True
+    log.info("auto-pose: gaze drives %s (iris travel at full weight %s eye widths, %s; looking ahead at %s eye "
+             "widths, the median of %d rest frames)", ", ".join(r.names[j] for j in index.values()),
+             ", ".join(f"{abs(gains.gain[k]):.3f}" for k in index),
+             "measured on the rig's eyeballs" if all(gains.measured.values()) else
+             f"the default {DEFAULT_GAZE_RANGE} where the rig's eyeballs were not found",
+             np.round(look_ahead, 3).tolist(), 0 if rest.members is None else len(rest.members))
+    return P, mask
+
+
+#: The coverage report of auto-pose, beside targets.yaml.
+COVERAGE_JSON = "coverage.json"
+#: A slider moving every fitted landmark vertex by less than this fraction of the rig's inter-ocular distance
+#: (its eye corners' centres; the landmark vertices' RMS spread without 68 points) at full weight cannot be
+#: driven by the landmarks.
+UNSEEN_FRACTION = 0.01
+
+
+def slider_coverage(r, vx, region_names, region_rows, owner, excluded, gaze_mask) -> dict:
+    """Every slider of the rig in one of three groups, per region: what the landmark path does with it.
+
+    - ``driven``: fitted to the landmarks (a region owns it) and moving a fitted landmark vertex by at least
+      :data:`UNSEEN_FRACTION` of the inter-ocular distance at full weight, or a gaze slider set from the iris;
+    - ``cannot``: no fitted landmark moves with it (a tongue, the pupils, a shape of the jaw contour that the
+      fit skips; excluded or not, since no setting would drive it) or no region owns it: whatever the actor
+      does, it stays at 0;
+    - ``excluded``: left at 0 by choice (``auto_pose.exclude``) though landmarks move with it, and not driven
+      by the gaze.
+
+    On the ICT FaceKit every slider but ``PupilDilate_*`` moves a fitted landmark vertex by 3.4 % of the
+    inter-ocular distance or more at full weight (``cheekSquint_*`` least), the pupils by 0.01 % at most.
+
+    Parameters
+    ----------
+    r : BlendshapeRig
+    vx : ndarray (M,), int
+        Rig vertex of each mapped landmark.
+    region_names : list of str
+    region_rows : dict
+        Region name -> rows among the mapped landmarks that the fit uses.
+    owner : ndarray (n,), int
+        Region index of each fitted slider, -1 for none.
+    excluded, gaze_mask : ndarray (n,), bool
+
+    Returns
+    -------
+    dict
+        ``regions``: region name (or ``none``, for a slider no landmark of any region moves) -> ``{"driven":
+        [...], "cannot": [...], "excluded": [...]}``; ``threshold`` (rig units), ``rule`` (one sentence).
+    """
+    X0, DL = rig_landmarks(r, vx)
+    if len(vx) == 68:
+        iod = float(np.linalg.norm(X0[36:42].mean(axis=0) - X0[42:48].mean(axis=0)))
+    else:
+        iod = float(np.sqrt(np.mean(np.sum((X0 - X0.mean(axis=0)) ** 2, axis=1))))
+    rows = sorted({i for name in region_names for i in region_rows[name]})
+    reach = np.linalg.norm(DL[rows], axis=1).max(axis=0) * np.maximum(np.abs(r.upper), np.abs(r.lower))  # (n,)
+    thr = UNSEEN_FRACTION * iod
+    home = slider_owners(project(DL, np.eye(3)), [region_rows[n] for n in region_names], tiny=0.0)
+    groups = {}
+    for j, name in enumerate(r.names):
+        if gaze_mask[j]:
+            kind = "driven"
+        elif reach[j] < thr:  # whether excluded or not: no choice of settings would drive it
+            kind = "cannot"
+        elif excluded[j]:
+            kind = "excluded"
+        else:
+            kind = "driven" if owner[j] >= 0 else "cannot"
+        region = region_names[owner[j]] if owner[j] >= 0 else (region_names[home[j]] if reach[j] > 0 else "none")
+        groups.setdefault(region, {"driven": [], "cannot": [], "excluded": []})[kind].append(name)
+    return {"regions": groups, "threshold": thr,
+            "rule": f"cannot: moves no fitted landmark vertex by {UNSEEN_FRACTION:.0%} of the inter-ocular distance "
+                    f"({thr:.4g} rig units) at full weight; excluded: auto_pose.exclude; driven: fitted, or gaze"}
+
+
+def _log_coverage(coverage: dict) -> None:
+    """One log line per group: how many sliders, and which (the report shows them per region)."""
+    for kind, what in (("driven", "drives"), ("cannot", "cannot drive (no fitted landmark moves with them)"),
+                       ("excluded", "leaves at 0 by choice (exclude)")):
+        names = [n for g in coverage["regions"].values() for n in g[kind]]
+        log.info("auto-pose %s %d slider(s)%s", what, len(names), (": " + ", ".join(names)) if names else "")
+
+
+__all__ = ["CONTOUR_68", "COVERAGE_JSON", "DEFAULT_EXCLUDE", "FITS", "RIGID_68", "excluded_sliders",
+           "no_landmark_map_error", "run_auto_pose", "slider_coverage"]
 
 
 #: The pipeline stage (:mod:`retarget_cli.run.pipeline`).
@@ -586,10 +742,12 @@ COMMAND = Command(
      Flag("landmark_vertices", path="file", show_default=False),
      Flag("masks", decls=("--mask",), value="mask", multiple=True, metavar="REGION=FILE", show_default=False,
           help="Vertex mask of a region, overriding the mask derived from the rig. Repeatable."),
-     "fit", "neutral_frame", "frames", "smooth", "contact_weight", "lip_closed", "lid_closed", "sparsity", "ridge",
+     "fit", "neutral_frame", "frames", "gaze", "smooth", "contact_weight", "lip_closed", "lid_closed", "sparsity",
+     "ridge",
      Flag("exclude", decls=("--exclude",), value="text", multiple=True, metavar="PATTERN", default=None,
           show_default=False,
-          help="Slider-name pattern kept at 0 (repeatable; default eyeLook*, *pupil*: gaze and pupils)."),
+          help="Slider-name pattern kept out of the landmark fit (repeatable; default eyeLook*, *pupil*: gaze "
+               "and pupils; the gaze sliders are then set from the iris, --gaze)."),
      "alpha", "mu",
      output_flag("targets", "Directory for the key OBJs, sliders.csv, masks/ and targets.yaml.", required=False),
      NO_CACHE_FLAG),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import logging
 from dataclasses import replace
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,8 @@ from ..methods.tracking import TRACKERS, method_choices, method_help, tracker_pa
 from ..methods.tracking.base import check_inside, to_gray
 from ..methods.tracking.detect import Detector, detector_installed
 from ..methods.tracking.facemark import train_lbf
+from ..methods.tracking.gaze import EYES_68
+from ..methods.tracking.gaze import gaze as gaze_fn
 from ..methods.tracking.head import apply_similarity, estimate_head, invert_similarity
 from ..methods.tracking.head import smooth_head as _smooth
 from ..methods.tracking.head import smooth_head as smooth_head_fn
@@ -87,6 +90,10 @@ PARAMS = [
     Param("fuse", "setting", bool, True,
           "Method detect: join the detections with optical flow (a Kalman filter along the flow and "
           "a smoother over the take); false keeps each frame's detection as it is."),
+    Param("gaze", "setting", bool, True,
+          "Locate each iris in the frames (68 points): the gaze, filtered like the landmarks and held through "
+          "blinks and gaps, is stored in landmarks.npz ('gaze', 'gaze_valid') for auto_pose's eyeLook sliders "
+          "and the Live Link eye columns; false: none (the frames are decoded once less)."),
     Param("model", "input", str, None,
           "Facemark LBF model file for method facemark (written by 'retarget train-tracker').",
           nullable=True),
@@ -146,7 +153,7 @@ def _all_track_params() -> list:
 def run_track(*, video, init=None, output, method="auto", window=21, levels=3, fb_threshold=1.0, anchor=True,
               rigid_points=None, annotations=None, init_frame=None, start=0, end=None, step=1, downscale=1.0,
               fps=None, smooth_head=0, overlay=None, keep_partial=False, model=None, fuse=True, neutral=None,
-              base_dir=None, head_pose=True,
+              gaze=True, base_dir=None, head_pose=True,
               progress=_no_progress, filter=FILTER_DEFAULTS["filter"], filter_model=FILTER_DEFAULTS["filter_model"],
               filter_process_noise=FILTER_DEFAULTS["filter_process_noise"],
               filter_measurement_noise=FILTER_DEFAULTS["filter_measurement_noise"],
@@ -173,7 +180,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     own points are kept as ``points_raw``. Annotated frames keep their given
     points and anchor the filter. *neutral*: a calibration image or clip of
     the actor at rest, tracked the same way (:func:`_track_neutral`); its
-    rest shape is stored as the landmarks' ``neutral``.
+    rest shape is stored as the landmarks' ``neutral``. *gaze* (68 points): the frames are decoded again and
+    each iris located (:func:`_track_gaze`), stored as ``gaze`` and ``gaze_valid``.
     """
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
@@ -223,6 +231,10 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         head = smooth_head_fn(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
     pose3d = _head_pose_3d(points, held_confidence(conf, found), (W, H)) if head_pose else None
+    gz = None
+    if gaze and points.shape[1] == 68:
+        gz = _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,
+                         progress=progress)
     calibration = None
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
@@ -254,7 +266,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
                                      neutral_confidence=None if calibration is None else calibration[1],
                                      found=found, segment=segment,
                                      head_angles=None if pose3d is None else pose3d.angles,
-                                     head_translation=None if pose3d is None else pose3d.translation))
+                                     head_translation=None if pose3d is None else pose3d.translation,
+                                     gaze=None if gz is None else gz[0], gaze_valid=None if gz is None else gz[1]))
     written = [Path(output)] + ([init_out] if init_out else [])
     log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
     if overlay:
@@ -585,6 +598,35 @@ def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), 
     return out, raw, meta
 
 
+def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings, progress):
+    """Each eye's gaze in every tracked frame: the frames decoded again, each iris located inside the tracked
+    eye (:func:`retarget_cli.methods.tracking.gaze.gaze`; a closed eye or a lost frame holds the last seen
+    value), then filtered with the landmarks' filter (*settings*, per segment, :func:`filter_segments`) in
+    pixels of the eye's median width, the held frames given no weight.
+
+    Returns
+    -------
+    gaze : ndarray (T, 2, 2), float64
+        Eye widths (:attr:`retarget_cli.io.landmarks.Landmarks.gaze`).
+    valid : ndarray (T, 2), bool
+        Frames where the eye's iris was seen.
+    """
+    T = len(points)
+    with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=True, warn_missing=False) as src, \
+            progress(T, "gaze") as bar:
+        g = gaze_fn(islice(src, T), points, confidence=conf, progress=bar.update)  # only the T tracked (truncated video)
+    valid = ~g.held
+    P = np.asarray(points, dtype=np.float64)
+    width = np.array([np.nanmedian(np.hypot(*(P[:, e[1]] - P[:, e[0]]).T)) for e in EYES_68])
+    width = np.where(np.isfinite(width) & (width > 0), width, 1.0)
+    px, _, _ = filter_segments(g.offset * width[None, :, None], valid.astype(np.float64), segment, fps=src.fps,
+                               settings=settings, where=f"{video} (gaze)")
+    out = np.asarray(px, dtype=np.float64) / width[None, :, None]
+    log.info("gaze: iris seen in %.1f%% of the eye-frames; horizontal sd %.3f, vertical sd %.3f eye widths",
+             100.0 * valid.mean(), float(np.std(out[..., 0])), float(np.std(out[..., 1])))
+    return out, valid
+
+
 def held_confidence(conf, found):
     """Confidences for the head fit: a gap frame takes those of the frame whose landmarks it holds.
 
@@ -833,7 +875,7 @@ _TRACK_FLAGS = (
     Flag("rigid_points", decls=("--rigid-points",), value="indices", metavar="SPEC", show_default=False,
          help="Landmarks that define head motion, e.g. 27-31,33,35,36,39,42,45 (default: eye corners "
               "and nose for 68 points, else all)."),
-    "keep_partial", *_FILTER_FLAGS,
+    "keep_partial", "gaze", *_FILTER_FLAGS,
 )
 
 #: ``track``, ``train-tracker`` and ``import`` (the CLI builds them: :mod:`retarget_cli.cli.commands`).

@@ -159,6 +159,38 @@ def test_livelink_csv_reproduces_the_mapped_curves_by_column_name(rig_scene, cap
     assert np.all(got("HeadYaw") == 0) and np.all(got("HeadPitch") == 0)
 
 
+def test_livelink_eye_columns_follow_the_tracked_gaze(rig_scene):
+    """Eye yaw/pitch (radians, ARKit's face frame) from landmarks.npz's gaze, looking ahead at its rest median."""
+    tmp, _, _, _ = rig_scene
+    from retarget_cli.io.landmarks import load_landmarks
+    from retarget_cli.io.livelink import EYEBALL_RADIUS
+
+    lm = load_landmarks(tmp / "landmarks.npz")
+    pts = np.tile(lm.points[:1], (T, 1, 1))  # every frame at rest
+    g = np.zeros((T, 2, 2))
+    g[:, :, 0] = 0.02 * (np.arange(T) - T // 2)[:, None]  # both irises sweep toward the image's right
+    g[:, 1, 1] = 0.01 * (np.arange(T) - T // 2)            # the left eye (image right) looks down
+    lm.points, lm.stabilized, lm.gaze, lm.gaze_valid = pts, pts, g, np.ones((T, 2), bool)
+    save_landmarks(tmp / "gaze.npz", lm)
+    apply_rig(tmp, tmp / "out", ["livelink"], landmarks=tmp / "gaze.npz")
+    rows = read_livelink(tmp / "out" / "livelink.csv")
+    got = lambda col: np.array([float(r[col]) for r in rows])
+    from retarget_cli.methods.gaze_rig import rest_gaze
+    from retarget_cli.methods.neutral import find_rest_frame
+
+    rest = rest_gaze(g, None, find_rest_frame(pts).members)
+    # the actor looking to their left: both eyes' yaw > 0; down: pitch > 0
+    np.testing.assert_allclose(got("LeftEyeYaw"), np.arcsin((g[:, 1, 0] - rest[1, 0]) / EYEBALL_RADIUS), atol=2e-6)
+    np.testing.assert_allclose(got("RightEyeYaw"), np.arcsin((g[:, 0, 0] - rest[0, 0]) / EYEBALL_RADIUS), atol=2e-6)
+    np.testing.assert_allclose(got("LeftEyePitch"), np.arcsin((g[:, 1, 1] - rest[1, 1]) / EYEBALL_RADIUS),
+                               atol=2e-6)
+    assert np.all(np.diff(got("LeftEyeYaw")) > 0) and np.all(np.diff(got("RightEyeYaw")) > 0)
+    assert np.all(np.diff(got("LeftEyePitch")) > 0) and np.all(got("RightEyePitch") == 0) and np.all(got("LeftEyeRoll") == 0)
+    # without a gaze in the landmarks the eye columns are 0
+    apply_rig(tmp, tmp / "none", ["livelink"], landmarks=tmp / "landmarks.npz")
+    assert all(float(r["LeftEyeYaw"]) == 0 for r in read_livelink(tmp / "none" / "livelink.csv"))
+
+
 def test_rig_yaml_names_map_the_remaining_columns(rig_scene):
     tmp, _, _, _ = rig_scene
     y = tmp / "rig" / "rig.yaml"

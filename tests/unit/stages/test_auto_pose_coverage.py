@@ -1,0 +1,65 @@
+"""auto_pose's slider coverage (issue 28): every slider of the ICT FaceKit in one of three groups."""
+
+import numpy as np
+import pytest
+import yaml
+
+from retarget_cli.io.rig import load_rig
+from retarget_cli.methods.regions import REGION_PRESETS_68
+from retarget_cli.methods.rigpose import project, rig_landmarks, slider_owners
+from retarget_cli.stages.auto_pose import CONTOUR_68, DEFAULT_EXCLUDE, excluded_sliders, slider_coverage
+
+
+@pytest.fixture(scope="module")
+def ict(ict_rig_dir):
+    rig = load_rig(ict_rig_dir / "rig.yaml")
+    vx = np.asarray(yaml.safe_load((ict_rig_dir / "rig.yaml").read_text())["landmarks"])
+    return rig, vx
+
+
+def _groups(rig, vx, exclude, gaze: bool):
+    names = ["brows-eyes", "mouth"]
+    rows = {n: [p for p in REGION_PRESETS_68[n] if p not in CONTOUR_68] for n in names}
+    excluded = excluded_sliders(rig.names, exclude)
+    gaze_mask = excluded_sliders(rig.names, ["eyeLook*"]) if gaze else np.zeros(rig.n_sliders, bool)
+    _, DL = rig_landmarks(rig, vx)
+    owner = slider_owners(project(DL, np.eye(3)), [rows[n] for n in names])
+    owner[excluded | gaze_mask] = -1  # as delta_pose's fixed
+    cov = slider_coverage(rig, vx, names, rows, owner, excluded, gaze_mask)
+    flat = {k: sorted(n for g in cov["regions"].values() for n in g[k]) for k in ("driven", "cannot", "excluded")}
+    return cov, flat
+
+
+def test_every_ict_slider_is_in_exactly_one_group(ict):
+    rig, vx = ict
+    cov, flat = _groups(rig, vx, DEFAULT_EXCLUDE, gaze=True)
+    together = flat["driven"] + flat["cannot"] + flat["excluded"]
+    assert sorted(together) == sorted(rig.names) and len(set(together)) == rig.n_sliders
+    # the pupils move no landmark: they cannot be driven (whether excluded or not)
+    assert flat["cannot"] == ["PupilDilate_L", "PupilDilate_R"]
+    # the gaze sliders are driven from the iris; the brows, lids and mouth from the landmarks
+    for name in ("eyeLookOut_L", "eyeLookIn_R", "eyeLookDown_L", "eyeBlink_L", "jawOpen", "browInnerUp_R"):
+        assert name in flat["driven"]
+    assert "eyeLookIn_L" in cov["regions"]["brows-eyes"]["driven"] and "jawOpen" in cov["regions"]["mouth"]["driven"]
+    assert flat["excluded"] == []
+
+
+def test_without_gaze_the_eyelook_sliders_are_left_at_zero_by_choice(ict):
+    rig, vx = ict
+    _, flat = _groups(rig, vx, [*DEFAULT_EXCLUDE, "mouthRoll*"], gaze=False)
+    assert flat["excluded"] == sorted([f"eyeLook{d}_{s}" for d in ("Down", "In", "Out", "Up") for s in "LR"]
+                                      + ["mouthRollLower", "mouthRollUpper"])
+    assert flat["cannot"] == ["PupilDilate_L", "PupilDilate_R"]
+    assert "eyeLookIn_L" not in flat["driven"] and "mouthRollLower" not in flat["driven"]
+
+
+def test_a_slider_that_moves_only_skipped_landmarks_cannot_be_driven(ict):
+    rig, vx = ict
+    names = ["mouth"]
+    rows = {"mouth": list(range(48, 68))}  # the mouth alone: the brows' and lids' sliders move none of its points
+    _, DL = rig_landmarks(rig, vx)
+    owner = slider_owners(project(DL, np.eye(3)), [rows["mouth"]])
+    none = np.zeros(rig.n_sliders, bool)
+    cov = slider_coverage(rig, vx, names, rows, owner, none, none)
+    cannot = {n for g in cov["regions"].values() for n in g["cannot"]}
+    assert {"browInnerUp_L", "eyeBlink_R"} <= cannot and "jawOpen" not in cannot
