@@ -123,10 +123,11 @@ PARAMS = [
     Param("masks", "setting", dict, None,
           "Region name to vertex-mask file, overriding the masks derived from the rig.", nullable=True,
           validate=check_masks),
-    Param("frontalize", "setting", bool, True,
+    Param("frontalize", "setting", bool, False,
           "Remove the head's 3D rotation from the landmarks before the fit (needs landmarks.npz head_angles, "
           "68 points): each frame's landmarks as the face would show them looking into the camera, with the rig's "
-          "own landmark vertices as the 3D face, so a turn of the head is not read as expression."),
+          "own landmark vertices as the 3D face, so a turn of the head is not read as expression. Off by default: "
+          "on the shared real clips it cost eye contact, mouth width and slider saturation (docs/auto-pose.md)."),
     Param("alpha", "setting", float, 0.001, "absolute fit: eq. 3's alpha.", min=0),
     Param("mu", "setting", float, 0.0001, "absolute fit: eq. 3's mu.", min=0),
 ]
@@ -183,7 +184,7 @@ def _mask_text(weights: np.ndarray) -> str:
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame="auto", sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=3.0, contact_weight=4.0,
-                  lip_closed=0.02, lid_closed=0.15, frontalize=True, gaze="auto", base_dir=None, cache_dir=None) -> list[Path]:
+                  lip_closed=0.02, lid_closed=0.15, frontalize=False, gaze="auto", base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
     ``sliders.csv``, masks, ``targets.yaml`` (and ``curves.csv``).
 
