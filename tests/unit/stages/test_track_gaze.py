@@ -86,3 +86,24 @@ def test_gaze_round_trips_through_landmarks_npz_and_bad_shapes_are_one_line_erro
     np.savez(tmp_path / "nan.npz", **data)
     with pytest.raises(InputError, match="'gaze' must be finite; frame 0"):
         load_landmarks(tmp_path / "nan.npz")
+
+
+#: the iris sweeping left, a long closure (16 frames, d3's squint at frame 117), then seen again
+SWEEP = [(0.2 - 0.04 * t, False) for t in range(5)] + [(0.0, True)] * 16 + [(0.11, False)] * 6
+
+
+@pytest.mark.parametrize("method", [None, "none"])
+def test_a_long_closure_after_a_sweep_holds_the_gaze_instead_of_carrying_its_velocity(tmp_path, method):
+    points = []
+    for t, (offset, closed) in enumerate(SWEEP):
+        img, pts = _eye_image(offset, closed)
+        cv2.imwrite(str(tmp_path / f"s_{t:03d}.png"), img)
+        points.append(pts)
+    settings = dict(FILTER_DEFAULTS) if method is None else dict(FILTER_DEFAULTS, filter=method)
+    g, valid = _track_gaze(str(tmp_path / "s_%03d.png"), np.array(points), np.ones((len(SWEEP), 68)), None,
+                           start=0, end=None, step=1, fps=30.0, settings=settings, progress=_no_progress)
+    closed = np.array([c for _, c in SWEEP])
+    assert not valid[closed].any()
+    # held near the last seen gaze (0.04) or the next (0.11): never carried on past them (the smoother's motion
+    # model took d3's iris 1.7 eye widths away)
+    assert g[closed, :, 0].min() > -0.05 and g[closed, :, 0].max() < 0.2
