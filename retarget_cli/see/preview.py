@@ -489,7 +489,8 @@ def write_preview(run: RunFiles, output: str | os.PathLike, *, frames: str | Non
     ----------
     run : RunFiles
     output : path-like
-        ``.mp4`` (mp4v), ``.avi`` (MJPG), ...
+        ``.mp4`` (mp4v), ``.avi`` (MJPG), ...; or an image (``.png``, ``.jpg``, ...) when *frames*
+        selects one frame.
     frames : str, optional
         ``a:b`` range of source frame numbers (see :func:`parse_frames`).
     height : int
@@ -509,13 +510,30 @@ def write_preview(run: RunFiles, output: str | os.PathLike, *, frames: str | Non
         raise ParameterError(f"--size: expected a panel height in [32, 2160] pixels, got {height}")
     if fps is not None and not 0 < fps <= 240:
         raise ParameterError(f"--fps: expected a value in (0, 240], got {fps}")
+    suffix = Path(output).suffix.lower()
+    if suffix not in VIDEO_OUT + IMAGE_OUT:
+        raise InputError(f"{output}: unknown output type {Path(output).suffix!r}; expected a video "
+                         f"({', '.join(VIDEO_OUT)}) or, for one frame, an image ({', '.join(IMAGE_OUT)})")
     data = RunData(run)
     if data.n_frames == 0:
         raise InputError(f"{run.root}: no frames to preview")
     check_not_input(output, [run.video, run.landmarks, run.weights])
     sel = parse_frames(frames, data.source_frames())
+    if suffix in IMAGE_OUT and len(sel) != 1:
+        raise ParameterError(f"--frames: an image ({Path(output).name}) holds one frame, but {len(sel)} are "
+                             f"selected; pick one with --frames N, or write a video ({', '.join(VIDEO_OUT)})")
     it = preview_frames(data, sel, height=int(height), camera=camera, shading=shading)
     first = next(it)
+    if suffix in IMAGE_OUT:
+        import cv2
+
+        ok, buf = cv2.imencode(suffix, first)
+        if not ok:
+            raise InputError(f"{output}: OpenCV cannot encode {suffix}")
+        write_bytes(output, buf.tobytes())
+        log.info("wrote preview frame %d (%dx%d) to %s", int(data.source_frames()[sel[0]]), first.shape[1],
+                 first.shape[0], output)
+        return Path(output)
     size = (first.shape[1], first.shape[0])
     from contextlib import nullcontext
 

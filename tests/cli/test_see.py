@@ -113,6 +113,36 @@ def test_preview_source_panel_shows_the_video_with_landmarks(ran_take):
     assert np.abs(img[:192, :192][far].astype(int) - src[far].astype(int)).mean() < 1.0
 
 
+def test_preview_to_an_image_is_that_image_type_and_holds_one_frame(ran_take, tmp_path):
+    from retarget_cli.run.runfiles import locate_run
+    from retarget_cli.see.preview import RunData, preview_frames
+
+    png, jpg = tmp_path / "f7.png", tmp_path / "f7.jpg"
+    for out in (png, jpg):
+        result = CliRunner().invoke(main, ["preview", str(ran_take / "config.yaml"), "-o", str(out),
+                                           "--frames", "7", "--size", "96"])
+        assert result.exit_code == 0, result.output
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # a real PNG, not JPEG bytes under a .png name
+    assert jpg.read_bytes()[:3] == b"\xff\xd8\xff"
+    # the PNG is lossless: its source and weight panels are frame 7's, pixel for pixel (the mesh panel's
+    # camera is the command's), and the mesh panel holds the character
+    want = next(preview_frames(RunData(locate_run(ran_take / "config.yaml")), range(7, 8), height=96))
+    got = cv2.imread(str(png))
+    assert got.shape == want.shape == (96, 392, 3)
+    assert np.array_equal(got[:, :96], want[:, :96]) and np.array_equal(got[:, 192:], want[:, 192:])
+    assert np.array_equal(cv2.imread(str(jpg)).shape, want.shape)
+    assert got[:, 96:192].std() > 5
+    # many frames into one image: refused in one line, nothing written
+    many = tmp_path / "many.png"
+    result = CliRunner().invoke(main, ["preview", str(ran_take / "config.yaml"), "-o", str(many),
+                                       "--frames", "5:17", "--size", "96"])
+    assert result.exit_code == 2 and "holds one frame, but 12 are selected" in result.output
+    assert not many.exists() and "Traceback" not in result.output
+    bad = tmp_path / "p.xyz"
+    result = CliRunner().invoke(main, ["preview", str(ran_take / "config.yaml"), "-o", str(bad)])
+    assert result.exit_code == 1 and "unknown output type '.xyz'" in result.output and not bad.exists()
+
+
 def test_preview_rejects_an_empty_frame_range(ran_take, tmp_path):
     result = CliRunner().invoke(main, ["preview", str(ran_take / "config.yaml"), "-o", str(tmp_path / "p.mp4"),
                                        "--frames", "100:200"])
