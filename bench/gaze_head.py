@@ -240,7 +240,7 @@ def main(argv=None) -> int:
     for key in ("ours_h", "stored_h", "peer_h", "ours_v", "stored_v", "peer_v", "yaw", "pitch", "roll", "yaw_stored",
                 "pitch_stored", "roll_stored"):
         vals = [r[key] for r in rows if np.isfinite(r[key])]
-        print(f"mean {key}: {np.mean(vals):.2f} over {len(vals)} clips" if vals else f"mean {key}: -")
+        print(f"mean {key}: {np.mean(vals):.3f} over {len(vals)} clips" if vals else f"mean {key}: -")
     return 0
 
 
