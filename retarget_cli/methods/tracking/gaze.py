@@ -93,16 +93,16 @@ def _patch(gray: np.ndarray, mid, x, y, w) -> tuple[np.ndarray, np.ndarray]:
     return patch.astype(np.float64), A
 
 
-def _eye_mask(points: np.ndarray, eye, A: np.ndarray) -> np.ndarray:
-    """Inside the eye's outline (corners and lids) in the patch, grown by :data:`_GROW` pixels, bool (H, W)."""
+def _eye_mask(points: np.ndarray, eye, A: np.ndarray, grow: int = _GROW) -> np.ndarray:
+    """Inside the eye's outline (corners and lids) in the patch, grown by *grow* pixels, bool (H, W)."""
     import cv2
 
     outline = [eye[0], eye[2][0], eye[2][1], eye[1], eye[3][1], eye[3][0]]
     poly = points[outline] @ A[:, :2].T + A[:, 2]
     mask = np.zeros(_PATCH[::-1], np.uint8)
     cv2.fillPoly(mask, [np.round(poly * 4).astype(np.int32)], 1, shift=2)
-    if _GROW:
-        mask = cv2.dilate(mask, np.ones((2 * _GROW + 1, 2 * _GROW + 1), np.uint8))
+    if grow:
+        mask = cv2.dilate(mask, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
     return mask.astype(bool)
 
 
@@ -224,7 +224,8 @@ def gaze(frames, points, *, confidence=None, closed: float = 0.12, unsure: tuple
         Lid gap over eye width below which an eye counts as closed.
     unsure : (float, float)
         Lid gaps over eye width between which an eye's horizontal reading is drawn linearly toward the take's
-        median horizontal gaze of that eye: fully at the first, not at all from the second on.
+        median horizontal gaze of that eye: fully at the first, not at all from the second on
+        (:func:`draw_unsure`).
     progress : callable, optional
         Called once per frame.
 
@@ -264,15 +265,38 @@ def gaze(frames, points, *, confidence=None, closed: float = 0.12, unsure: tuple
             progress(1)
     if t + 1 < T:
         raise ShapeError(f"frames: {t + 1} frames for {T} frames of points")
+    return Gaze(_hold(draw_unsure(offset, opening, unsure)), opening, held)
+
+
+def draw_unsure(offset: np.ndarray, opening: np.ndarray, unsure: tuple[float, float] = (0.10, 0.25)) -> np.ndarray:
+    """Nearly shut eyes' horizontal readings drawn toward each eye's median over the seen frames.
+
+    Parameters
+    ----------
+    offset : ndarray (T, E, 2)
+        Gaze offsets, NaN where unseen (:class:`Gaze`'s ``offset`` before holding).
+    opening : ndarray (T, E)
+        Lid gap over eye width.
+    unsure : (float, float)
+        The reading is kept in full from a gap of ``unsure[1]`` on, replaced by the median at ``unsure[0]``
+        and below, linearly in between; ``unsure[1] <= unsure[0]``: unchanged.
+
+    Returns
+    -------
+    ndarray (T, E, 2)
+        A copy; the vertical readings and the NaNs unchanged.
+    """
+    out = np.array(offset, dtype=np.float64, copy=True)
     lo, hi = unsure
-    if hi > lo:
-        for e in range(2):
-            seen = np.isfinite(offset[:, e, 0])
-            if seen.any():
-                med = np.median(offset[seen, e, 0])
-                keep = np.clip((opening[:, e] - lo) / (hi - lo), 0.0, 1.0)
-                offset[:, e, 0] = med + (offset[:, e, 0] - med) * keep
-    return Gaze(_hold(offset), opening, held)
+    if hi <= lo:
+        return out
+    for e in range(out.shape[1]):
+        seen = np.isfinite(out[:, e, 0])
+        if seen.any():
+            med = np.median(out[seen, e, 0])
+            keep = np.clip((opening[:, e] - lo) / (hi - lo), 0.0, 1.0)
+            out[:, e, 0] = med + (out[:, e, 0] - med) * keep
+    return out
 
 
 def _hold(offset: np.ndarray) -> np.ndarray:
