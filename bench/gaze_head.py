@@ -6,7 +6,9 @@ documented tracker), then
 - gaze (:func:`retarget_cli.methods.tracking.gaze.gaze`): each iris's offset from its eye corners, in eye
   widths, correlated (Pearson r) with MediaPipe Face Mesh's iris centre (points 468/473) relative to its own
   corners (33-133, 362-263), on eyes whose reference gaze moves (standard deviation >= 0.05 eye widths);
-  the peer's own gaze (Face Landmarker's eyeLookIn/Out/Up/Down scores) is scored against the same reference;
+  likewise the gaze the pipeline stores (track's landmarks.npz ``gaze``: the same, filtered like the
+  landmarks, an unseen eye holding its last seen value); the peer's own gaze (Face Landmarker's
+  eyeLookIn/Out/Up/Down scores) is scored against the same reference;
 - head pose (:func:`retarget_cli.methods.tracking.headpose.head_pose`, camera-relative, and the pipeline's
   stored ``head_angles``, relative to the line of sight): yaw, pitch, roll against the rotation of Face
   Landmarker's facial transformation matrix, where the reference moves (sd >= 2 degrees).
@@ -16,7 +18,8 @@ Synthetic: the ICT FaceKit's 68 landmark vertices posed at random slider weights
 known yaw/pitch/roll up to +-30 degrees, projected by a pinhole camera with 1 px noise: the mean angle error.
 
 Run: ``python bench/gaze_head.py [--videos d3,d9,d12]``. Without ``../shared/realdata`` the real part prints
-a skip line. Caches under ``build/gaze_head``.
+a skip line. Caches under ``build/gaze_head`` (the tracked landmarks.npz, whose stored gaze is the one of the
+code that tracked them: delete ``build/gaze_head/*.landmarks.npz`` after changing the gaze locator).
 """
 
 from __future__ import annotations
@@ -149,7 +152,11 @@ def real_clip(name: str) -> dict:
     A = matrix_angles(pr["matrices"][:T])
     row = {"clip": name, "frames": T, "gaze_s": t_gaze, "head_s": t_head}
     for k, axis in enumerate(("h", "v")):
-        for who, est in (("ours", g.offset[:T]), ("peer", P)):
+        stored_gaze = None if lm.gaze is None else lm.gaze[:T].astype(np.float64)
+        for who, est in (("ours", g.offset[:T]), ("stored", stored_gaze), ("peer", P)):
+            if est is None:
+                row[f"{who}_{axis}"] = float("nan")
+                continue
             rs = [pearson(est[:, e, k], G[:, e, k]) for e in range(2) if np.nanstd(G[:, e, k]) >= MOVES_GAZE]
             row[f"{who}_{axis}"] = float(np.mean(rs)) if rs else float("nan")
     stored = lm.head_angles  # the pipeline's: track's head_angles, relative to the line of sight
@@ -211,17 +218,18 @@ def main(argv=None) -> int:
         return 0
     rows = [real_clip(v) for v in args.videos.split(",")]
     print("## Real clips against MediaPipe (Pearson r; '-' where the reference does not move)\n")
-    print("| clip | frames | gaze h ours | gaze h peer | gaze v ours | gaze v peer | yaw | pitch | roll | "
-          "head sd yaw/pitch/roll | gaze + head s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| clip | frames | gaze h ours | gaze h stored | gaze h peer | gaze v ours | gaze v stored | gaze v peer | "
+          "yaw | pitch | roll | head sd yaw/pitch/roll | gaze + head s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
     def f(x):
         return "-" if not np.isfinite(x) else f"{x:.2f}"
 
     for r in rows:
-        print(f"| {r['clip']} | {r['frames']} | {f(r['ours_h'])} | {f(r['peer_h'])} | {f(r['ours_v'])} | "
-              f"{f(r['peer_v'])} | {f(r['yaw'])} | {f(r['pitch'])} | {f(r['roll'])} | {r['yaw_sd']:.1f} / "
-              f"{r['pitch_sd']:.1f} / {r['roll_sd']:.1f} | {r['gaze_s'] + r['head_s']:.1f} |")
+        print(f"| {r['clip']} | {r['frames']} | {f(r['ours_h'])} | {f(r['stored_h'])} | {f(r['peer_h'])} | "
+              f"{f(r['ours_v'])} | {f(r['stored_v'])} | {f(r['peer_v'])} | {f(r['yaw'])} | {f(r['pitch'])} | "
+              f"{f(r['roll'])} | {r['yaw_sd']:.1f} / {r['pitch_sd']:.1f} / {r['roll_sd']:.1f} | "
+              f"{r['gaze_s'] + r['head_s']:.1f} |")
     print("\n## Head pose stored by the pipeline (track's landmarks.npz head_angles, relative to the line of sight) "
           "against MediaPipe (Pearson r; '-' where the reference does not move)\n")
     print("| clip | yaw | pitch | roll | reference sd yaw/pitch/roll |")
@@ -229,10 +237,10 @@ def main(argv=None) -> int:
     for r in rows:
         print(f"| {r['clip']} | {f(r['yaw_stored'])} | {f(r['pitch_stored'])} | {f(r['roll_stored'])} | "
               f"{r['yaw_sd']:.1f} / {r['pitch_sd']:.1f} / {r['roll_sd']:.1f} |")
-    for key in ("ours_h", "peer_h", "ours_v", "peer_v", "yaw", "pitch", "roll", "yaw_stored", "pitch_stored",
-                "roll_stored"):
+    for key in ("ours_h", "stored_h", "peer_h", "ours_v", "stored_v", "peer_v", "yaw", "pitch", "roll", "yaw_stored",
+                "pitch_stored", "roll_stored"):
         vals = [r[key] for r in rows if np.isfinite(r[key])]
-        print(f"mean {key}: {np.mean(vals):.2f} over {len(vals)} clips" if vals else f"mean {key}: -")
+        print(f"mean {key}: {np.mean(vals):.3f} over {len(vals)} clips" if vals else f"mean {key}: -")
     return 0
 
 

@@ -11,7 +11,10 @@ square of the difference, after a 1-pixel blur), its percentile/power/blur varia
 again inside a disk of the iris's radius, 0.18-0.26 eye widths, around the first), ``contrast`` (the centroid,
 rejected and held when the disk around it is not darker than the rest of the eye by 8 or 15 gray levels),
 ``disk`` (the darkest disk of radius 0.2 eye widths, a template of the iris), ``eroded`` (the lid mask shrunk by a
-pixel: lashes out) and ``rows`` (each row's median taken off: the upper lid's shadow out).
+pixel: lashes out) and ``rows`` (each row's median taken off: the upper lid's shadow out); then the module's own
+(:func:`~retarget_cli.methods.tracking.gaze.iris_centre` in the lid mask grown by 2 patch pixels, the centroid's x
+averaged with the limbus's, nearly shut eyes' horizontal readings drawn toward the median,
+:func:`~retarget_cli.methods.tracking.gaze.draw_unsure`) and its parts taken away one at a time.
 
 Run: ``python bench/gaze_locators.py [--videos d3,d12]`` (after ``bench/gaze_head.py`` has tracked them, or it
 tracks them). Without ``../shared/realdata`` it prints a skip line.
@@ -36,7 +39,8 @@ from gaze_head import DATA, MOVES_GAZE, pearson, reference_gaze, track  # noqa: 
 
 
 def patches(video: Path, lm):
-    """Per frame and eye: the upright patch (H, W) float, its lid mask, the lid gap over the eye width."""
+    """Per frame and eye: the upright patch (H, W) float, its lid mask (as tracked, not grown), the lid gap over
+    the eye width."""
     import cv2
 
     from retarget_cli.methods.tracking import gaze as G
@@ -54,7 +58,7 @@ def patches(video: Path, lm):
             mid, x, y, w = G.eye_frame(P[t], eye)
             patch, A = G._patch(gray, mid, x, y, w)
             gap = np.mean([np.hypot(*(P[t, a] - P[t, b])) for a, b in zip(eye[2], eye[3])])
-            row.append((patch, G._eye_mask(P[t], eye, A), gap / max(w, 1e-9)))
+            row.append((patch, G._eye_mask(P[t], eye, A, grow=0), gap / max(w, 1e-9)))
         out.append(row)
     return out
 
@@ -137,6 +141,47 @@ def rows(p, m):
     return centroid(q, m)
 
 
+def grown(m, k=None):
+    import cv2
+
+    from retarget_cli.methods.tracking.gaze import _GROW
+
+    k = _GROW if k is None else k
+    return cv2.dilate(m.astype(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8)).astype(bool)
+
+
+def limbus_alone(p, m):
+    """The best-scoring limbus centre anywhere in the grown mask (:func:`limbus_x`'s score, argmax)."""
+    import cv2
+
+    from retarget_cli.methods.tracking.gaze import _LIMBUS_RADIUS, _WIDTH, _limbus_kernel
+
+    mm = grown(m)
+    g = cv2.GaussianBlur(p, (0, 0), 1.0)
+    s = cv2.filter2D(cv2.Sobel(g, cv2.CV_64F, 1, 0, ksize=3) * mm, -1, _limbus_kernel(_LIMBUS_RADIUS * _WIDTH),
+                     borderType=cv2.BORDER_CONSTANT)
+    s = np.where(mm, s, -np.inf)
+    i = np.unravel_index(np.argmax(s), s.shape)
+    return np.array([i[1], i[0]], dtype=np.float64)
+
+
+def module(p, m, k=None, limbus=True):
+    from retarget_cli.methods.tracking.gaze import iris_centre
+
+    return iris_centre(p, grown(m, k), limbus=limbus)
+
+
+#: The module's locator and its parts; the second element: draw nearly shut eyes toward the median (``unsure``).
+MODULE = {
+    "module: grown mask, centroid + limbus, unsure drawn to the median": (module, True),
+    "  same, unsure not drawn": (module, False),
+    "  centroid alone (grown mask), unsure drawn": (partial(module, limbus=False), True),
+    "  centroid alone (grown mask), unsure not drawn": (partial(module, limbus=False), False),
+    "  mask not grown, centroid + limbus, unsure drawn": (partial(module, k=0), True),
+    "  mask grown by 1 / 3 px (0.025 / 0.075 widths), unsure drawn": None,
+    "  limbus alone (argmax in the grown mask), unsure drawn": (limbus_alone, True),
+}
+
 LOCATORS = {
     "centroid": centroid,
     **{f"centroid p{pc} w{pw} blur{sg:g}": partial(centroid, perc=pc, power=pw, sigma=sg)
@@ -150,8 +195,8 @@ LOCATORS = {
 }
 
 
-def score(locate, eyes, ref, closed: float = 0.12) -> list:
-    from retarget_cli.methods.tracking.gaze import _PATCH, _WIDTH, _hold
+def score(locate, eyes, ref, closed: float = 0.12, unsure=False) -> list:
+    from retarget_cli.methods.tracking.gaze import _PATCH, _WIDTH, _hold, draw_unsure
 
     T = len(ref)
     off = np.full((T, 2, 2), np.nan)
@@ -162,6 +207,8 @@ def score(locate, eyes, ref, closed: float = 0.12) -> list:
             c = locate(p, m)
             if c is not None:
                 off[t, e] = (c - np.array(_PATCH, dtype=np.float64) / 2.0) / _WIDTH
+    if unsure:
+        off = draw_unsure(off, np.array([[o for _, _, o in row] for row in eyes]))
     off = _hold(off)
     return [[pearson(off[:, e, k], ref[:, e, k]) for e in range(2) if np.nanstd(ref[:, e, k]) >= MOVES_GAZE]
             for k in range(2)]
@@ -188,8 +235,15 @@ def main(argv=None) -> int:
         clips.append((name, eyes[:T], reference_gaze(np.asarray(ref["points"], np.float64)[:T])))
     print("| locator | gaze h (mean r) | gaze v (mean r) | " + " | ".join(f"{c[0]} h / v" for c in clips) + " |")
     print("|---|---|---|" + "---|" * len(clips))
-    for name, locate in LOCATORS.items():
-        per = [score(locate, eyes, ref) for _, eyes, ref in clips]
+    rows = [(name, locate, False) for name, locate in LOCATORS.items()]
+    for name, v in MODULE.items():
+        if v is None:
+            rows += [(f"  mask grown by {k} px, centroid + limbus, unsure drawn", partial(module, k=k), True)
+                     for k in (1, 3)]
+        else:
+            rows.append((name, *v))
+    for name, locate, unsure in rows:
+        per = [score(locate, eyes, ref, unsure=unsure) for _, eyes, ref in clips]
         h = np.mean([np.mean(s[0]) for s in per if s[0]])
         v = np.mean([np.mean(s[1]) for s in per if s[1]])
         cells = " | ".join(f"{np.mean(s[0]):.2f} / {np.mean(s[1]):.2f}" for s in per)

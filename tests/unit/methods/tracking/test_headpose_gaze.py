@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from retarget_cli.methods.tracking.gaze import EYES_68, gaze
+from retarget_cli.methods.tracking.gaze import EYES_68, _eye_mask, _patch, eye_frame, gaze, iris_centre
 from retarget_cli.methods.tracking.headpose import (
     FACE_68,
     angles_rotation,
@@ -59,12 +59,13 @@ def test_head_pose_with_expression_noise_stays_within_two_degrees():
     assert np.mean(np.abs(pose.angles - true)) < 2.0
 
 
-def _eye_image(offset: float, closed: bool = False):
-    """A 200x120 frame with one eye: white sclera between corners 60 px apart, a dark iris *offset* widths along."""
+def _eye_image(offset: float, closed: bool = False, half: int = 11):
+    """A 200x120 frame with one eye: white sclera between corners 60 px apart, a dark iris *offset* widths along,
+    the lids *half* px above and below the corner line (2 when *closed*)."""
     img = np.full((120, 200), 150, np.uint8)
     c = np.array([100.0, 60.0])
     corners = c + np.array([[-30, 0], [30, 0]])
-    half = 2 if closed else 11
+    half = 2 if closed else half
     cv2.ellipse(img, (100, 60), (30, half), 0, 0, 360, 235, -1)
     if not closed:
         iris = (int(round(100 + offset * 60)), 60)
@@ -101,3 +102,40 @@ def test_a_blink_holds_the_gaze():
     assert g.held[2:4, 0].all() and not g.held[[0, 1, 4], 0].any()
     np.testing.assert_allclose(g.offset[2:4, 0], g.offset[1:2, 0].repeat(2, axis=0))
     assert np.all(np.abs(g.offset[:, 0, 0] - 0.15) < 0.03)
+
+
+@pytest.mark.parametrize("shade", [40, 80])
+def test_a_shadow_off_the_iris_pulls_the_centroid_not_the_limbus(shade):
+    # a dark band along the outer half of the upper lid (lashes, the lid's shadow), the iris 0.1 widths inward
+    img, pts = _eye_image(0.1)
+    inside = np.zeros_like(img)
+    cv2.ellipse(inside, (100, 60), (30, 11), 0, 0, 360, 1, -1)
+    band = np.zeros_like(img)
+    cv2.rectangle(band, (72, 50), (88, 58), 1, -1)
+    img[(band & inside).astype(bool)] = shade
+    eye = EYES_68[0]
+    mid, x, y, w = eye_frame(pts, eye)
+    patch, A = _patch(img, mid, x, y, w)
+    mask = _eye_mask(pts, eye, A)
+    centroid = iris_centre(patch, mask, limbus=False)
+    both = iris_centre(patch, mask)
+    err = [abs((c[0] - 30.0) / 40.0 - 0.1) for c in (centroid, both)]  # patch: 40 px per eye width, centre x 30
+    assert err[0] > 0.025          # the centroid is pulled toward the band
+    assert err[1] < 0.015          # the limbus average is not
+    assert abs(gaze([img], pts[None]).offset[0, 0, 0] - 0.1) < 0.015
+
+
+def test_a_nearly_shut_eye_is_drawn_toward_the_median_horizontal_gaze():
+    # four open frames looking ahead, one open and one nearly shut (lid gap 10/60 widths) looking 0.15 inward
+    frames, points = [], []
+    for offset, half in [(0.0, 11)] * 4 + [(0.15, 11), (0.15, 5)]:
+        img, pts = _eye_image(offset, half=half)
+        frames.append(img)
+        points.append(pts)
+    g = gaze(frames, np.array(points))
+    assert not g.held[:, 0].any()
+    assert abs(g.offset[4, 0, 0] - 0.15) < 0.03                 # open: read in full
+    keep = (10 / 60 - 0.10) / (0.25 - 0.10)                        # the gap's weight between 0.10 and 0.25 widths
+    assert abs(g.offset[5, 0, 0] - g.offset[0, 0, 0] - keep * 0.15) < 0.02
+    raw = gaze(frames, np.array(points), unsure=(0.0, 0.0))        # without: the shut eye's full reading
+    assert abs(raw.offset[5, 0, 0] - 0.15) < 0.04
