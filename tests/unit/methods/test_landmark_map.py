@@ -114,11 +114,13 @@ def test_map_found_on_the_ict_neutral_is_near_the_shipped_map(ict_rig_dir):
     assert set(m.source[17:27]) <= {"detector", "detector:brow height"}
     ref = np.asarray(spec["landmarks"])
     d = np.linalg.norm(V[m.vertices] - V[ref], axis=1) / np.linalg.norm(V[ref[45]] - V[ref[36]])
-    # bench/landmark_map.py (all 57 sliders): 0.043 over the 68 points, 0.031 without the jaw line
+    # bench/landmark_map.py (all 57 sliders): 0.040 over the 68 points, 0.030 without the jaw line; with these
+    # five sliders 0.0375 and 0.026, the jaw line 0.073 (0.101, mean 0.044, each cheek point lifted on its own)
     assert d[17:].mean() < 0.06
     assert d[17:27].mean() < 0.06  # the brows raised to a face's height (0.079 on the crest, before raise_brows)
     assert d[36:48].mean() < 0.05 and d[48:68].mean() < 0.05
-    assert d.mean() < 0.08
+    assert d[:17].mean() < 0.09  # the jaw line a smooth curve (smooth_jaw)
+    assert d.mean() < 0.045
 
 
 def test_brows_below_a_faces_height_are_raised_across_the_eye_line():
