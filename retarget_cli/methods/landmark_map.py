@@ -410,7 +410,7 @@ CHEEK_68 = (0, 1, 2, 3, 4, 12, 13, 14, 15, 16)
 CONTOUR_RADIUS = 0.02
 
 
-def lift_landmarks(points, render: FaceRender, skin) -> np.ndarray:
+def lift_landmarks(points, render: FaceRender, skin, *, smooth: bool = True) -> np.ndarray:
     """The 68 points lifted to vertices: :func:`lift`, and on the jaw line by the surface's depth.
 
     A jaw-line point sits on or near the outline, where the surface turns
@@ -426,6 +426,8 @@ def lift_landmarks(points, render: FaceRender, skin) -> np.ndarray:
     - on the chin (5-11), which faces the camera, and where no face vertex is
       near, the one nearest the camera (the jaw, not the neck under it).
 
+    With *smooth* the cheek points are then chosen again together, so that
+    the jaw line 0-16 is a smooth curve in 3D (:func:`smooth_jaw`).
     Measured on the ICT FaceKit (``bench/landmark_map.py``).
 
     Parameters
@@ -434,6 +436,8 @@ def lift_landmarks(points, render: FaceRender, skin) -> np.ndarray:
         Pixels in *render*'s image.
     render : FaceRender
     skin : ndarray (N,), bool
+    smooth : bool
+        Choose the cheek points' vertices together (:func:`smooth_jaw`).
 
     Returns
     -------
@@ -453,7 +457,123 @@ def lift_landmarks(points, render: FaceRender, skin) -> np.ndarray:
             vx[i] = face[np.argmin(grazing[face])]
         else:
             vx[i] = near[np.argmax(render.cam[near, 2])]
+    if smooth:
+        vx[list(CONTOUR_68)] = smooth_jaw(P, vx, render, skin)
     return vx
+
+
+#: Radius (inter-ocular distances, in the image) around a cheek point in which :func:`smooth_jaw` looks.
+JAW_RADIUS = 0.03
+#: Cosine scale of the occluding contour in :func:`smooth_jaw`: a candidate's cost grows with the square of its
+#: normal's cosine with the view in these units, and hidden face vertices with a cosine below it in absolute value
+#: (the far side of the contour, behind the pixel's own front triangle) are candidates too.
+JAW_GRAZING = 0.1
+#: Weight of the jaw line's bending (squared second differences, inter-ocular distances) in :func:`smooth_jaw`.
+JAW_SMOOTHNESS = 100.0
+
+
+def smooth_jaw(points, vx, render: FaceRender, skin) -> np.ndarray:
+    """The cheek points' vertices chosen so that the jaw line is a smooth curve in 3D; (17,) vertex ids.
+
+    Near the outline the picture does not say how deep a point is: the
+    cheek's side is nearly parallel to the view, so vertices a tenth of an
+    inter-ocular distance apart in depth project within a pixel or two, and
+    the most grazing vertex of each point alone (:func:`lift_landmarks`)
+    jumps back and forth between them from one point to the next (on the
+    ICT FaceKit, points 1-3 at +0.10, 0 and -0.10 inter-ocular distances
+    from the kit's vertices in depth). A face's jaw line is a smooth curve
+    (the ICT FaceKit's shipped points follow one), so the cheek points'
+    (:data:`CHEEK_68`) vertices are chosen together: for each point the
+    candidates are the face's vertices (:attr:`FaceRender.region`) within
+    :data:`JAW_RADIUS` inter-ocular distances of it in the picture, visible
+    skin or hidden on the far side of the contour (|cosine| of normal and
+    view below :data:`JAW_GRAZING`); the chin points 5-11 (facing the
+    camera, their depth seen) stay as lifted and anchor the curve. The
+    choice minimises, by dynamic programming over the chain 0-16,
+
+    .. math:: \\sum_i (d_i / r)^2 + (c_i / c_0)^2
+              + \\lambda \\sum_i \\lVert X_{i-1} - 2 X_i + X_{i+1} \\rVert^2
+
+    with :math:`d_i` a candidate's distance from its point in the picture,
+    :math:`r` the radius, :math:`c_i` its normal's cosine with the view
+    (0 on the occluding contour), :math:`c_0` = :data:`JAW_GRAZING`,
+    :math:`X` camera-space positions in inter-ocular distances and
+    :math:`\\lambda` = :data:`JAW_SMOOTHNESS`: each point near the contour,
+    as :func:`lift_landmarks` puts it, unless the curve bends there. A point
+    with no candidate keeps its vertex. Measured with ``bench/landmark_map.py``
+    (docs/landmark-map.md).
+
+    Parameters
+    ----------
+    points : ndarray (68, 2)
+        The detected points (pixels of *render*).
+    vx : ndarray (68,), int
+        The map as lifted point by point.
+    render : FaceRender
+    skin : ndarray (N,), bool
+
+    Returns
+    -------
+    ndarray (17,), int64
+        Vertices of points 0-16.
+    """
+    P = np.asarray(points, np.float64)
+    vx = np.asarray(vx, np.int64)
+    iod = np.linalg.norm(P[45] - P[36])
+    iod3 = np.linalg.norm(render.cam[vx[45]] - render.cam[vx[36]])
+    if not (iod > 0 and iod3 > 0):
+        return vx[list(CONTOUR_68)].copy()
+    X = render.cam / iod3
+    grazing = np.abs(_view_cosine(render.cam, render.normals, render.view.camera.fov == 0))
+    pool = np.flatnonzero(render.region & (skin | (grazing < JAW_GRAZING)))
+    cands, unary = [], []
+    for i in CONTOUR_68:
+        d = np.linalg.norm(render.xy[pool] - P[i], axis=1) / (JAW_RADIUS * iod)
+        near = d < 1
+        if i in CHEEK_68 and near.any():
+            cands.append(pool[near])
+            unary.append(d[near] ** 2 + (grazing[pool[near]] / JAW_GRAZING) ** 2)
+        else:
+            cands.append(vx[i:i + 1])
+            unary.append(np.zeros(1))
+    return _chain_path(cands, unary, X, JAW_SMOOTHNESS)
+
+
+def _chain_path(cands, unary, X, lam: float) -> np.ndarray:
+    """One candidate per link of a chain minimising the unary costs plus *lam* times the squared second differences.
+
+    Dynamic programming over pairs of consecutive choices (Viterbi on a second-order chain).
+
+    Parameters
+    ----------
+    cands : list of ndarray (K_i,), int
+        Candidate vertex ids per link (at least 2 links).
+    unary : list of ndarray (K_i,)
+    X : ndarray (N, 3)
+        Positions of the vertices.
+    lam : float
+
+    Returns
+    -------
+    ndarray (len(cands),), int64
+    """
+    n = len(cands)
+    C = [X[c] for c in cands]
+    cost = unary[0][:, None] + unary[1][None, :]  # (choice at i-1, choice at i)
+    back = []
+    for i in range(2, n):
+        bend = C[i - 2][:, None, None, :] - 2 * C[i - 1][None, :, None, :] + C[i][None, None, :, :]
+        total = cost[:, :, None] + lam * (bend ** 2).sum(-1)
+        back.append(total.argmin(0))
+        cost = total.min(0) + unary[i][None, :]
+    b, c = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    path = [c, b]
+    for i in range(n - 1, 1, -1):
+        a = back[i - 2][b, c]
+        path.append(a)
+        b, c = a, b
+    path = path[::-1]
+    return np.array([cands[i][path[i]] for i in range(n)], np.int64)
 
 
 # --------------------------------------------------------------------------- the detector
@@ -1053,5 +1173,5 @@ def map_distance(vertices, vx, reference) -> tuple[float, float]:
 
 __all__ = ["MIRROR_68", "N_POINTS", "REGIONS_68", "STYLES", "TEMPLATE_68", "FaceRender", "LandmarkMap",
            "RenderStyle", "SHEET_SCALE", "BROW_HEIGHT_68", "correct", "detect_face", "draw_sheet", "points_from_sheet", "face_region", "find_landmark_map", "front_yaw", "lift",
-           "lift_landmarks", "part_closed_lips", "raise_brows",
+           "lift_landmarks", "part_closed_lips", "raise_brows", "smooth_jaw",
            "map_distance", "map_quality", "motion_weights", "render_face", "skin_vertices", "slider_landmarks"]
