@@ -17,7 +17,11 @@ follow ``apply.gaps`` (default ``ease``: the middle of a 2 s gap at the rest pos
 frames away from the changed ones (5 frames excluded each side), Pearson r of the character's mouth opening
 and eye openings (the ICT landmark vertices posed at the curves, ``bench/peer.py``'s :func:`score`) against
 the reference, beside the clean clip's r on the same frames (the cut's second part against the other clip's
-clean run, framed as the cut shows it when the sizes differ: d9 letterboxed to 512x512 after d3). Target: every difference within 0.03. The reference is MediaPipe Face Mesh 0.10.14
+clean run, framed as the cut shows it when the sizes differ: d9 letterboxed to 512x512 after d3). The clean
+runs are of the clip written through the same encoder as the variants (:func:`write_video`, mp4v), so the
+frames away from the change are the same pixels in both: the variants are re-encoded, and re-encoding alone
+moves the tracked landmarks (d12, frames 5-85: mouth r 0.78 from the original file, 0.89 from its mp4v copy,
+same rest frame). Target: every difference within 0.03. The reference is MediaPipe Face Mesh 0.10.14
 (``bench/reference``) where its venv can be made, else raw per-frame dlib (say which in the output).
 
 ``--long MINUTES`` (e.g. ``1,3``): also a synthetic long take per length: d12 scaled to 256x256 and looped,
@@ -115,6 +119,15 @@ def fitted(other: str, clip: str) -> Path | None:
     path = BUILD / "videos" / f"{other}_fit{w}x{h}.mp4"
     if not path.is_file():
         write_video(path, [fit(f, w, h) for f in frames], fps)
+    return path
+
+
+def reencoded(clip: str) -> Path:
+    """*clip* whole, written through :func:`write_video` as the variants are (made once): the clean run's video."""
+    path = BUILD / "videos" / f"{clip}_mp4v.mp4"
+    if not path.is_file():
+        frames, fps = read_video(DATA / "videos" / f"{clip}.mp4")
+        write_video(path, frames, fps)
     return path
 
 
@@ -331,9 +344,10 @@ def main(argv=None) -> int:
         refs = {c: reference_for(c, kind) for c in needed}
         clean = {}
         for c in needed:
-            n = len(read_video(DATA / "videos" / f"{c}.mp4")[0])
-            clean[c] = run(DATA / "videos" / f"{c}.mp4", n, ctx, BUILD / "runs" / f"{c}_clean", args)
-            log(f"{c}: clean run, {n} frames")
+            path = reencoded(c)  # the same encoder as the variants: the same pixels away from the change
+            n = len(read_video(path)[0])
+            clean[c] = run(path, n, ctx, BUILD / "runs" / f"{path.stem}_clean", args)
+            log(f"{c}: clean run ({path.name}), {n} frames")
         for c in clips if "cut" in variants else ():  # the other clip framed as in the cut, where sizes differ
             path = fitted(CUT_TO[c], c)
             if path is not None:
