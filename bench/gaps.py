@@ -17,7 +17,9 @@ follow ``apply.gaps`` (default ``ease``: the middle of a 2 s gap at the rest pos
 frames away from the changed ones (5 frames excluded each side), Pearson r of the character's mouth opening
 and eye openings (the ICT landmark vertices posed at the curves, ``bench/peer.py``'s :func:`score`) against
 the reference, beside the clean clip's r on the same frames (the cut's second part against the other clip's
-clean run, framed as the cut shows it when the sizes differ: d9 letterboxed to 512x512 after d3). The clean
+clean run, framed as the cut shows it when the sizes differ: d9 letterboxed to 512x512 after d3; a measure
+whose reference barely moves on those frames, std < ``bench/peer.py``'s FLAT, is marked flat and left out of
+the worst difference: its r is noise, e.g. d3's mouth, closed from frame 97 to 182). The clean
 runs are of the clip written through the same encoder as the variants (:func:`write_video`, mp4v), so the
 frames away from the change are the same pixels in both: the variants are re-encoded, and re-encoding alone
 moves the tracked landmarks (d12, frames 5-85: mouth r 0.78 from the original file, 0.89 from its mp4v copy,
@@ -224,6 +226,14 @@ def r_on(curves, ctx, ref: dict, frames: np.ndarray) -> dict:
     return {m: row["r"][m] for m in MEASURES}
 
 
+def flat_on(ref: dict, frames: np.ndarray) -> list[str]:
+    """The measures whose reference series barely moves on *frames* (``bench/peer.py``'s FLAT: r there is noise)."""
+    from peer import FLAT
+
+    found = ref["found"][frames]
+    return [m for m in MEASURES if not np.nanstd(ref["m"][m][frames][found]) >= FLAT]
+
+
 def check_variant(clip: str, variant: str, ctx, refs: dict, clean: dict, args) -> dict:
     video, info = make_variant(clip, variant)
     T = len(info["changed"])
@@ -244,7 +254,7 @@ def check_variant(clip: str, variant: str, ctx, refs: dict, clean: dict, args) -
             continue
         r_var = r_on(C, ctx, refs[part], sel)
         r_cln = r_on(clean.get(f"{part}@{clip}", clean[part])["curves"], ctx, refs[part], sel)
-        row["r"][part] = {"n": int(sel.size), "variant": r_var, "clean": r_cln,
+        row["r"][part] = {"n": int(sel.size), "variant": r_var, "clean": r_cln, "flat": flat_on(refs[part], sel),
                           "diff": {m: r_var[m] - r_cln[m] for m in MEASURES}}
     return row
 
@@ -253,8 +263,10 @@ def fmt_row(row: dict) -> list[str]:
     lines = []
     gaps = "; ".join(f"{g['reason']}@{g['start']}+{g['frames']}" for g in row["gaps"]) or "none"
     for part, s in row["r"].items():
-        worst = max(abs(v) for v in s["diff"].values())
-        cells = " | ".join(f"{s['variant'][m]:.3f} / {s['clean'][m]:.3f}" for m in MEASURES)
+        moving = [m for m in MEASURES if m not in s["flat"]]
+        worst = max((abs(s["diff"][m]) for m in moving), default=0.0)
+        cells = " | ".join(f"{s['variant'][m]:.3f} / {s['clean'][m]:.3f}" + (" (flat)" if m in s["flat"] else "")
+                           for m in MEASURES)
         lines.append(f"| {row['clip']} | {row['variant']} | {part} ({s['n']}) | {row['frames']} "
                      f"{'yes' if row['complete'] else 'NO'} | {gaps} | {row['rest_in_gaps']} | {cells} | "
                      f"{worst:.3f} {'ok' if worst <= TOLERANCE else 'MISS'} |")
