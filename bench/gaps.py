@@ -30,7 +30,8 @@ same rest frame). Target: every difference within 0.03. The reference is MediaPi
 with a gap (black, 1-3 s, seeded) every 30 s, tracked by ``retarget track`` in a child process; prints its
 peak RSS (``resource.getrusage`` of the child), wall time, and whether every gap was reported.
 
-Run: ``python bench/gaps.py [--videos d3,d9,d12] [--variants black,slide,cut] [--long 1,3] [--fresh]``.
+Run: ``python bench/gaps.py [--videos d3,d9,d12] [--variants black,slide,cut] [--long 1,3] [--fresh]
+[--reference auto|dlib]``.
 Without ``../shared/realdata`` it prints a skip line and exits 0.
 """
 
@@ -332,6 +333,8 @@ def parse_args(argv):
     p.add_argument("--config", type=Path, default=ROOT / "configs" / "real.yaml")
     p.add_argument("--long", default="", help="minutes of the synthetic long takes, e.g. 1,3 (default: none)")
     p.add_argument("--fresh", action="store_true", help="rerun the pipeline (the variants' videos are kept)")
+    p.add_argument("--reference", choices=("auto", "dlib"), default="auto",
+                   help="auto: MediaPipe Face Mesh where its venv can be made, else raw dlib; dlib: raw dlib")
     p.add_argument("--data", type=Path, default=DATA)
     args = p.parse_args(argv)
     args.ease_frames = 12  # apply.gap_ease 0.4 s at 30 fps
@@ -351,7 +354,7 @@ def main(argv=None) -> int:
     if clips and variants:
         ctx = load_rig(args.data / "ict-facekit" / "ict-facekit-rig.tar.xz")
         args.rig_yaml = ROOT / "build" / "real_rig" / "ict-facekit" / "rig.yaml"
-        kind = reference_kind()
+        kind = reference_kind() if args.reference == "auto" else "dlib"
         needed = sorted(set(clips) | ({CUT_TO[c] for c in clips} if "cut" in variants else set()))
         refs = {c: reference_for(c, kind) for c in needed}
         clean = {}
