@@ -17,14 +17,21 @@ follow ``apply.gaps`` (default ``ease``: the middle of a 2 s gap at the rest pos
 frames away from the changed ones (5 frames excluded each side), Pearson r of the character's mouth opening
 and eye openings (the ICT landmark vertices posed at the curves, ``bench/peer.py``'s :func:`score`) against
 the reference, beside the clean clip's r on the same frames (the cut's second part against the other clip's
-clean run, framed as the cut shows it when the sizes differ: d9 letterboxed to 512x512 after d3). Target: every difference within 0.03. The reference is MediaPipe Face Mesh 0.10.14
+clean run, framed as the cut shows it when the sizes differ: d9 letterboxed to 512x512 after d3; a measure
+whose reference barely moves on those frames, std < ``bench/peer.py``'s FLAT, is marked flat and left out of
+the worst difference: its r is noise, e.g. d3's mouth, closed from frame 97 to 182). The clean
+runs are of the clip written through the same encoder as the variants (:func:`write_video`, mp4v), so the
+frames away from the change are the same pixels in both: the variants are re-encoded, and re-encoding alone
+moves the tracked landmarks (d12, frames 5-85: mouth r 0.78 from the original file, 0.89 from its mp4v copy,
+same rest frame). Target: every difference within 0.03. The reference is MediaPipe Face Mesh 0.10.14
 (``bench/reference``) where its venv can be made, else raw per-frame dlib (say which in the output).
 
 ``--long MINUTES`` (e.g. ``1,3``): also a synthetic long take per length: d12 scaled to 256x256 and looped,
 with a gap (black, 1-3 s, seeded) every 30 s, tracked by ``retarget track`` in a child process; prints its
 peak RSS (``resource.getrusage`` of the child), wall time, and whether every gap was reported.
 
-Run: ``python bench/gaps.py [--videos d3,d9,d12] [--variants black,slide,cut] [--long 1,3] [--fresh]``.
+Run: ``python bench/gaps.py [--videos d3,d9,d12] [--variants black,slide,cut] [--long 1,3] [--fresh]
+[--reference auto|dlib]``.
 Without ``../shared/realdata`` it prints a skip line and exits 0.
 """
 
@@ -115,6 +122,15 @@ def fitted(other: str, clip: str) -> Path | None:
     path = BUILD / "videos" / f"{other}_fit{w}x{h}.mp4"
     if not path.is_file():
         write_video(path, [fit(f, w, h) for f in frames], fps)
+    return path
+
+
+def reencoded(clip: str) -> Path:
+    """*clip* whole, written through :func:`write_video` as the variants are (made once): the clean run's video."""
+    path = BUILD / "videos" / f"{clip}_mp4v.mp4"
+    if not path.is_file():
+        frames, fps = read_video(DATA / "videos" / f"{clip}.mp4")
+        write_video(path, frames, fps)
     return path
 
 
@@ -211,6 +227,14 @@ def r_on(curves, ctx, ref: dict, frames: np.ndarray) -> dict:
     return {m: row["r"][m] for m in MEASURES}
 
 
+def flat_on(ref: dict, frames: np.ndarray) -> list[str]:
+    """The measures whose reference series barely moves on *frames* (``bench/peer.py``'s FLAT: r there is noise)."""
+    from peer import FLAT
+
+    found = ref["found"][frames]
+    return [m for m in MEASURES if not np.nanstd(ref["m"][m][frames][found]) >= FLAT]
+
+
 def check_variant(clip: str, variant: str, ctx, refs: dict, clean: dict, args) -> dict:
     video, info = make_variant(clip, variant)
     T = len(info["changed"])
@@ -231,7 +255,7 @@ def check_variant(clip: str, variant: str, ctx, refs: dict, clean: dict, args) -
             continue
         r_var = r_on(C, ctx, refs[part], sel)
         r_cln = r_on(clean.get(f"{part}@{clip}", clean[part])["curves"], ctx, refs[part], sel)
-        row["r"][part] = {"n": int(sel.size), "variant": r_var, "clean": r_cln,
+        row["r"][part] = {"n": int(sel.size), "variant": r_var, "clean": r_cln, "flat": flat_on(refs[part], sel),
                           "diff": {m: r_var[m] - r_cln[m] for m in MEASURES}}
     return row
 
@@ -240,8 +264,10 @@ def fmt_row(row: dict) -> list[str]:
     lines = []
     gaps = "; ".join(f"{g['reason']}@{g['start']}+{g['frames']}" for g in row["gaps"]) or "none"
     for part, s in row["r"].items():
-        worst = max(abs(v) for v in s["diff"].values())
-        cells = " | ".join(f"{s['variant'][m]:.3f} / {s['clean'][m]:.3f}" for m in MEASURES)
+        moving = [m for m in MEASURES if m not in s["flat"]]
+        worst = max((abs(s["diff"][m]) for m in moving), default=0.0)
+        cells = " | ".join(f"{s['variant'][m]:.3f} / {s['clean'][m]:.3f}" + (" (flat)" if m in s["flat"] else "")
+                           for m in MEASURES)
         lines.append(f"| {row['clip']} | {row['variant']} | {part} ({s['n']}) | {row['frames']} "
                      f"{'yes' if row['complete'] else 'NO'} | {gaps} | {row['rest_in_gaps']} | {cells} | "
                      f"{worst:.3f} {'ok' if worst <= TOLERANCE else 'MISS'} |")
@@ -307,6 +333,8 @@ def parse_args(argv):
     p.add_argument("--config", type=Path, default=ROOT / "configs" / "real.yaml")
     p.add_argument("--long", default="", help="minutes of the synthetic long takes, e.g. 1,3 (default: none)")
     p.add_argument("--fresh", action="store_true", help="rerun the pipeline (the variants' videos are kept)")
+    p.add_argument("--reference", choices=("auto", "dlib"), default="auto",
+                   help="auto: MediaPipe Face Mesh where its venv can be made, else raw dlib; dlib: raw dlib")
     p.add_argument("--data", type=Path, default=DATA)
     args = p.parse_args(argv)
     args.ease_frames = 12  # apply.gap_ease 0.4 s at 30 fps
@@ -326,14 +354,15 @@ def main(argv=None) -> int:
     if clips and variants:
         ctx = load_rig(args.data / "ict-facekit" / "ict-facekit-rig.tar.xz")
         args.rig_yaml = ROOT / "build" / "real_rig" / "ict-facekit" / "rig.yaml"
-        kind = reference_kind()
+        kind = reference_kind() if args.reference == "auto" else "dlib"
         needed = sorted(set(clips) | ({CUT_TO[c] for c in clips} if "cut" in variants else set()))
         refs = {c: reference_for(c, kind) for c in needed}
         clean = {}
         for c in needed:
-            n = len(read_video(DATA / "videos" / f"{c}.mp4")[0])
-            clean[c] = run(DATA / "videos" / f"{c}.mp4", n, ctx, BUILD / "runs" / f"{c}_clean", args)
-            log(f"{c}: clean run, {n} frames")
+            path = reencoded(c)  # the same encoder as the variants: the same pixels away from the change
+            n = len(read_video(path)[0])
+            clean[c] = run(path, n, ctx, BUILD / "runs" / f"{path.stem}_clean", args)
+            log(f"{c}: clean run ({path.name}), {n} frames")
         for c in clips if "cut" in variants else ():  # the other clip framed as in the cut, where sizes differ
             path = fitted(CUT_TO[c], c)
             if path is not None:

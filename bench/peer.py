@@ -289,7 +289,7 @@ def run_ours(video: Path, start: int, end: int, ctx, work: Path, args, neutral: 
     if isinstance(cfg.get("auto_pose"), dict):
         cfg["auto_pose"]["rig"] = str(args.rig_yaml)
     if neutral is not None:
-        cfg.setdefault("select", {})["neutral_frame"] = int(neutral - start)
+        cfg.setdefault("select", {})["neutral_frame"] = int(neutral)  # a source frame number, as keys.json records it
         for stage in ("decompose", "auto_pose"):
             if isinstance(cfg.get(stage), dict):
                 cfg[stage]["neutral_frame"] = "auto"
@@ -316,7 +316,7 @@ def _read_run(run: Path, ctx, start: int, end: int) -> dict:
         frames = np.asarray(d["frames"], np.int64) if "frames" in d.files else start + np.arange(len(d["points"]))
         points = np.asarray(d["points"], np.float64)
     rec = json.loads((run / "keys.json").read_text()).get("neutral") if (run / "keys.json").is_file() else None
-    neutral = start + int(rec["frame"]) if isinstance(rec, dict) else -1
+    neutral = int(rec["frame"]) if isinstance(rec, dict) else -1  # a source (video) frame number already
     if len(C) != len(frames) or not np.array_equal(frames, np.arange(start, end)):
         raise RuntimeError(f"{run}: {len(C)} curve rows for tracked frames {frames[0]}-{frames[-1]} "
                            f"({len(frames)}), expected {start}-{end - 1}")

@@ -12,8 +12,12 @@ the frame of the take where the face is nearest rest:
    :data:`MIN_CONFIDENCE_FRACTION` of the take's median;
 2. **calm frames** (68-point layout): the lips closed, as far as this take
    closes them (the inner-lip gap within :data:`LIP_BAND` mouth widths of its
-   2nd percentile), and both eyes open (each eye's opening at least
-   :data:`EYE_OPEN_FRACTION` of its 90th percentile);
+   2nd percentile), both eyes open (each eye's opening at least
+   :data:`EYE_OPEN_FRACTION` of its 90th percentile), and the mouth no
+   wider than :data:`MOUTH_WIDE` above the take's median mouth width (a
+   closed-lip smile closes the lips too: held for most of the closed-lip
+   frames, it would otherwise be the mode below; dropped when no closed-lip
+   frame is that narrow);
 3. **the rest shape**: the per-landmark median of the calm frames, moved
    towards the mode of their distribution by :data:`MODE_ITERATIONS` rounds
    of taking the median of the nearest :data:`MODE_KEEP` of them (so that a
@@ -51,6 +55,9 @@ LIP_BAND = 0.02
 LIPS_CLOSED = 0.05
 #: An eye counts as open when its opening is at least this fraction of its 90th percentile over the take.
 EYE_OPEN_FRACTION = 0.7
+#: A calm frame's mouth (corner to corner) is at most this fraction wider than the take's median mouth width
+#: over its usable frames: wider is a smile, even with the lips closed (issue 33, d9 after a cut).
+MOUTH_WIDE = 0.12
 #: Rounds of moving the rest shape towards the mode, and the fraction of the calm frames (the nearest) whose
 #: median it is after each round.
 MODE_ITERATIONS = 3
@@ -173,13 +180,19 @@ def _usable(P: np.ndarray, confidence) -> np.ndarray:
     return ok
 
 
-def _calm(openings: dict, usable: np.ndarray) -> np.ndarray:
-    """Usable frames with the lips closed (as far as the take closes them) and both eyes open."""
+def _calm(openings: dict, usable: np.ndarray, width: np.ndarray | None = None) -> np.ndarray:
+    """Usable frames with the lips closed (as far as the take closes them), both eyes open and, given the mouth
+    *width* (T,), the mouth no wider than MOUTH_WIDE above its median over the usable frames (unless that
+    leaves no frame)."""
     gap = openings["lip_gap"]
     calm = usable & (gap <= np.percentile(gap[usable], 2) + LIP_BAND)
     for eye in ("eye_l", "eye_r"):
         e = openings[eye]
         calm &= e >= EYE_OPEN_FRACTION * np.percentile(e[usable], 90)
+    if width is not None:
+        narrow = calm & (width <= (1.0 + MOUTH_WIDE) * np.median(width[usable]))
+        if narrow.any():
+            calm = narrow
     return calm
 
 
@@ -257,7 +270,7 @@ def rest_shape(stabilized, confidence=None) -> RestShape:
     Q = Q / (iod if iod > 0 else 1.0)
     if P.shape[1] == 68:
         openings = face_openings(Q)
-        calm = _calm(openings, usable)
+        calm = _calm(openings, usable, np.linalg.norm(Q[:, _MOUTH_CORNERS[1]] - Q[:, _MOUTH_CORNERS[0]], axis=1))
         regions = [list(r) for r in REGIONS_68.values()]
     else:
         openings, calm, regions = {}, usable.copy(), [list(range(P.shape[1]))]
@@ -403,6 +416,6 @@ def align_shape(shape, reference, *, rigid_points=None) -> np.ndarray:
     return apply_similarity(head, S[None])[0]
 
 
-__all__ = ["AVERAGED", "EYE_OPEN_FRACTION", "HOLD", "LIPS_CLOSED", "LIP_BAND", "MIN_CONFIDENCE_FRACTION", "MIN_MEMBERS", "MODE_ITERATIONS",
+__all__ = ["AVERAGED", "EYE_OPEN_FRACTION", "HOLD", "LIPS_CLOSED", "LIP_BAND", "MIN_CONFIDENCE_FRACTION", "MIN_MEMBERS", "MODE_ITERATIONS", "MOUTH_WIDE",
            "MODE_KEEP", "REGIONS_68", "RestChoice", "RestShape", "align_shape", "face_openings", "find_rest_frame",
            "nearest_frame", "rest_shape"]

@@ -102,3 +102,21 @@ def test_a_calibration_shape_aligned_to_the_take_and_its_nearest_frame():
     assert curves[f].max() < 0.02
     with pytest.raises(ValueError, match="shape"):
         nearest_frame(take, None, aligned[:10])
+
+
+def test_a_closed_lip_smile_held_longer_than_the_rest_is_not_the_rest_pose():
+    """Issue 33's d9 shot: most frames with the lips closed and the eyes open are a closed-lip smile; the rest
+    frames are fewer, and the mouth is open (speech) in between. The rest is the narrower mouth."""
+    T = 150
+    curves = np.zeros((T, len(EXPRESSIONS)))
+    curves[:60, E["smile"]] = 1.0   # a closed-lip smile, held
+    curves[60:110, E["jaw_open"]] = 0.5 + 0.3 * np.sin(np.arange(50) / 4.0) ** 2  # talking
+    # frames 110-149: at rest (40 frames, fewer than the smile's 60)
+    P = landmarks_of(curves)
+    closed = face_openings(P)["lip_gap"] < 0.05
+    assert closed[:60].sum() > closed[110:].sum() > 10  # the smile is the majority of the closed-lip frames
+    rs = rest_shape(P, np.ones((T, 68)))
+    assert not rs.calm[:60].any() and rs.calm[110:].sum() > 10
+    choice = find_rest_frame(P, np.ones((T, 68)))
+    assert choice.frame >= 110 and choice.at_rest, (choice.frame, curves[choice.frame].round(2))
+    assert (choice.members >= 110).all(), choice.members
