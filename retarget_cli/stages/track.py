@@ -527,7 +527,8 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
     coverage = None
     with progress(n_expected, "track") as bar:
         try:
-            points, conf, *more = track(frames(), index, progress=lambda t: bar.update(1), **kw)
+            points, conf, *more = track(_Counted(frames(), n_expected), index, progress=lambda t: bar.update(1),
+                                        **kw)
             coverage = more[0] if more else None
         except FaceLostError as exc:
             where_f = source.frames[exc.frame] if exc.frame < len(source.frames) else exc.frame
@@ -545,6 +546,23 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
                              f"tracked up to then")
         log.warning("%s; keeping the %d frames tracked (--keep-partial)", stopped[0], len(points))
     return points, conf, coverage
+
+
+class _Counted:
+    """An iterator of frames that tells how many it expects (``operator.length_hint``): a tracker sizes its
+    per-frame arrays once instead of growing them."""
+
+    def __init__(self, it, n):
+        self._it, self._n = it, n
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        return next(self._it)
+
+    def __length_hint__(self) -> int:
+        return int(self._n or 0)
 
 
 def _coverage(coverage, T: int, frame_numbers, source, video):
