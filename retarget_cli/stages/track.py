@@ -226,11 +226,15 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
                                          anchors=[i for i in index if i < len(points)])
     # the take's per-frame arrays kept once each: what is only saved is kept as the file stores it (float32)
     raw = None if raw is None else raw.astype(np.float32)
-    head, stab = estimate_head(points, held_confidence(conf, found), rigid_points=rigid_points)
+    held = held_confidence(conf, found)
+    head, stab = estimate_head(points, held, rigid_points=rigid_points)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
-    pose3d = _head_pose_3d(points, held_confidence(conf, found), (W, H)) if head_pose else None
+    if neutral is None:  # only the calibration reads the stabilized landmarks at full precision
+        stab = stab.astype(np.float32)
+    pose3d = _head_pose_3d(points, held, (W, H)) if head_pose else None
+    del held
     gz = None
     if gaze and points.shape[1] == 68:
         gz = _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,

@@ -98,7 +98,9 @@ def apply_similarity(head, points) -> np.ndarray:
     """
     head = np.asarray(head, dtype=np.float64)
     points = np.asarray(points, dtype=np.float64)
-    return np.einsum("tij,tlj->tli", head[:, :, :2], points) + head[:, None, :, 2]
+    out = np.einsum("tij,tlj->tli", head[:, :, :2], points)
+    out += head[:, None, :, 2]  # in place: one (T, L, 2) array, not two
+    return out
 
 
 def invert_similarity(head) -> np.ndarray:
