@@ -243,8 +243,10 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
     preset, gaze_mask = _gaze_preset(gaze, fit, lm, r, spec, lm_ids, vx)
     fixed = excluded | gaze_mask
-    Y = lm.stabilized[:, lm_ids].astype(np.float64)
-    Cf = lm.confidence[:, lm_ids].astype(np.float64)
+    # the fitted landmarks as the file stores them (float32): the delta fit reads each frame at float64, exactly
+    Y, Cf = lm.stabilized[:, lm_ids], lm.confidence[:, lm_ids]
+    if fit != "delta" or neutral.shape is not None:
+        Y, Cf = Y.astype(np.float64), Cf.astype(np.float64)
     # frames all: each segment of the take (found frames between gaps and cuts) is posed and smoothed apart
     posed = [range(a, b) for a, b in lm.segments] if frames == "all" else [key_frames]
     if fit == "delta":
@@ -262,18 +264,22 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         shots = _shot_neutrals(lm, posed, neutral.frame, (Y0, C0), lm_ids, Y, Cf, contact, lid_closed,
                                opts["contact_refs"], keep_home=neutral.record.get("source") != "take") \
             if frames == "all" else None
+        T, timing = lm.n_frames, lm.timing()
+        del lm  # the take's landmarks: what the fit reads is in Y and Cf (not held through the fit)
         poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, (Y0, C0), region_rows, fixed,
-                                                    rigid, opts, shots=shots, preset=preset, T=lm.n_frames)
+                                                    rigid, opts, shots=shots, preset=preset, T=T)
     else:
+        T, timing = lm.n_frames, lm.timing()
+        del lm
         poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, [f for part in posed for f in part],
-                                                       list(kf.regions), region_rows, fixed, alpha, mu, T=lm.n_frames)
+                                                       list(kf.regions), region_rows, fixed, alpha, mu, T=T)
     del Y, Cf
     if frames == "all" and not poses[1].all():
         _hold_gaps(*poses)
     coverage = slider_coverage(r, vx, list(kf.regions), region_rows, owner, excluded, gaze_mask)
     _log_coverage(coverage)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
-                       None if neutral is None else neutral.label, lm.timing(), every_frame=frames == "all",
+                       None if neutral is None else neutral.label, timing, every_frame=frames == "all",
                        coverage=coverage)
 
 
