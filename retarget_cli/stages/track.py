@@ -227,12 +227,14 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     # the take's per-frame arrays kept once each: what is only saved is kept as the file stores it (float32)
     raw = None if raw is None else raw.astype(np.float32, copy=False)
     held = held_confidence(conf, found)
-    head, stab = estimate_head(points, held, rigid_points=rigid_points)
+    # only the calibration reads the stabilized landmarks at full precision; else they are kept as saved
+    head, stab = estimate_head(points, held, rigid_points=rigid_points,
+                               dtype=np.float64 if neutral is not None or smooth_head else np.float32)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
-    if neutral is None:  # only the calibration reads the stabilized landmarks at full precision
-        stab = stab.astype(np.float32)
+    if neutral is None:
+        stab = stab.astype(np.float32, copy=False)
     pose3d = _head_pose_3d(points, held, (W, H)) if head_pose else None
     del held
     gz = None
@@ -243,7 +245,11 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
                                      fps=fps)
-    stab = stab.astype(np.float32)
+    stab = stab.astype(np.float32, copy=False)
+    mean_conf = float(conf.mean())
+    if not overlay:  # from here they are only saved: kept as the file stores them (float32), once each
+        conf = conf.astype(np.float32)
+        points = points.astype(np.float32)
     meta = {
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
@@ -273,7 +279,7 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
                                      head_translation=None if pose3d is None else pose3d.translation,
                                      gaze=None if gz is None else gz[0], gaze_valid=None if gz is None else gz[1]))
     written = [Path(output)] + ([init_out] if init_out else [])
-    log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
+    log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], mean_conf)
     if overlay:
         _write_track_overlay(overlay, video, points, conf, head, source, start=start, end=end, step=step, fps=fps,
                              progress=progress)

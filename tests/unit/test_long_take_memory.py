@@ -54,3 +54,19 @@ def test_the_fusion_smoother_runs_in_place():
     assert xs.shape == (T, 68, 2) and np.array_equal(xs[-1], fwd[-1]) and not np.array_equal(xs[0], fwd[0])
     assert np.abs(xs - P0).std() < np.abs(fwd - P0).std()  # smoothed: steadier than the forward pass
     assert peak < 64 * 1024, f"smoothing {T} frames allocated {peak / 1024:.0f} KB"
+
+
+def test_stabilized_landmarks_in_float32_chunks_are_the_float64_ones_rounded(monkeypatch):
+    """``estimate_head(dtype=float32)`` maps a long take a chunk at a time: the float64 result rounded, to the bit."""
+    from retarget_cli.methods.tracking import head as head_mod
+
+    monkeypatch.setattr(head_mod, "CHUNK", 64)  # several chunks and a short tail on a short take
+    rng = np.random.default_rng(3)
+    T = 300
+    P = rng.normal(size=(68, 2))[None] * 40 + 200 + np.cumsum(rng.normal(size=(T, 1, 2)), axis=0) \
+        + rng.normal(size=(T, 68, 2))
+    C = rng.uniform(0.2, 1.0, (T, 68))
+    h64, s64 = head_mod.estimate_head(P, C)
+    h32, s32 = head_mod.estimate_head(P, C, dtype=np.float32)
+    assert s32.dtype == np.float32 and np.array_equal(h32, h64)
+    assert s32.tobytes() == s64.astype(np.float32).tobytes()
