@@ -31,7 +31,7 @@ def test_an_animation_csv_is_written_a_row_at_a_time(tmp_path):
         W = np.random.default_rng(T).uniform(0, 1, (T, 57))
         frames, times = np.arange(T), np.arange(T) / 30.0
         path = tmp_path / f"c{T}.csv"
-        peaks[T] = _traced_peak(lambda: write_animation(path, names, W, frames, times))
+        peaks[T] = _traced_peak(lambda p=path, w=W, f=frames, t=times: write_animation(p, names, w, f, t))
         back = read_animation(path)
         assert np.abs(back[1] - W).max() <= 5e-7 and len(back[1]) == T
     per_frame = (peaks[3000] - peaks[1500]) / 1500
