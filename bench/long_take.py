@@ -190,8 +190,9 @@ def tiled_landmarks(source: Path, T: int, path: Path) -> None:
     idx = np.where(idx < n, idx, 2 * n - 2 - idx)
     meta = {k: v for k, v in lm.meta.items() if k not in ("gaps", "segments")}
     lm.meta = meta
-    for key in ("points", "confidence", "head", "stabilized", "points_raw"):
-        v = getattr(lm, key)
+    for key in ("points", "confidence", "head", "stabilized", "points_raw", "head_angles", "head_translation",
+                "gaze", "gaze_valid"):
+        v = getattr(lm, key, None)
         if v is not None:
             setattr(lm, key, v[idx])
     lm.frames, lm.times = np.arange(T, dtype=np.int64), np.arange(T) / lm.fps

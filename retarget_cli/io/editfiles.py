@@ -19,7 +19,7 @@ from ..config import load_yaml, unknown_key_error
 from ..errors import InputError
 from ..methods.editing import DEFAULT_ALPHA, DEFAULT_MU, AttenuateEdit, Pin, PinEdit
 from ..methods.rig import parse_axes
-from .atomic import load_npz, savez, write_text
+from .atomic import atomic_open, load_npz, savez
 from .stagefiles import read_vertex_mask
 from .text import read_text
 
@@ -156,12 +156,13 @@ def write_animation(path: str | os.PathLike, names, W, frames, times=None, *, me
         W = np.concatenate([W, H], axis=1)
     line = io.StringIO()
     csv.writer(line, lineterminator="").writerow(head)  # a name holding a comma or a quote is quoted
-    out = [line.getvalue()]
-    for t, f in enumerate(frames):
-        cells = [str(int(f))] + ([f"{times[t]:.6f}"] if times is not None else []) + \
-            ([str(int(bool(found[t])))] if found is not None else []) + [f"{v:.6f}" for v in W[t]]
-        out.append(",".join(cells))
-    write_text(path, "\n".join(out) + "\n")
+    # streamed a row at a time: a long take's text is never held whole
+    with atomic_open(path, "w") as fh:
+        fh.write(line.getvalue() + "\n")
+        for t, f in enumerate(frames):
+            cells = [str(int(f))] + ([f"{times[t]:.6f}"] if times is not None else []) + \
+                ([str(int(bool(found[t])))] if found is not None else []) + [f"{v:.6f}" for v in W[t]]
+            fh.write(",".join(cells) + "\n")
 
 
 # --------------------------------------------------------------------------- edits.yaml

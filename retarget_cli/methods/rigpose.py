@@ -703,12 +703,14 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     Y0 = check_array(neutral, "neutral", ndim=2)
     if Y0.shape != (L, 2):
         raise ShapeError(f"neutral: expected shape ({L}, 2) for {L} landmark vertices, got {Y0.shape}")
-    Y = check_array(targets, "targets", ndim=3)
+    # the targets and weights as given (a long take's float32 landmarks are not copied): each frame is read at
+    # float64 when it is fitted
+    Y = check_array(targets, "targets", ndim=3, dtype=_float_dtype(targets))
     if Y.shape[1:] != (L, 2):
         raise ShapeError(f"targets: expected shape (K, {L}, 2), got {Y.shape}")
     K = len(Y)
     c0 = np.ones(L) if neutral_weights is None else check_array(neutral_weights, "neutral_weights", ndim=1)
-    C = np.ones((K, L)) if weights is None else check_array(weights, "weights", ndim=2)
+    C = np.ones((K, L)) if weights is None else check_array(weights, "weights", ndim=2, dtype=_float_dtype(weights))
     if c0.shape != (L,) or C.shape != (K, L):
         raise ShapeError(f"weights: expected shapes ({K}, {L}) and ({L},), got {C.shape} and {c0.shape}")
     regions = regions or {"face": list(range(L))}
@@ -748,7 +750,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         fits = [[] for _ in ids]
         with small_blas():  # many small solves: BLAS threads only add overhead (methods/blas.py)
             for k0 in range(lo, hi, _BATCH):  # frames in batches: their QPs are solved together
-                frames = [_frame(Y[k], C[k], c0, X0, DL, e0, (s, R, t), rig_ids, P0n, Bn, None if P is None else P[k])
+                frames = [_frame(Y[k].astype(np.float64), C[k].astype(np.float64), c0, X0, DL, e0, (s, R, t), rig_ids,
+                                 P0n, Bn, None if P is None else P[k])
                           for k in range(k0, min(hi, k0 + _BATCH))]
                 for ri, (i, sr) in enumerate(zip(ids, scales)):
                     free = owner == ri
@@ -771,6 +774,11 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     rms = np.sqrt(sq / np.maximum(cnt, 1e-300))
     return {"w": W, "owner": owner, "regions": names, "scale": float(s), "region_scales": scales * s,
             "rotation": R, "translation": t, "rms": rms}
+
+
+def _float_dtype(x):
+    """float32 for a float32 array (kept as it is), else float64."""
+    return np.float32 if getattr(x, "dtype", None) == np.float32 else np.float64
 
 
 def _check_preset(preset, K: int, n: int):

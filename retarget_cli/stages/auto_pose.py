@@ -231,6 +231,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     # Everything that is cheap to check, before the rig's OBJs are read.
     spec, kf, lm, key_frames, mask_files = _check_inputs(keys, landmarks, rig_path, landmark_vertices, out,
                                                      skip_points, rigid_points, masks, base_dir)
+    lm.points_raw = None  # the tracker's unfiltered points: not used here, not held through the fit
     neutral = neutral_from_keys(neutral_frame, kf, lm, landmarks=landmarks) if fit == "delta" else None
     r = load_rig(rig_path, cache_dir=cache_dir)
     if landmark_vertices is None and spec.landmarks is None and lm.n_points == 68:
@@ -242,8 +243,10 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
     preset, gaze_mask = _gaze_preset(gaze, fit, lm, r, spec, lm_ids, vx)
     fixed = excluded | gaze_mask
-    Y = lm.stabilized[:, lm_ids].astype(np.float64)
-    Cf = lm.confidence[:, lm_ids].astype(np.float64)
+    # the fitted landmarks as the file stores them (float32): the delta fit reads each frame at float64, exactly
+    Y, Cf = lm.stabilized[:, lm_ids], lm.confidence[:, lm_ids]
+    if fit != "delta" or neutral.shape is not None:
+        Y, Cf = Y.astype(np.float64), Cf.astype(np.float64)
     # frames all: each segment of the take (found frames between gaps and cuts) is posed and smoothed apart
     posed = [range(a, b) for a, b in lm.segments] if frames == "all" else [key_frames]
     if fit == "delta":
@@ -261,17 +264,22 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         shots = _shot_neutrals(lm, posed, neutral.frame, (Y0, C0), lm_ids, Y, Cf, contact, lid_closed,
                                opts["contact_refs"], keep_home=neutral.record.get("source") != "take") \
             if frames == "all" else None
+        T, timing = lm.n_frames, lm.timing()
+        del lm  # the take's landmarks: what the fit reads is in Y and Cf (not held through the fit)
         poses, owner, region_sliders = _delta_poses(r, spec, vx, Y, Cf, posed, (Y0, C0), region_rows, fixed,
-                                                    rigid, opts, shots=shots, preset=preset)
+                                                    rigid, opts, shots=shots, preset=preset, T=T)
     else:
+        T, timing = lm.n_frames, lm.timing()
+        del lm
         poses, owner, region_sliders = _absolute_poses(r, vx, Y, Cf, [f for part in posed for f in part],
-                                                       list(kf.regions), region_rows, fixed, alpha, mu)
-    if frames == "all" and len(poses) < lm.n_frames:
-        poses = _hold_gaps(poses, lm.n_frames)
+                                                       list(kf.regions), region_rows, fixed, alpha, mu, T=T)
+    del Y, Cf
+    if frames == "all" and not poses[1].all():
+        _hold_gaps(*poses)
     coverage = slider_coverage(r, vx, list(kf.regions), region_rows, owner, excluded, gaze_mask)
     _log_coverage(coverage)
     return _write_keys(out, r, spec, rig_path, kf, key_frames, poses, owner, region_sliders, mask_files, fit,
-                       None if neutral is None else neutral.label, lm.timing(), every_frame=frames == "all",
+                       None if neutral is None else neutral.label, timing, every_frame=frames == "all",
                        coverage=coverage)
 
 
@@ -454,9 +462,12 @@ def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contac
     return out
 
 
-def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts, shots=None, preset=None):
+def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts, shots=None, preset=None,
+                 T=None):
     """The delta fit (:func:`retarget_cli.methods.rigpose.delta_pose`, keyword arguments *opts*) of *frames*
-    (a list of frame lists, each fitted and smoothed on its own): poses by frame, slider owners, sliders by region.
+    (a list of frame lists, each fitted and smoothed on its own): the poses (``(W (T, n) float64, posed (T,)
+    bool)``: each posed row's sliders, one array for the take, not a row object per frame), slider owners,
+    sliders by region. *T*: the take's rows (default ``len(Y)``).
 
     *neutral* is the neutral key's (landmarks (M, 2), confidence (M,)) among the mapped landmarks; *shots*, per
     part of *frames*, the (landmarks, confidence, contact references) that part is measured from instead
@@ -469,7 +480,9 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
         _, DL = rig_landmarks(r, vx)
         exclusive = infer_exclusive(project(DL, np.eye(3)), r.names)
         log.info("auto-pose: inferred exclusive pairs %s", exclusive)
-    poses, rms = {}, []
+    T = len(Y) if T is None else T
+    W, posed = np.zeros((T, r.n_sliders)), np.zeros(T, bool)
+    rms = []
     for i, part in enumerate(frames):  # a list of frames per segment of the take, each smoothed on its own
         y0, c0, o = (*neutral, opts) if shots is None else (shots[i][0], shots[i][1],
                                                             {**opts, "contact_refs": shots[i][2]})
@@ -477,7 +490,7 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
         res = delta_pose(r, vx, y0, Y[rows], weights=Cf[rows], neutral_weights=c0,
                          regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,
                          preset=None if preset is None else preset[rows], **o)
-        poses.update(zip(part, res["w"]))
+        W[rows], posed[rows] = res["w"], True
         rms.extend(res["rms"])
         for f, e in zip(part, res["rms"]):
             log.debug("frame %d: landmark displacement rms %.3f px", f, e)
@@ -485,29 +498,32 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
     log.info("auto-pose: %d frames posed in %d segment(s), landmark displacement rms %.3f px (median)", len(rms),
              len(frames), float(np.median(rms)) if rms else 0.0)
     region_sliders = {name: [r.names[j] for j in np.flatnonzero(owner == ri)] for ri, name in enumerate(res["regions"])}
-    return poses, owner, region_sliders
+    return (W, posed), owner, region_sliders
 
 
-def _hold_gaps(poses: dict, T: int) -> dict:
-    """Every frame's pose: a frame in a gap of the take holds the last posed frame's (the first's before any);
-    ``apply.gaps`` decides what the exported curves do there."""
-    posed = np.zeros(T, bool)
-    posed[list(poses)] = True
+def _hold_gaps(W, posed) -> None:
+    """Every frame's pose, in place: a frame in a gap of the take (a row of *W* (T, n) not *posed* (T,)) holds
+    the last posed frame's (the first's before any); ``apply.gaps`` decides what the exported curves do there."""
+    T = len(posed)
     last = np.maximum.accumulate(np.where(posed, np.arange(T), -1))
     src = np.where(last >= 0, last, int(np.argmax(posed)))
-    return {t: poses[int(src[t])] for t in range(T)}
+    gap = np.flatnonzero(src != np.arange(T))
+    W[gap] = W[src[gap]]  # the rows copied from are posed ones, which this does not change
+    posed[:] = True
 
 
-def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
-    """The absolute fit (:func:`retarget_cli.methods.editing.auto_pose`, Lewis & Anjyo eq. 3) of every key frame."""
+def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu, T=None):
+    """The absolute fit (:func:`retarget_cli.methods.editing.auto_pose`, Lewis & Anjyo eq. 3) of every key frame;
+    poses as :func:`_delta_poses` returns them."""
 
-    poses = {}
+    T = len(Y) if T is None else T
+    W, posed = np.zeros((T, r.n_sliders)), np.zeros(T, bool)
     upper_saved = r.upper.copy()
     r.upper = np.where(fixed, r.lower + 1e-12, r.upper)
     try:
         for f in frames:
             one = auto_pose(r, vx, Y[f], weights=Cf[f], alpha=alpha, mu=mu)
-            poses[f] = np.where(fixed, 0.0, one["w"])
+            W[f], posed[f] = np.where(fixed, 0.0, one["w"]), True
             log.info("key %d: rms %.3f px after %d iterations", f, one["rms"], one["iterations"])
     finally:
         r.upper = upper_saved
@@ -516,18 +532,20 @@ def _absolute_poses(r, vx, Y, Cf, frames, names, region_rows, fixed, alpha, mu):
     owner = slider_owners(project(DL, np.eye(3)), [region_rows[n] for n in names])
     owner[fixed] = -1
     region_sliders = {name: [r.names[j] for j in np.flatnonzero(owner == ri)] for ri, name in enumerate(names)}
-    return poses, owner, region_sliders
+    return (W, posed), owner, region_sliders
 
 
 def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders, mask_files, fit, neutral_frame,
                 timing, every_frame=False, coverage=None):
-    """Key OBJs, region masks, ``sliders.csv``, ``curves.csv`` (*every_frame*: *poses* holds every frame) and
+    """Key OBJs, region masks, ``sliders.csv``, ``curves.csv`` (*every_frame*: every frame's row of *poses*) and
     ``targets.yaml``; a failure part-way removes what it wrote.
 
-    *frames* and the keys of *poses* are rows of the take; *timing* (source frame numbers (T,), times (T,))
+    *poses* is ``(W (T, n), posed (T,) bool)`` (:func:`_delta_poses`); *frames* and the posed rows are rows of the
+    take; *timing* (source frame numbers (T,), times (T,))
     names them: the key OBJs, ``targets.yaml``'s keys and the CSVs' ``frame``/``time`` are source frames.
     """
     source, times = timing
+    W, posed = poses
 
     names = list(kf.regions)
     derived = rig_region_masks(r, owner, len(names)) if len(names) > 1 else None
@@ -545,7 +563,7 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
             regions[name] = {"keys": {}, "sliders": region_sliders[name]}
             for f, row in zip(kf.regions[name]["frames"], kf.regions[name]["rows"]):
                 rel = f"{name}/key_{f:05d}.obj"
-                write_obj(out / rel, r.template, r.evaluate(np.where(owned, poses[row], 0.0)))
+                write_obj(out / rel, r.template, r.evaluate(np.where(owned, W[row], 0.0)))
                 regions[name]["keys"][f] = rel
                 written.append(out / rel)
             if name in mask_files:
@@ -555,12 +573,12 @@ def _write_keys(out, r, spec, rig_path, kf, frames, poses, owner, region_sliders
                 write_text(out / rel, _mask_text(derived[ri]))
                 regions[name]["vertices"] = rel
                 written.append(out / rel)
-        write_animation(out / "sliders.csv", r.names, np.stack([poses[f] for f in frames]), source[frames],
+        write_animation(out / "sliders.csv", r.names, W[list(frames)], source[frames],
                         meta={"fit": fit, "neutral_frame": neutral_frame})
         written.append(out / "sliders.csv")
         if every_frame:
-            every = sorted(poses)
-            write_animation(out / "curves.csv", r.names, np.stack([poses[f] for f in every]), source[every],
+            every = np.flatnonzero(posed)
+            write_animation(out / "curves.csv", r.names, W if len(every) == len(W) else W[every], source[every],
                             times[every])
             written.append(out / "curves.csv")
         if coverage is not None:

@@ -223,14 +223,20 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         write_auto_init(init_out, points[int(np.argmax(coverage.found))] if coverage is not None else points[0])
     found, segment, gaps = _coverage(coverage, len(points), frame_numbers, source, video)
     points, raw, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
-                                         anchors=[i for i in index if i < len(points)])
+                                         anchors=[i for i in index if i < len(points)], in_place=True)
     # the take's per-frame arrays kept once each: what is only saved is kept as the file stores it (float32)
-    raw = None if raw is None else raw.astype(np.float32)
-    head, stab = estimate_head(points, held_confidence(conf, found), rigid_points=rigid_points)
+    raw = None if raw is None else raw.astype(np.float32, copy=False)
+    held = held_confidence(conf, found)
+    # only the calibration reads the stabilized landmarks at full precision; else they are kept as saved
+    head, stab = estimate_head(points, held, rigid_points=rigid_points,
+                               dtype=np.float64 if neutral is not None or smooth_head else np.float32)
     if smooth_head:
         head = smooth_head_fn(head, smooth_head)
         stab = apply_similarity(invert_similarity(head), points)
-    pose3d = _head_pose_3d(points, held_confidence(conf, found), (W, H)) if head_pose else None
+    if neutral is None:
+        stab = stab.astype(np.float32, copy=False)
+    pose3d = _head_pose_3d(points, held, (W, H)) if head_pose else None
+    del held
     gz = None
     if gaze and points.shape[1] == 68:
         gz = _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,
@@ -239,7 +245,11 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
                                      fps=fps)
-    stab = stab.astype(np.float32)
+    stab = stab.astype(np.float32, copy=False)
+    mean_conf = float(conf.mean())
+    if not overlay:  # from here they are only saved: kept as the file stores them (float32), once each
+        conf = conf.astype(np.float32)
+        points = points.astype(np.float32)
     meta = {
         "tracker": method,
         "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
@@ -269,7 +279,7 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
                                      head_translation=None if pose3d is None else pose3d.translation,
                                      gaze=None if gz is None else gz[0], gaze_valid=None if gz is None else gz[1]))
     written = [Path(output)] + ([init_out] if init_out else [])
-    log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], conf.mean())
+    log.info("tracked %d frames x %d points; mean confidence %.3f", len(points), points.shape[1], mean_conf)
     if overlay:
         _write_track_overlay(overlay, video, points, conf, head, source, start=start, end=end, step=step, fps=fps,
                              progress=progress)
@@ -527,7 +537,8 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
     coverage = None
     with progress(n_expected, "track") as bar:
         try:
-            points, conf, *more = track(frames(), index, progress=lambda t: bar.update(1), **kw)
+            points, conf, *more = track(_Counted(frames(), n_expected), index, progress=lambda t: bar.update(1),
+                                        **kw)
             coverage = more[0] if more else None
         except FaceLostError as exc:
             where_f = source.frames[exc.frame] if exc.frame < len(source.frames) else exc.frame
@@ -547,6 +558,23 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
     return points, conf, coverage
 
 
+class _Counted:
+    """An iterator of frames that tells how many it expects (``operator.length_hint``): a tracker sizes its
+    per-frame arrays once instead of growing them."""
+
+    def __init__(self, it, n):
+        self._it, self._n = it, n
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        return next(self._it)
+
+    def __length_hint__(self) -> int:
+        return int(self._n or 0)
+
+
 def _coverage(coverage, T: int, frame_numbers, source, video):
     """``found``, ``segment`` and the gaps' description of a tracker's coverage (all None without one)."""
     if coverage is None:
@@ -562,7 +590,8 @@ def _coverage(coverage, T: int, frame_numbers, source, video):
     return coverage.found[:T].astype(bool), segment, gaps
 
 
-def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), window=WINDOW, margin=MARGIN):
+def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), window=WINDOW, margin=MARGIN,
+                    in_place=False):
     """:func:`~._landmark_filter.apply_filter` on each segment of the take apart (the whole take without
     *segment*), so that nothing is smoothed across a gap or a scene cut; frames in gaps stay as they are.
     A segment longer than :data:`~retarget_cli.methods.decomposition.temporal.WINDOW` + ``MARGIN`` frames is
@@ -570,23 +599,39 @@ def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), 
     smoother's per-frame state (~16 KB a frame for 68 points) is held for one window at a time; the smoother's
     gain forgets its start within the margin, so the result is the whole segment's to rounding.
 
+    *in_place* (float64 *points* of a take of more than one window): the filtered points are written into
+    *points* itself (each window's rows once the next window has read its input, so every window reads the
+    tracker's points) and the raw points returned are a float32 copy taken first: the take's landmarks are
+    held once at full precision, not twice.
+
     Returns (points (T, L, 2), raw (T, L, 2) or None, meta) like ``apply_filter``.
     """
     whole = segment is None or len(segments_of(segment)) == 1 and (segment >= 0).all()
     if whole and len(take_windows(len(points), window, margin)) == 1:
         return apply_filter(points, conf, fps=fps, settings=settings, where=where, anchors=anchors)
-    out = np.array(points, dtype=np.float64)
+    in_place = in_place and isinstance(points, np.ndarray) and points.dtype == np.float64
+    if settings["filter"] == "none":
+        raw = None
+    elif in_place:
+        raw = points.astype(np.float32)
+    else:  # the tracker's points themselves (no copy when they are float64: the caller keeps them as the raw points)
+        raw = np.asarray(points, dtype=np.float64)
+    out = points if in_place else np.array(points, dtype=np.float64)
     meta = {"method": settings["filter"]}
+    pending = None  # the last window's rows, written once the next window has read its input (windows overlap)
     for a, b in [(0, len(points))] if whole else segments_of(segment):
         # a long segment is filtered window by window (the smoother's state of one window held at a time)
         for wa, wb, lo, hi in take_windows(b - a, window, margin):
             lo, hi = a + lo, a + hi
             part, _, meta = apply_filter(points[lo:hi], conf[lo:hi], fps=fps, settings=settings, where=where,
                                          anchors=[i - lo for i in anchors if lo <= i < hi])
-            out[a + wa:a + wb] = part[a + wa - lo:a + wb - lo]
+            if pending is not None:
+                out[pending[0]] = pending[1]
+            pending = (slice(a + wa, a + wb), part[a + wa - lo:a + wb - lo])
             del part
-    # the tracker's points themselves (no copy when they are float64: the caller keeps them as the raw points)
-    raw = None if settings["filter"] == "none" else np.asarray(points, dtype=np.float64)
+    if pending is not None:
+        out[pending[0]] = pending[1]
+        del pending
     if whole:
         return out, raw, meta
     # a gap holds the last found frame's landmarks (after filtering), the first found frame's before any

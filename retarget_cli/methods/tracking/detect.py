@@ -31,6 +31,7 @@ import importlib.metadata
 import importlib.util
 import itertools
 import logging
+import operator
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +55,33 @@ BOX_POINTS = (27, 28, 29, 30, 31, 33, 35, 36, 39, 42, 45)
 #: frame): offset of the box centre in eye-corner spans (x along the eye line, y down) and side.
 #: Mean over every 20th frame of the three shared clips (d3, d9, d12), rounded.
 DEFAULT_BOX = (0.0, 0.2, 2.35)
+
+
+class _Rows:
+    """Rows of one shape appended one at a time into a preallocated float64 array (no list of per-frame arrays).
+
+    *capacity* rows are reserved (``np.empty``: pages untouched until written cost no memory); when full the
+    array grows by half. :attr:`array` is the filled part, a view.
+    """
+
+    def __init__(self, shape, capacity: int = 256):
+        self._a = np.empty((max(int(capacity), 1), *shape))
+        self.n = 0
+
+    def append(self, row) -> None:
+        if self.n == len(self._a):
+            grown = np.empty((self.n + self.n // 2 + 1, *self._a.shape[1:]))
+            grown[:self.n] = self._a
+            self._a = grown
+        self._a[self.n] = row
+        self.n += 1
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def array(self) -> np.ndarray:
+        return self._a[:self.n]
 
 
 #: The package that ships the 68-point model, and the model's file name in it.
@@ -380,7 +408,8 @@ class FlowFusion:
         Lucas-Kanade window side and pyramid levels.
     """
 
-    def __init__(self, settings: FusionSettings | None = None, *, window: int = 21, levels: int = 3):
+    def __init__(self, settings: FusionSettings | None = None, *, window: int = 21, levels: int = 3,
+                 capacity: int = 256):
         import cv2
 
         self.settings = settings or FusionSettings()
@@ -390,7 +419,8 @@ class FlowFusion:
         self._g = None
         self._x = None
         self._P = None
-        self._xf, self._Pf, self._xp, self._Pp = [], [], [], []
+        # the filter's per-frame state, in preallocated arrays (a segment's rows, not lists of per-frame arrays)
+        self._capacity, self._xf = int(capacity), None
 
     def _flow(self, g) -> tuple[np.ndarray, np.ndarray]:
         """Flow of the current estimate from the previous frame to *g*.
@@ -459,20 +489,33 @@ class FlowFusion:
             K = Pp / (Pp + r)
             x, P = xp + K[:, None] * v, (1.0 - K) * Pp
         self._g, self._x, self._P = g, x, P
+        if self._xf is None:
+            L = len(x)
+            self._xf, self._xp = _Rows((L, 2), self._capacity), _Rows((L, 2), self._capacity)
+            self._Pf, self._Pp = _Rows((L,), self._capacity), _Rows((L,), self._capacity)
         self._xf.append(x)
         self._Pf.append(P)
         self._xp.append(xp)
         self._Pp.append(Pp)
         return x
 
+    def __len__(self) -> int:
+        """Frames filtered so far."""
+        return 0 if self._xf is None else len(self._xf)
+
     def smooth(self) -> np.ndarray:
-        """Rauch-Tung-Striebel estimates of every frame so far, shape (T, L, 2)."""
-        xf, Pf = np.stack(self._xf), np.stack(self._Pf)
-        xp, Pp = np.stack(self._xp), np.stack(self._Pp)
-        xs = xf.copy()
-        for t in range(len(xf) - 2, -1, -1):
+        """Rauch-Tung-Striebel estimates of every frame so far, shape (T, L, 2).
+
+        The smoother runs in place over the forward estimates (no copy of the segment's state): call it once,
+        when the segment ends; the fuser is spent after it.
+        """
+        if self._xf is None:
+            return np.zeros((0, 0, 2))
+        xs, Pf, xp, Pp = self._xf.array, self._Pf.array, self._xp.array, self._Pp.array
+        for t in range(len(xs) - 2, -1, -1):  # xs[t + 1] is already smoothed: the same arithmetic as into a copy
             G = Pf[t] / Pp[t + 1]
-            xs[t] = xf[t] + G[:, None] * (xs[t + 1] - xp[t + 1])
+            xs[t] = xs[t] + G[:, None] * (xs[t + 1] - xp[t + 1])
+        self._x = self._P = self._g = None
         return xs
 
 
@@ -547,6 +590,7 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
     """
     det = detector or Detector()
     hint = None
+    capacity = operator.length_hint(frames, 0) or 256  # the take's frames, when the source knows them
     if isinstance(downscale, str):
         if downscale != "auto":
             raise ShapeError(f"downscale: expected a value in (0, 1] or 'auto', got {downscale!r}")
@@ -560,10 +604,10 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         frames = itertools.chain([first], frames)
     ann = _checked_annotations(annotations, downscale)
     k = float(downscale)
-    track = _DetectTrack(det, ann, k, (lambda: FlowFusion(fusion)) if fuse else None, tau=tau, max_jump=max_jump,
-                         max_disagreement=max_disagreement, lost_frames=lost_frames, gaps=gaps,
+    track = _DetectTrack(det, ann, k, (lambda: FlowFusion(fusion, capacity=capacity)) if fuse else None, tau=tau,
+                         max_jump=max_jump, max_disagreement=max_disagreement, lost_frames=lost_frames, gaps=gaps,
                          search_every=search_every, min_confidence=min_confidence,
-                         cuts=(cuts or CutDetector()) if gaps else None, hint=hint)
+                         cuts=(cuts or CutDetector()) if gaps else None, hint=hint, capacity=capacity)
     for t, frame in enumerate(frames):
         track.frame(t, _scaled(_gray(frame), k))
         if progress is not None:
@@ -574,13 +618,11 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
     if gaps and not any(track.found):
         raise FaceLostError(f"frame 0: no face found by the detector, nor in any of the {len(track.pts)} frames "
                             "of the take", 0, np.zeros((0, 68, 2)), np.zeros((0, 68)))
-    out = track.points()
-    track.pts = []  # each frame's row is in *out* now: a long take's rows are not held twice
+    out = track.points()  # the rows as the tracker stored them (a view, not a copy)
     for t in ann:  # annotated frames exactly as given
         if t < len(out):
             out[t] = ann[t]
-    conf = np.stack(track.conf)
-    track.conf = []
+    conf = track.conf.array
     np.clip(conf, 0, 1, out=conf)
     if not gaps:
         return out, conf
@@ -610,7 +652,7 @@ class _DetectTrack:
     """
 
     def __init__(self, det, ann, k, fusion, *, tau, max_jump, max_disagreement, lost_frames, gaps=False,
-                 search_every=SEARCH_EVERY, min_confidence=MIN_FOUND_CONFIDENCE, cuts=None, hint=None):
+                 search_every=SEARCH_EVERY, min_confidence=MIN_FOUND_CONFIDENCE, cuts=None, hint=None, capacity=256):
         self.det, self.ann, self.k, self.fusion = det, ann, k, fusion
         self.hint = hint  # the face detector's boxes on the first frame at scale k, when already known
         self.tau, self.max_jump, self.max_disagreement, self.lost_frames = tau, max_jump, max_disagreement, lost_frames
@@ -618,8 +660,8 @@ class _DetectTrack:
             float(min_confidence), cuts
         self.calib, self.P_prev, self.box_prev, self.missing = DEFAULT_BOX, None, None, 0
         self.fuser, self.seg_start = (fusion() if fusion is not None else None), 0
-        self.pts: list[np.ndarray] = []
-        self.conf: list[np.ndarray] = []
+        # each frame's landmarks and confidences in preallocated arrays (*capacity* frames, growing past them)
+        self.pts, self.conf = _Rows((68, 2), capacity), _Rows((68,), capacity)
         self.found: list[bool] = []
         self.status: list[int] = []
         self.cut: list[bool] = []
@@ -664,22 +706,21 @@ class _DetectTrack:
     def end_segment(self) -> None:
         """Smooth the segment that ends here (the frames fused since the last segment started) in place."""
         fuser = self.fuser
-        if fuser is not None and fuser._xf:
-            n = len(fuser._xf)
-            found = [i for i in range(self.seg_start, len(self.pts)) if self.found[i]]
+        if fuser is not None and len(fuser):
+            n = len(fuser)
+            found = self.seg_start + np.flatnonzero(self.found[self.seg_start:])
+            pts = self.pts.array
             if len(found) == n:  # (without gaps every frame was fused, lost ones included: see _no_face)
-                smooth = _from_scaled(fuser.smooth(), self.k)
-                for row, i in enumerate(found):
-                    self.pts[i] = smooth[row]
+                pts[found] = _from_scaled(fuser.smooth(), self.k)
             else:
-                self.pts[self.seg_start:] = list(_from_scaled(fuser.smooth(), self.k))
+                pts[self.seg_start:] = _from_scaled(fuser.smooth(), self.k)
             self.fuser = self.fusion()
         self.seg_start = len(self.pts)
 
     def points(self) -> np.ndarray:
         """Every frame's landmarks (T, 68, 2); a frame without a face holds the last found frame's (the first's
         before any)."""
-        out = np.stack(self.pts)
+        out = self.pts.array
         if self.gaps:
             found = np.array(self.found, bool)
             last = np.maximum.accumulate(np.where(found, np.arange(len(out)), -1))
@@ -724,7 +765,7 @@ class _DetectTrack:
         self.status.append(status)
         if self.gaps:
             self.missing += 1
-            self.pts.append(self.pts[-1] if self.pts else np.zeros((68, 2)))
+            self.pts.append(self.pts.array[-1] if len(self.pts) else np.zeros((68, 2)))
             self.conf.append(np.zeros(68))
             return
         if t == 0:
@@ -735,9 +776,9 @@ class _DetectTrack:
         if self.missing >= self.lost_frames:
             f0 = t - self.missing + 1
             raise FaceLostError(f"the face was lost from frame {f0}: no face found for {self.missing} frames "
-                                f"in a row", f0, np.stack(self.pts[:f0]), np.stack(self.conf[:f0]))
+                                f"in a row", f0, self.pts.array[:f0].copy(), self.conf.array[:f0].copy())
         fuser = self.fuser
-        self.pts.append(self.pts[-1] if fuser is None else _from_scaled(fuser.step(g, None, None, exact=False), self.k))
+        self.pts.append(self.pts.array[-1] if fuser is None else _from_scaled(fuser.step(g, None, None, exact=False), self.k))
         self.conf.append(np.zeros(68))
 
 

@@ -98,7 +98,9 @@ def apply_similarity(head, points) -> np.ndarray:
     """
     head = np.asarray(head, dtype=np.float64)
     points = np.asarray(points, dtype=np.float64)
-    return np.einsum("tij,tlj->tli", head[:, :, :2], points) + head[:, None, :, 2]
+    out = np.einsum("tij,tlj->tli", head[:, :, :2], points)
+    out += head[:, None, :, 2]  # in place: one (T, L, 2) array, not two
+    return out
 
 
 def invert_similarity(head) -> np.ndarray:
@@ -109,7 +111,11 @@ def invert_similarity(head) -> np.ndarray:
     return np.concatenate([inv, t[:, :, None]], axis=2)
 
 
-def estimate_head(points, confidence=None, *, rigid_points=None, reference_frame: int = 0):
+#: Frames mapped at once by :func:`estimate_head` when it writes the stabilized landmarks in another dtype.
+CHUNK = 4096
+
+
+def estimate_head(points, confidence=None, *, rigid_points=None, reference_frame: int = 0, dtype=np.float64):
     """Separate head motion from expression (the routine every consumer uses).
 
     The reference is the rigid points of *reference_frame*, so stabilized
@@ -127,12 +133,16 @@ def estimate_head(points, confidence=None, *, rigid_points=None, reference_frame
         :func:`default_rigid_points`.
     reference_frame : int
         Frame whose pose defines the stabilized coordinate frame.
+    dtype : dtype
+        Of *stabilized*: another than float64 (float32, as ``landmarks.npz`` stores it) is written
+        :data:`CHUNK` frames at a time, each mapped at float64 and rounded once, so no float64 copy of the
+        whole take is made.
 
     Returns
     -------
     head : ndarray, shape (T, 2, 3), float64
         Similarity mapping stabilized coordinates to image pixels.
-    stabilized : ndarray, shape (T, L, 2), float64
+    stabilized : ndarray, shape (T, L, 2), *dtype*
         Landmarks with the head motion removed.
     """
     points = np.asarray(points, dtype=np.float64)
@@ -149,7 +159,12 @@ def estimate_head(points, confidence=None, *, rigid_points=None, reference_frame
     if not np.all(np.isfinite(ref)):
         raise ShapeError(f"points: reference frame {reference_frame} has non-finite rigid points")
     head = fit_similarity(ref, points[:, idx], conf)
-    stabilized = apply_similarity(invert_similarity(head), points)
+    inverse = invert_similarity(head)
+    if np.dtype(dtype) == np.float64:
+        return head, apply_similarity(inverse, points)
+    stabilized = np.empty(points.shape, dtype)
+    for a in range(0, T, CHUNK):
+        stabilized[a:a + CHUNK] = apply_similarity(inverse[a:a + CHUNK], points[a:a + CHUNK])
     return head, stabilized
 
 

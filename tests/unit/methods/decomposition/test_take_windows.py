@@ -71,3 +71,23 @@ def test_landmark_filter_in_windows_is_the_whole_segment_to_rounding():
     a = filter_segments(P, C, seg, window=None, **kw)[0]
     b = filter_segments(P, C, seg, window=100, margin=100, **kw)[0]
     assert np.abs(a - b).max() < 1e-6
+
+
+def test_landmark_filter_in_place_is_byte_identical_to_the_copy():
+    """``in_place``: each window's rows are written into the tracker's points once the next window has read its
+    input (windows overlap), so the result is the copy's to the bit, and the raw points come back as float32."""
+    rng = np.random.default_rng(1)
+    T = 700
+    P = rng.normal(size=(68, 2))[None] * 30 + 200 + np.cumsum(rng.normal(size=(T, 68, 2)) * 0.5, axis=0)
+    C = rng.uniform(0.3, 1.0, (T, 68))
+    kw = dict(fps=25.0, settings=dict(FILTER_DEFAULTS), where="take", anchors=[0, 333])
+    seg = np.zeros(T, np.int32)
+    seg[250:270], seg[270:] = -1, 1
+    for segment in (None, seg):
+        ref, raw, _ = filter_segments(P, C, segment, window=100, margin=60, **kw)
+        mine = P.copy()
+        out, raw32, _ = filter_segments(mine, C, segment, window=100, margin=60, in_place=True, **kw)
+        assert out is mine and out.tobytes() == ref.tobytes()
+        assert raw32.dtype == np.float32 and np.array_equal(raw32, P.astype(np.float32)) and raw.dtype == np.float64
+        # without the delayed writes the next window would read filtered rows: the result would differ
+        assert not np.array_equal(ref, P)
