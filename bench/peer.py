@@ -546,7 +546,20 @@ def table(rows: list, ref: str) -> str:
         sat = None if system == "tracker" else sum(g["sat"] * g["T"] for g in got) / T
         agg = {"refs": {ref: mean}, "jitter": float(np.mean([g["jitter"] for g in got])), "fps": fps, "sat": sat}
         lines.append(_line("**mean**", f"{len(got)} runs", system, agg, ref))
+        moving = {"r": {m: moving_mean(got, ref, m) for m in R_MEASURES}}
+        lines.append(_line("**mean, moving**", "runs whose reference series moves", system,
+                           {"refs": {ref: moving}, "jitter": float("nan"), "fps": float("nan"), "sat": None}, ref))
     return "\n".join(lines)
+
+
+def moving_mean(rows: list, ref: str, measure: str) -> float:
+    """Mean r of *measure* over the *rows* whose reference series moves (std >= FLAT; NaN when none does).
+
+    Over a reference series that barely moves, r compares two noises; the peer shares its network with the
+    MediaPipe reference, so its noise there is not independent of the reference's. Both means are printed.
+    """
+    vals = [g["refs"][ref]["r"][measure] for g in rows if measure not in g["refs"][ref]["flat"]]
+    return float(np.nanmean(vals)) if vals else float("nan")
 
 
 def flat_notes(rows: list) -> list:
