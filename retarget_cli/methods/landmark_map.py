@@ -980,7 +980,7 @@ def slider_landmarks(render: FaceRender, skin, vertices, deltas, names):
     _check_chin(anchors, render.xy)
     _brows(anchors, cues, _place_template(anchors, render.xy, skin))
     pts = _place_template(anchors, render.xy, skin)
-    vx = lift_landmarks(pts, render, skin)
+    vx = lift_landmarks(pts, render, skin, ridge=False)  # the template's chin is the kit's, not a terminator
     source = ["template"] * N_POINTS
     for i, (k, src) in anchors.items():
         vx[i], pts[i], source[i] = k, render.xy[k], src
