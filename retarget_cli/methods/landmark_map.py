@@ -539,8 +539,8 @@ def chin_ridge(points, vx, render: FaceRender, skin) -> np.ndarray:
 
     On the render the detector puts the chin points (6-10) where the shading
     of the under-chin begins, the light's terminator (on the ICT FaceKit with
-    the default light, 0.03-0.04 inter-ocular distances below the chin vertices
-    its map ships, and 0.05-0.10 behind them). A face's jaw line is the edge
+    the default light, points 7-9 0.03-0.04 inter-ocular distances below the
+    chin vertices its map ships, 6-10 0.04-0.10 behind them). A face's jaw line is the edge
     where its front turns under: the surface curves most across the line
     there. For each chin point, among the face's visible skin vertices
     (:attr:`FaceRender.region`) in the strip across the jaw line through it
