@@ -160,6 +160,8 @@ class FaceRender:
         Camera-space unit vertex normals (area-weighted).
     region : ndarray (N,), bool
         The face: the vertices the sliders move (:func:`face_region`), on which the camera is framed.
+    tris : ndarray (M, 3), int, optional
+        The mesh's triangles (:func:`chin_ridge` reads the surface's curvature from them).
     """
 
     image: np.ndarray
@@ -173,6 +175,7 @@ class FaceRender:
     vertices: np.ndarray
     normals: np.ndarray
     region: np.ndarray
+    tris: np.ndarray | None = None
 
 
 @dataclass
@@ -286,7 +289,7 @@ def render_face(vertices, tris, region, yaw: float, style: RenderStyle = STYLES[
     tri_id, bary = rasterize(xy, depth, ren.tris, size)
     visible = _visible_vertices(cam_pos, xy, ren.tris, tri_id, bary, 0.01 * ren.view.radius, cam.fov == 0, normals)
     return FaceRender(image, xy, cam_pos, tri_id, visible, float(yaw), style, ren.view, V, normals,
-                      np.asarray(region, bool))
+                      np.asarray(region, bool), np.asarray(ren.tris))
 
 
 def _visible_vertices(cam, xy, tris, tri_id, bary, tol: float, ortho: bool, normals) -> np.ndarray:
@@ -410,7 +413,7 @@ CHEEK_68 = (0, 1, 2, 3, 4, 12, 13, 14, 15, 16)
 CONTOUR_RADIUS = 0.02
 
 
-def lift_landmarks(points, render: FaceRender, skin, *, smooth: bool = True) -> np.ndarray:
+def lift_landmarks(points, render: FaceRender, skin, *, smooth: bool = True, ridge: bool = True) -> np.ndarray:
     """The 68 points lifted to vertices: :func:`lift`, and on the jaw line by the surface's depth.
 
     A jaw-line point sits on or near the outline, where the surface turns
@@ -427,8 +430,11 @@ def lift_landmarks(points, render: FaceRender, skin, *, smooth: bool = True) -> 
       near, the one nearest the camera (the jaw, not the neck under it).
 
     With *smooth* the cheek points are then chosen again together, so that
-    the jaw line 0-16 is a smooth curve in 3D (:func:`smooth_jaw`).
-    Measured on the ICT FaceKit (``bench/landmark_map.py``).
+    the jaw line 0-16 is a smooth curve in 3D (:func:`smooth_jaw`, anchored
+    on the chin points as lifted here); with *ridge* the chin points
+    :data:`RIDGE_68` are then moved onto the jaw's edge, the crease where the
+    surface curves most across the jaw line (:func:`chin_ridge`; needs
+    :attr:`FaceRender.tris`). Measured on the ICT FaceKit (``bench/landmark_map.py``).
 
     Parameters
     ----------
@@ -438,6 +444,8 @@ def lift_landmarks(points, render: FaceRender, skin, *, smooth: bool = True) -> 
     skin : ndarray (N,), bool
     smooth : bool
         Choose the cheek points' vertices together (:func:`smooth_jaw`).
+    ridge : bool
+        Move the chin points onto the jaw's edge (:func:`chin_ridge`).
 
     Returns
     -------
@@ -459,7 +467,140 @@ def lift_landmarks(points, render: FaceRender, skin, *, smooth: bool = True) -> 
             vx[i] = near[np.argmax(render.cam[near, 2])]
     if smooth:
         vx[list(CONTOUR_68)] = smooth_jaw(P, vx, render, skin)
+    if ridge and render.tris is not None:
+        vx[list(RIDGE_68)] = chin_ridge(P, vx, render, skin)
     return vx
+
+
+#: Chin points of the jaw line (they face the camera; :func:`chin_ridge`).
+CHIN_68 = (5, 6, 7, 8, 9, 10, 11)
+#: Chin points :func:`chin_ridge` moves onto the jaw's edge: not 5 and 11, where the jaw turns to the cheek (there
+#: it made the VALID head's map less symmetric, 0.043 -> 0.050 inter-ocular distances, ``bench/landmark_map.py``).
+RIDGE_68 = (6, 7, 8, 9, 10)
+#: Half-width (inter-ocular distances, in the image) of the strip across the jaw line through a chin point in
+#: which :func:`chin_ridge` looks, and how far across the line it looks on either side.
+CHIN_BAND = 0.03
+CHIN_REACH = 0.06
+#: :func:`chin_ridge`: candidates curving across the jaw line at least this share as much as the most curved one
+#: are equal, and the one nearest the camera of them is taken (on a sphere: every vertex, the front-most).
+CHIN_TIE = 0.9
+
+
+def surface_curvature(vertices, normals, tris, ids, directions) -> np.ndarray:
+    """Normal curvature of a mesh at some vertices along given directions; (K,), positive where it is convex.
+
+    At each vertex the derivative of the unit normal (the shape operator, extended to 3D) is fitted by least
+    squares to the normals' changes along the edges to its 2-ring neighbours, :math:`\\Delta n \\approx J
+    \\Delta x`, and the curvature along the unit tangent :math:`t` (the direction projected onto the vertex's
+    tangent plane) is :math:`t^\\top J t` (:math:`1/r` on a sphere of radius :math:`r` with outward normals).
+
+    Parameters
+    ----------
+    vertices : ndarray (N, 3)
+    normals : ndarray (N, 3)
+        Unit vertex normals, outward.
+    tris : ndarray (M, 3), int
+    ids : ndarray (K,), int
+    directions : ndarray (K, 3) or (3,)
+
+    Returns
+    -------
+    ndarray (K,), float64
+        In inverse units of *vertices*; 0 at a vertex with fewer than three neighbours.
+    """
+    import scipy.sparse as sp
+
+    X, N = np.asarray(vertices, np.float64), np.asarray(normals, np.float64)
+    t = np.asarray(tris, np.int64)
+    n = len(X)
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    A = A + A.T
+    A = (A @ A + A).tocsr()
+    ids = np.asarray(ids, np.int64)
+    dirs = np.broadcast_to(np.asarray(directions, np.float64), (len(ids), 3))
+    out = np.zeros(len(ids))
+    for j, (v, a) in enumerate(zip(ids, dirs)):
+        nb = A.indices[A.indptr[v]:A.indptr[v + 1]]
+        nb = nb[nb != v]
+        if len(nb) < 3:
+            continue
+        J, *_ = np.linalg.lstsq(X[nb] - X[v], N[nb] - N[v], rcond=None)
+        tan = a - (a @ N[v]) * N[v]
+        norm = np.linalg.norm(tan)
+        if norm > 0:
+            tan = tan / norm
+            out[j] = tan @ J @ tan
+    return out
+
+
+def chin_ridge(points, vx, render: FaceRender, skin) -> np.ndarray:
+    """The chin points' vertices on the jaw's edge: the most convex crease across the jaw line; (5,) vertex ids.
+
+    On the render the detector puts the chin points (6-10) where the shading
+    of the under-chin begins, the light's terminator (on the ICT FaceKit with
+    the default light, points 7-9 0.03-0.04 inter-ocular distances below the
+    chin vertices its map ships, 6-10 0.04-0.10 behind them). A face's jaw line is the edge
+    where its front turns under: the surface curves most across the line
+    there. For each chin point, among the face's visible skin vertices
+    (:attr:`FaceRender.region`) in the strip across the jaw line through it
+    (within :data:`CHIN_BAND` inter-ocular distances of that line and
+    :data:`CHIN_REACH` of the point, in the picture; the line's direction
+    from the neighbouring points), the one whose surface curves most across
+    the line (:func:`surface_curvature` along the line's normal in the
+    picture, turned into the vertex's tangent plane) is taken; candidates
+    within :data:`CHIN_TIE` of the most curved are equal, and the one nearest
+    the camera wins (a sphere, equally curved everywhere: the front-most, as
+    before). A point with no candidate, or none curving convexly, keeps its
+    vertex. Measured with ``bench/landmark_map.py`` (docs/landmark-map.md).
+
+    Parameters
+    ----------
+    points : ndarray (68, 2)
+        Pixels of *render*.
+    vx : ndarray (68,), int
+        The map as lifted point by point.
+    render : FaceRender
+        With :attr:`FaceRender.tris`.
+    skin : ndarray (N,), bool
+
+    Returns
+    -------
+    ndarray (5,), int64
+        Vertices of points :data:`RIDGE_68` (6-10).
+    """
+    P = np.asarray(points, np.float64)
+    out = np.asarray(vx, np.int64)[list(RIDGE_68)].copy()
+    iod = np.linalg.norm(P[45] - P[36])
+    if not iod > 0 or render.tris is None:
+        return out
+    centre = P[27:68].mean(0)
+    pool = np.flatnonzero(np.asarray(skin, bool) & render.region)
+    strips, dirs = [], []
+    for i in RIDGE_68:
+        along = P[i + 1] - P[i - 1]
+        if not np.linalg.norm(along) > 0:
+            strips.append(pool[:0])
+            continue
+        along = along / np.linalg.norm(along)
+        across = np.array([along[1], -along[0]])
+        if across @ (P[i] - centre) < 0:
+            across = -across
+        off = render.xy[pool] - P[i]
+        strips.append(pool[(np.abs(off @ along) < CHIN_BAND * iod) & (np.abs(off @ across) < CHIN_REACH * iod)])
+        dirs.append(np.broadcast_to([across[0], -across[1], 0.0], (len(strips[-1]), 3)))
+    if not sum(len(s) for s in strips):
+        return out
+    k_all = surface_curvature(render.cam, render.normals, render.tris, np.concatenate(strips), np.concatenate(dirs))
+    start = 0
+    for j, near in enumerate(strips):
+        k = k_all[start:start + len(near)]
+        start += len(near)
+        if not len(near) or not k.max() > 0:
+            continue
+        top = near[k >= CHIN_TIE * k.max()]
+        out[j] = top[np.argmax(render.cam[top, 2])]
+    return out
 
 
 #: Radius (inter-ocular distances, in the image) around a cheek point in which :func:`smooth_jaw` looks.
@@ -839,7 +980,7 @@ def slider_landmarks(render: FaceRender, skin, vertices, deltas, names):
     _check_chin(anchors, render.xy)
     _brows(anchors, cues, _place_template(anchors, render.xy, skin))
     pts = _place_template(anchors, render.xy, skin)
-    vx = lift_landmarks(pts, render, skin)
+    vx = lift_landmarks(pts, render, skin, ridge=False)  # the template's chin is the kit's, not a terminator
     source = ["template"] * N_POINTS
     for i, (k, src) in anchors.items():
         vx[i], pts[i], source[i] = k, render.xy[k], src
@@ -1173,5 +1314,5 @@ def map_distance(vertices, vx, reference) -> tuple[float, float]:
 
 __all__ = ["MIRROR_68", "N_POINTS", "REGIONS_68", "STYLES", "TEMPLATE_68", "FaceRender", "LandmarkMap",
            "RenderStyle", "SHEET_SCALE", "BROW_HEIGHT_68", "correct", "detect_face", "draw_sheet", "points_from_sheet", "face_region", "find_landmark_map", "front_yaw", "lift",
-           "lift_landmarks", "part_closed_lips", "raise_brows", "smooth_jaw",
+           "lift_landmarks", "part_closed_lips", "raise_brows", "smooth_jaw", "chin_ridge", "surface_curvature",
            "map_distance", "map_quality", "motion_weights", "render_face", "skin_vertices", "slider_landmarks"]
