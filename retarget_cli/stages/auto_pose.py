@@ -125,9 +125,10 @@ PARAMS = [
           validate=check_masks),
     Param("frontalize", "setting", bool, False,
           "Remove the head's 3D rotation from the landmarks before the fit (needs landmarks.npz head_angles, "
-          "68 points): each frame's landmarks as the face would show them looking into the camera, with the rig's "
-          "own landmark vertices as the 3D face, so a turn of the head is not read as expression. Off by default: "
-          "on the shared real clips it cost eye contact, mouth width and slider saturation (docs/auto-pose.md)."),
+          "68 points): each frame's landmarks as the face would show them turned as in the take's rest frames, "
+          "with the rig's own landmark vertices as the 3D face, so a turn of the head is not read as expression. "
+          "Off by default: on the shared real clips (heads turning 2-8 deg) it gains mouth and brow but costs a "
+          "little eye, mouth width, eye contact and slider saturation (docs/auto-pose.md); on for large turns."),
     Param("alpha", "setting", float, 0.001, "absolute fit: eq. 3's alpha.", min=0),
     Param("mu", "setting", float, 0.0001, "absolute fit: eq. 3's mu.", min=0),
 ]
