@@ -50,7 +50,7 @@ from ..methods.rigpose import (
     slider_owners,
 )
 from ..methods.tracking.head import estimate_head
-from ..methods.tracking.headpose import HeadPose, camera_angles, head_pose
+from ..methods.tracking.headpose import HeadPose, camera_angles, head_pose, rest_rotation
 from ..methods.tracking.headpose import frontalize as frontalize_points
 from ._common import NO_CACHE, NO_CACHE_FLAG, Stage, _require, command_cache_dir
 from ._neutral import neutral_from_keys
@@ -125,9 +125,10 @@ PARAMS = [
           validate=check_masks),
     Param("frontalize", "setting", bool, False,
           "Remove the head's 3D rotation from the landmarks before the fit (needs landmarks.npz head_angles, "
-          "68 points): each frame's landmarks as the face would show them looking into the camera, with the rig's "
-          "own landmark vertices as the 3D face, so a turn of the head is not read as expression. Off by default: "
-          "on the shared real clips it cost eye contact, mouth width and slider saturation (docs/auto-pose.md)."),
+          "68 points): each frame's landmarks as the face would show them turned as in the take's rest frames, "
+          "with the rig's own landmark vertices as the 3D face, so a turn of the head is not read as expression. "
+          "Off by default: on the shared real clips (heads turning 2-8 deg) it gains mouth and brow but costs a "
+          "little eye, mouth width, eye contact and slider saturation (docs/auto-pose.md); on for large turns."),
     Param("alpha", "setting", float, 0.001, "absolute fit: eq. 3's alpha.", min=0),
     Param("mu", "setting", float, 0.0001, "absolute fit: eq. 3's mu.", min=0),
 ]
@@ -238,7 +239,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         landmark_vertices = cached_landmark_map(rig_path, r, spec, out)
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
     if frontalize:
-        lm, neutral = frontal_landmarks(lm, r, vx, lm_ids, neutral)
+        lm, neutral = frontal_landmarks(lm, neutral, r, vx, lm_ids)
     excluded = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
     preset, gaze_mask = _gaze_preset(gaze, fit, lm, r, spec, lm_ids, vx)
@@ -304,12 +305,28 @@ def rig_face_model(rig, vertices) -> np.ndarray:
     return (X0 - X0[[36, 39, 42, 45]].mean(0)) @ Rc.T
 
 
-def frontal_landmarks(lm, rig, vx, lm_ids, neutral=None):
+def _rest_rows(lm, neutral) -> np.ndarray:
+    """Rows of the take's rest frames: those a take's rest shape averages (source frames in keys.json), else
+    the neutral frame's row."""
+    rows = np.array([int(neutral.frame)], dtype=np.int64)
+    if neutral.shape is not None and neutral.record.get("source") == "take" and neutral.record.get("frames"):
+        src = np.asarray(neutral.record["frames"], dtype=np.int64)
+        frames = np.asarray(lm.timing()[0], dtype=np.int64)
+        at = np.clip(np.searchsorted(frames, src), 0, len(frames) - 1)
+        hit = at[frames[at] == src]
+        if hit.size:
+            rows = hit
+    return rows
+
+
+def frontal_landmarks(lm, neutral, rig, vx, lm_ids):
     """*lm* with its ``stabilized`` landmarks frontalized: the head's 3D rotation removed (issue 28).
 
     Each frame's pose is fitted with the rig's own landmark vertices as the 3D face (:func:`rig_face_model`)
     when the rig maps all 68 landmarks, else the stored ``head_angles``/``head_translation`` (the generic
-    face) are used; the points are moved to the frontal pose by
+    face) are used; the points are moved to the pose of the take's rest frames (their rotation relative to the
+    line of sight, :func:`~retarget_cli.methods.tracking.headpose.rest_rotation`: only the change of pose from
+    the rest frames is removed, which is what the delta fit reads) by
     :func:`~retarget_cli.methods.tracking.headpose.frontalize` (the residual back-projected onto the face's
     plane) and the 2D similarity is removed again (:func:`~retarget_cli.methods.tracking.head.estimate_head`,
     default rigid points, frame 0 the reference). A take's rest shape (a *neutral* found in the take) is
@@ -335,17 +352,15 @@ def frontal_landmarks(lm, rig, vx, lm_ids, neutral=None):
         tr = np.asarray(lm.head_translation, np.float64)
         pose = HeadPose(camera_angles(np.asarray(lm.head_angles, np.float64), tr), tr, np.full(lm.n_frames, np.nan))
         what = "the generic face (landmarks.npz head_angles)"
-    front = frontalize_points(lm.points, pose, size, model=model)
+    rest = rest_rotation(pose, _rest_rows(lm, neutral)) if neutral is not None else None
+    front = frontalize_points(lm.points, pose, size, model=model, rest=rest)
     stab = estimate_head(front, conf)[1].astype(np.float32)
     log.info("frontalize: the head's 3D rotation removed before the fit (3D face: %s; |yaw| up to %.1f, |pitch| up "
              "to %.1f deg)", what, float(np.abs(pose.angles[:, 0]).max()), float(np.abs(pose.angles[:, 1]).max()))
     lm = replace(lm, stabilized=stab)
     if neutral is not None and neutral.shape is not None and neutral.record.get("source") == "take" \
             and neutral.record.get("frames"):
-        rows = np.asarray(neutral.record["frames"], dtype=np.int64)
-        rows = rows[(rows >= 0) & (rows < lm.n_frames)]
-        if rows.size:
-            neutral = replace(neutral, shape=stab[rows].astype(np.float64).mean(0))
+        neutral = replace(neutral, shape=stab[_rest_rows(lm, neutral)].astype(np.float64).mean(0))
     return lm, neutral
 
 

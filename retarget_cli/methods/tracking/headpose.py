@@ -156,8 +156,10 @@ def head_pose(points, frame_size, *, confidence=None, model=None, pose_points=PO
         ``(width, height)`` of the frames.
     confidence : ndarray (T, 68), optional
         Points below 0.1 are left out of a frame's fit (a frame with fewer than 6 left keeps the previous pose).
-    model : ndarray (68, 3), optional
-        The 3D face (default :data:`FACE_68`); the rig's own landmark vertices, in camera axes, when it has them.
+    model : ndarray (68, 3) or (T, 68, 3), optional
+        The 3D face (default :data:`FACE_68`); the rig's own landmark vertices, in camera axes, when it has them;
+        one face per frame (the rig deformed by each frame's fitted sliders: the joint pose and expression fit
+        of :func:`~retarget_cli.stages.auto_pose.frontal_landmarks`).
     pose_points : sequence of int
         Landmarks fitted.
     focal : float, optional
@@ -172,9 +174,7 @@ def head_pose(points, frame_size, *, confidence=None, model=None, pose_points=PO
     P = np.asarray(points, dtype=np.float64)
     if P.ndim != 3 or P.shape[1:] != (68, 2):
         raise ShapeError(f"points: expected shape (T, 68, 2), got {P.shape}")
-    X = np.asarray(FACE_68 if model is None else model, dtype=np.float64)
-    if X.shape != (68, 3):
-        raise ShapeError(f"model: expected shape (68, 3), got {X.shape}")
+    X = _models(model, len(P))
     idx = np.asarray(pose_points, dtype=int)
     K = camera_matrix(frame_size, focal)
     C = None if confidence is None else np.asarray(confidence, dtype=np.float64)
@@ -185,7 +185,7 @@ def head_pose(points, frame_size, *, confidence=None, model=None, pose_points=PO
         use = idx if C is None else idx[C[t, idx] >= 0.1]
         use = use[np.all(np.isfinite(P[t, use]), axis=1)]
         if len(use) >= 6:
-            obj, img = X[use], P[t, use]
+            obj, img = X[t, use], P[t, use]
             if rvec is None:
                 ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_EPNP)
                 if not ok:
@@ -203,6 +203,16 @@ def head_pose(points, frame_size, *, confidence=None, model=None, pose_points=PO
         elif t:
             angles[t], trans[t] = angles[t - 1], trans[t - 1]
     return HeadPose(angles, trans, err)
+
+
+def _models(model, T: int) -> np.ndarray:
+    """The 3D face of each of *T* frames (T, 68, 3): *model* (68, 3) repeated (a view), or (T, 68, 3) as given."""
+    X = np.asarray(FACE_68 if model is None else model, dtype=np.float64)
+    if X.shape == (68, 3):
+        return np.broadcast_to(X, (T, 68, 3))
+    if X.shape != (T, 68, 3):
+        raise ShapeError(f"model: expected shape (68, 3) or ({T}, 68, 3), got {X.shape}")
+    return X
 
 
 #: Frontalization modes of :func:`frontalize`.
@@ -227,7 +237,7 @@ def _jacobian(Y, K) -> np.ndarray:
 
 
 def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float | None = None,
-               mode: str = "backproject", min_cos: float = 0.2) -> np.ndarray:
+               mode: str = "backproject", min_cos: float = 0.2, rest=None) -> np.ndarray:
     """The landmarks as a face looking into the camera would show them: the head's 3D rotation removed.
 
     Chuang & Bregler (2002, §3) remove the head's rigid motion before the expression is decomposed; the
@@ -247,6 +257,12 @@ def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float |
     - ``mode="subtract"``: ``x' = x − π(R_t X + t_t) + π(S_t X + t_t)``, the rigid rotation's projected effect
       replaced by the frontal one, the residual kept as seen.
 
+    With *rest* (a rotation relative to the line of sight, :func:`rest_rotation`), the frontal pose is
+    ``(S_t A, t_t)`` instead: each frame shown as turned as the rest frames are (``A``), so that only the
+    change of pose from the rest frames is removed, which is all a delta fit against those frames reads
+    (Lewis et al. 2005 §3); a fixed offset between the fitted pose and the actor's (a 3D face that is not the
+    actor's reads a few degrees of pitch) then moves no landmark.
+
     The translation is kept, so :func:`.head.estimate_head` on the result still removes scale and
     translation (and the little roll left).
 
@@ -258,13 +274,16 @@ def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float |
         Their :func:`head_pose` (camera-relative angles (T, 3) degrees, translation (T, 3) in the model's units).
     frame_size : (int, int)
         ``(width, height)``.
-    model : ndarray (68, 3), optional
-        The 3D face the pose was fitted with (default :data:`FACE_68`), camera axes.
+    model : ndarray (68, 3) or (T, 68, 3), optional
+        The 3D face the pose was fitted with (default :data:`FACE_68`), camera axes; one per frame for a pose
+        fitted on faces deformed by the expression (:func:`head_pose`).
     focal : float, optional
         The focal length the pose was fitted with (:func:`camera_matrix`).
     mode : {"backproject", "subtract"}
     min_cos : float
         The grazing-angle limit of ``backproject``.
+    rest : ndarray (3, 3), optional
+        The rest frames' rotation relative to the line of sight (default: the identity, looking into the lens).
 
     Returns
     -------
@@ -275,19 +294,22 @@ def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float |
     P = np.asarray(points, dtype=np.float64)
     if P.ndim != 3 or P.shape[1:] != (68, 2):
         raise ShapeError(f"points: expected shape (T, 68, 2), got {P.shape}")
-    X = np.asarray(FACE_68 if model is None else model, dtype=np.float64)
-    if X.shape != (68, 3):
-        raise ShapeError(f"model: expected shape (68, 3), got {X.shape}")
     T = len(P)
+    X = _models(model, T)
     if pose.angles.shape != (T, 3) or pose.translation.shape != (T, 3):
         raise ShapeError(f"pose: expected angles and translation of shape ({T}, 3), got {pose.angles.shape} and "
                          f"{pose.translation.shape}")
     K = camera_matrix(frame_size, focal)
     R = angles_rotation(pose.angles)                                   # (T, 3, 3)
     tr = np.asarray(pose.translation, dtype=np.float64)
-    Yt = np.einsum("tij,lj->tli", R, X) + tr[:, None]                  # posed model, camera axes (T, 68, 3)
+    Yt = np.einsum("tij,tlj->tli", R, X) + tr[:, None]                 # posed model, camera axes (T, 68, 3)
     S = sight_rotation(tr)                                             # (T, 3, 3): looking into the lens
-    Yf = np.einsum("tij,lj->tli", S, X) + tr[:, None]                  # the same face looking into the camera
+    if rest is not None:
+        A = np.asarray(rest, dtype=np.float64)
+        if A.shape != (3, 3):
+            raise ShapeError(f"rest: expected a rotation of shape (3, 3), got {A.shape}")
+        S = S @ A                                                      # as turned as the rest frames
+    Yf = np.einsum("tij,tlj->tli", S, X) + tr[:, None]                 # the same face looking into the camera
     ok = (Yt[..., 2] > 0).all(1) & (Yf[..., 2] > 0).all(1) & np.isfinite(P).all((1, 2))
     out = P.copy()
     if not ok.any():
@@ -307,3 +329,29 @@ def frontalize(points, pose: HeadPose, frame_size, *, model=None, focal: float |
     moved = front + np.einsum("tlij,tlj->tli", M0, D)
     out[ok] = np.where(good[..., None], moved, front + d)
     return out
+
+
+def rest_rotation(pose: HeadPose, frames) -> np.ndarray:
+    """The mean rotation (3, 3) of *frames* (rows of *pose*) relative to the line of sight: :func:`frontalize`'s *rest*.
+
+    Each frame's ``S(t_t)ᵀ R_t`` (:func:`sight_rotation`), averaged as matrices and projected back onto the
+    rotations (the chordal L2 mean: the nearest rotation to the mean matrix, by SVD).
+
+    Parameters
+    ----------
+    pose : HeadPose
+        Camera-relative angles (T, 3) and translations (T, 3).
+    frames : sequence of int
+        Rows of the rest frames.
+
+    Returns
+    -------
+    ndarray (3, 3)
+    """
+    rows = np.asarray(frames, dtype=np.int64).reshape(-1)
+    if rows.size == 0:
+        raise ShapeError("frames: expected at least one rest frame")
+    Rs = np.swapaxes(sight_rotation(pose.translation[rows]), -1, -2) @ angles_rotation(pose.angles[rows])
+    U, _, Vt = np.linalg.svd(Rs.mean(0))
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+    return U @ D @ Vt

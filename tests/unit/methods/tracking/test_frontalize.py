@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from retarget_cli.errors import ShapeError
 from retarget_cli.methods.blending import head_rotation_transforms
 from retarget_cli.methods.tracking.headpose import (
     FACE_68,
@@ -13,7 +14,10 @@ from retarget_cli.methods.tracking.headpose import (
     camera_matrix,
     frontalize,
     head_pose,
+    rest_rotation,
+    rotation_angles,
     sight_angles,
+    sight_rotation,
 )
 
 SIZE = (1280, 720)
@@ -47,6 +51,62 @@ def test_frontalize_shows_the_turned_expression_as_facing_the_camera(angles):
     assert turned > 10                                   # the turn moves the points by many pixels
     assert np.abs(back - front).mean() < 0.1             # back-projected: the frontal view within 0.1 px
     assert np.abs(sub - front).mean() > np.abs(back - front).mean()  # subtraction keeps the foreshortening
+
+
+def _open_jaw_smile():
+    X = FACE_68.copy()
+    X[list(range(5, 12)) + [56, 57, 58, 65, 66, 67], 1] += 2.0   # the jaw open: chin and lower lip down
+    X[list(range(5, 12)) + [56, 57, 58, 65, 66, 67], 2] += 0.8   # and back
+    X[[48, 60], 0] -= 0.8                                         # a smile: the corners out and up
+    X[[54, 64], 0] += 0.8
+    X[[48, 54, 60, 64], 1] -= 0.5
+    X[[31, 32], 0] -= 0.25                                        # the nose's wings pulled out and up
+    X[[34, 35], 0] += 0.25
+    X[31:36, 1] -= 0.3
+    return X
+
+
+def _angle_error(pose, angles):
+    R = np.swapaxes(angles_rotation(pose.angles), -1, -2) @ angles_rotation(angles)
+    return np.degrees(np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
+
+
+def test_the_pose_fitted_on_the_deformed_face_recovers_a_known_pose_an_open_jaw_biases_at_rest():
+    # joint pose and expression fit: a 3D face per frame (the rest face deformed by the expression) keeps an open
+    # jaw and a smile out of the pose, which the rest face alone reads as a turn
+    X = _open_jaw_smile()
+    angles = np.array([(25.0, -10.0, 4.0), (-15.0, 20.0, -6.0), (5.0, 5.0, 0.0)])
+    t = np.array([2.0, 1.0, 55.0])
+    obs = np.stack([_project(X, a, t) for a in angles])
+    chin_up = tuple(range(6, 11)) + tuple(range(17, 68))         # every point but the jaw contour's sides
+    for points in ((27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45), chin_up):
+        rest = _angle_error(head_pose(obs, SIZE, pose_points=points), angles)
+        joint = _angle_error(head_pose(obs, SIZE, model=np.broadcast_to(X, (3, 68, 3)), pose_points=points),
+                             angles)
+        assert rest.mean() > 1.0                                 # the expression leaks into the rest-only pose
+        assert joint.max() < 0.05                                # the deformed face's pose is exact
+    with pytest.raises(ShapeError, match="model"):
+        head_pose(obs, SIZE, model=np.zeros((2, 68, 3)))
+
+
+def test_frontalize_relative_to_the_rest_pose_removes_only_the_change_of_pose():
+    t = np.array([3.0, -1.0, 60.0])
+    rest_angles, turned = np.array([12.0, -6.0, 2.0]), np.array([-18.0, 14.0, -5.0])
+    X = _expression()
+    obs = np.stack([_project(FACE_68, rest_angles, t), _project(FACE_68, rest_angles, t), _project(X, turned, t)])
+    pose = head_pose(obs, SIZE)
+    A = rest_rotation(pose, [0, 1])
+    np.testing.assert_allclose(A, sight_rotation(t).T @ angles_rotation(rest_angles), atol=1e-3)  # S(t)ᵀ R
+    out = frontalize(obs, pose, SIZE, rest=A)
+    assert np.abs(out[:2] - obs[:2]).max() < 0.05                # the rest frames are left where they are
+    as_rest = _project(X, rotation_angles(sight_rotation(t) @ A), t)  # the expression turned as the rest frames
+    plain = frontalize(obs, pose, SIZE)[2]
+    assert np.abs(out[2] - as_rest).mean() < 0.1
+    assert np.abs(plain - as_rest).mean() > 5                    # without rest: shown looking into the lens
+    with pytest.raises(ShapeError, match="rest"):
+        frontalize(obs, pose, SIZE, rest=np.eye(2))
+    with pytest.raises(ShapeError, match="rest frame"):
+        rest_rotation(pose, [])
 
 
 def test_sight_angles_are_zero_for_a_face_that_looks_into_the_lens_off_axis():
