@@ -43,7 +43,7 @@ from .._validate import check_array
 from ..errors import InputError, ParameterError, ShapeError
 from .blas import small_blas
 from .decomposition import box_qp
-from .decomposition.boxqp import box_qp_weighted
+from .decomposition.boxqp import box_qp_masked
 from .decomposition.temporal import _second_difference, event_terms, sparse_box_qp, take_windows
 from .editing import fit_orthographic
 
@@ -973,8 +973,8 @@ def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, sca
     (*scale_rows* as :func:`fit_sliders`'s).
 
     Every frame's QP (its own Hessian ``Aᵀ diag(c) A`` with the ridge and sparsity of :func:`fit_sliders`) is
-    solved by :func:`~retarget_cli.methods.decomposition.boxqp.box_qp_weighted` with the other frames that have
-    the same free sliders; a frame where both sliders of an exclusive pair are active loses the weaker one and is
+    solved over its own free sliders by :func:`~retarget_cli.methods.decomposition.boxqp.box_qp_masked` (every
+    frame in one call of the compiled kernel, whatever its free set); a frame where both sliders of an exclusive pair are active loses the weaker one and is
     solved again, as :func:`_slider_qp` does.
 
     Returns
@@ -1007,16 +1007,7 @@ def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, sca
     for _ in range(len(pairs) + 1):
         if not todo.size:
             break
-        pats, inv = np.unique(F[todo], axis=0, return_inverse=True)
-        for g, pat in enumerate(pats):
-            ks = todo[inv.ravel() == g]
-            idx = np.flatnonzero(pat)
-            w[ks] = 0.0
-            if not idx.size:
-                continue
-            iu, ju = np.triu_indices(len(idx))
-            Hsub = Hs[ks][:, idx][:, :, idx]
-            w[np.ix_(ks, idx)] = box_qp_weighted(Hsub[:, iu, ju], q[ks][:, idx], lower=lo[idx], upper=hi[idx])
+        w[todo] = box_qp_masked(Hs[todo], q[todo], F[todo], lower=lo, upper=hi)
         if not len(pairs):
             break
         act = np.abs(w[todo]) > ACTIVE
