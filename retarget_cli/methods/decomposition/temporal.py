@@ -318,8 +318,10 @@ def sparse_box_qp(H, q, lower, upper, x0, *, max_iter: int = 60):
         xB = np.where(status == -1, lo, np.where(status == 1, hi_v, 0.0))
         x = xB.copy()
         if F.size:
-            rhs = q[F] - Hbig[F] @ xB
-            HF = Hbig[F][:, F].tocsc()
+            HrF = Hbig[F]  # the free rows, taken once (the slicing costs as much as a factorisation)
+            # bound variables are mostly at a zero bound: then the right-hand side is q_F itself
+            rhs = q[F] - HrF @ xB if xB.any() else q[F]
+            HF = HrF[:, F].tocsc()
             try:
                 x[F] = splu(HF).solve(rhs)
             except RuntimeError:  # singular reduced Hessian: least-squares solve
