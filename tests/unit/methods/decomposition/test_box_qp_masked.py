@@ -70,3 +70,32 @@ def test_a_range_without_zero_is_refused():
     H = np.eye(2)[None]
     with pytest.raises(ParameterError):
         box_qp_masked(H, np.ones((1, 2)), np.ones((1, 2), bool), lower=0.1, upper=1.0)
+
+
+def test_sparse_box_qp_slices_large_systems_with_the_kernel_to_the_same_bits(monkeypatch):
+    """The compiled slicing of a large system's reduced matrices gives scipy's matrices: the same iterates."""
+    from scipy import sparse
+
+    from retarget_cli.methods.decomposition import temporal
+    from retarget_cli.methods.decomposition._qp_kernel import principal_csc
+
+    rng = np.random.default_rng(3)
+    T, k = 120, 6
+    Hb = np.stack([(lambda a: a.T @ a)(rng.normal(size=(10, k))) for _ in range(T)])
+    blocks = sparse.block_diag(list(Hb), format="csr")
+    D2 = temporal._second_difference(T)
+    H = (blocks + 5.0 * sparse.kron(D2.T @ D2, sparse.eye(k), format="csr")).tocsr()
+    q = rng.normal(size=T * k) * 3
+    lo, hi = np.r_[np.full(k - 1, 0.0), -1.0][np.tile(np.arange(k), T)], np.ones(T * k)
+    x0 = rng.uniform(-0.5, 1.5, size=T * k)
+    keep = np.flatnonzero(rng.uniform(size=T * k) < 0.6)
+    Hc = H.tocsc()
+    ptr, rows, vals = principal_csc(Hc.indptr, Hc.indices, Hc.data, keep, T * k)
+    ref = Hc[keep][:, keep].tocsc()
+    assert np.array_equal(ptr, ref.indptr) and np.array_equal(rows, ref.indices) and np.array_equal(vals, ref.data)
+    monkeypatch.setattr(temporal, "_SLICE_KERNEL_MIN_NNZ", 10**12)
+    x_scipy, ok_scipy = temporal.sparse_box_qp(H, q, lo, hi, x0)
+    monkeypatch.setattr(temporal, "_SLICE_KERNEL_MIN_NNZ", 0)
+    x_kernel, ok_kernel = temporal.sparse_box_qp(H, q, lo, hi, x0)
+    assert ok_scipy and ok_kernel and np.array_equal(x_kernel, x_scipy)
+    assert np.sum((x_kernel <= lo) | (x_kernel >= hi)) > T  # bounds at zero and nonzero values were active
