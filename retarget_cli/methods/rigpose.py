@@ -43,7 +43,7 @@ from .._validate import check_array
 from ..errors import InputError, ParameterError, ShapeError
 from .blas import small_blas
 from .decomposition import box_qp
-from .decomposition.boxqp import box_qp_weighted
+from .decomposition.boxqp import box_qp_masked
 from .decomposition.temporal import _second_difference, event_terms, sparse_box_qp, take_windows
 from .editing import fit_orthographic
 
@@ -519,14 +519,29 @@ def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_close
     """
     if c.kind not in CONTACT_KINDS:
         raise ParameterError(f"contact: kind {c.kind!r} is not one of {', '.join(CONTACT_KINDS)}")
+    return _contact_target(c, _contact_rig(c, P0, B, free, lower, upper), contact_ratios(Yk, c), ref,
+                           lid_closed=lid_closed, lip_closed=lip_closed)
+
+
+def _contact_rig(c: Contact, P0, B, free, lower, upper):
+    """The rig's side of :func:`contact_targets` (the same for every frame seen in one view):
+    ``(G (pairs, n), the feature's width in the rig, closed (pairs,))``."""
     n = _normal(P0, *c.corners)
     G = np.stack([n @ (B[lo] - B[up]) for up, lo in c.pairs])
     width_rig = float(np.linalg.norm(P0[c.corners[1]] - P0[c.corners[0]]))
-    ratio = contact_ratios(Yk, c)
     if c.kind == "lips":
-        return G, np.maximum(ratio - np.asarray(ref) - lip_closed, 0.0) * width_rig, np.zeros(len(c.pairs))
+        return G, width_rig, np.zeros(len(c.pairs))
     reach = np.minimum(G * np.asarray(upper, dtype=np.float64), G * np.asarray(lower, dtype=np.float64))
     closed = np.min(np.where(free, reach, 0.0), axis=1, initial=0.0)  # (pairs,): the most closing slider's
+    return G, width_rig, closed
+
+
+def _contact_target(c: Contact, rig, ratio, ref, *, lid_closed: float, lip_closed: float):
+    """:func:`contact_targets` from the rig's side *rig* (:func:`_contact_rig`) and the actor's gap ratios
+    *ratio* (:func:`contact_ratios` of the frame)."""
+    G, width_rig, closed = rig
+    if c.kind == "lips":
+        return G, np.maximum(ratio - np.asarray(ref) - lip_closed, 0.0) * width_rig, closed
     r_k, r_o = float(np.mean(ratio)), float(np.mean(ref))
     if r_o - lid_closed <= 1e-6:
         return G, np.zeros(len(c.pairs)), closed  # the open eye reads no more open than closed: no target
@@ -856,10 +871,12 @@ def smoothing_windows(K: int, window: int | None = SMOOTH_WINDOW, margin: int = 
     return take_windows(K, window, margin)
 
 
-def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_closed, lip_closed, others=()):
+def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_closed, lip_closed, others=(),
+                 neutral_view=None):
     """The rows of one region of one frame: ``A`` (r, n), ``b`` (r,) (the landmark coordinates' displacements,
     then the *others* landmarks' coordinates with target 0, then a row per contact pair), and per pair its
-    landmark weight, tolerance and closed gap, and the frame's pixels per rig unit."""
+    landmark weight, tolerance and closed gap, and the frame's pixels per rig unit. *neutral_view*: the
+    groups' :func:`_contact_rig` in the neutral frame's view (``fr.P0n``, ``fr.Bn``), when already known."""
     n = rig.n_sliders
     scale = fr.s * sr
     m = ((fr.Y[i] - fr.rest[i]) / scale)  # (|i|, 2) the delta fit's displacements, rig units
@@ -868,13 +885,18 @@ def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_close
         m = m - np.einsum("lbn,n->lb", Br, fr.preset)
     pos = {int(p): j for j, p in enumerate(i)}
     G_rows, g_t, g_c, g_tol, g_closed = [], [], [], [], []
-    for c, ref in groups:
+    for gi, (c, ref) in enumerate(groups):
+        # contact_targets in two views, the frame's gap ratios read once
+        if c.kind not in CONTACT_KINDS:
+            raise ParameterError(f"contact: kind {c.kind!r} is not one of {', '.join(CONTACT_KINDS)}")
+        ratio = contact_ratios(fr.Y, c)
         # the pair's gap in the frame's view replaces the delta's (their mean displacement is kept) ...
-        G_k, target_k, _ = contact_targets(c, fr.Y, ref, fr.P0, fr.B, free, rig.lower, rig.upper,
+        G_k, target_k, _ = _contact_target(c, _contact_rig(c, fr.P0, fr.B, free, rig.lower, rig.upper), ratio, ref,
                                            lid_closed=lid_closed, lip_closed=lip_closed)
         # ... and the gap seen in the neutral frame's view is a row of its own (contact is the face's, not the view's)
-        G, target, closed = contact_targets(c, fr.Y, ref, fr.P0n, fr.Bn, free, rig.lower, rig.upper,
-                                            lid_closed=lid_closed, lip_closed=lip_closed)
+        rig_n = neutral_view[gi] if neutral_view is not None else \
+            _contact_rig(c, fr.P0n, fr.Bn, free, rig.lower, rig.upper)
+        G, target, closed = _contact_target(c, rig_n, ratio, ref, lid_closed=lid_closed, lip_closed=lip_closed)
         if fr.preset is not None:  # the gap the preset sliders already make is taken off the targets
             target_k, target = target_k - G_k @ fr.preset, target - G @ fr.preset
         nrm = _normal(fr.P0, *c.corners)
@@ -912,8 +934,11 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
     is. Each step's QPs are solved for every frame at once (:func:`_slider_qps`).
     """
     others = np.asarray(others, dtype=np.int64)
+    # the neutral frame's view is every frame's: its side of the contact rows is computed once
+    neutral_view = [_contact_rig(c, frames[0].P0n, frames[0].Bn, free, rig.lower, rig.upper) for c, _ in groups] \
+        if frames else None
     rows = [_region_rows(rig, fr, i, sr, groups, free, contact_tol=contact_tol, lid_closed=lid_closed,
-                         lip_closed=lip_closed, others=others) for fr in frames]
+                         lip_closed=lip_closed, others=others, neutral_view=neutral_view) for fr in frames]
     A = np.stack([r[0] for r in rows])
     b = np.stack([r[1] for r in rows])
     g_c = np.stack([r[2] for r in rows])
@@ -973,8 +998,8 @@ def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, sca
     (*scale_rows* as :func:`fit_sliders`'s).
 
     Every frame's QP (its own Hessian ``Aᵀ diag(c) A`` with the ridge and sparsity of :func:`fit_sliders`) is
-    solved by :func:`~retarget_cli.methods.decomposition.boxqp.box_qp_weighted` with the other frames that have
-    the same free sliders; a frame where both sliders of an exclusive pair are active loses the weaker one and is
+    solved over its own free sliders by :func:`~retarget_cli.methods.decomposition.boxqp.box_qp_masked` (every
+    frame in one call of the compiled kernel, whatever its free set); a frame where both sliders of an exclusive pair are active loses the weaker one and is
     solved again, as :func:`_slider_qp` does.
 
     Returns
@@ -1007,16 +1032,7 @@ def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, sca
     for _ in range(len(pairs) + 1):
         if not todo.size:
             break
-        pats, inv = np.unique(F[todo], axis=0, return_inverse=True)
-        for g, pat in enumerate(pats):
-            ks = todo[inv.ravel() == g]
-            idx = np.flatnonzero(pat)
-            w[ks] = 0.0
-            if not idx.size:
-                continue
-            iu, ju = np.triu_indices(len(idx))
-            Hsub = Hs[ks][:, idx][:, :, idx]
-            w[np.ix_(ks, idx)] = box_qp_weighted(Hsub[:, iu, ju], q[ks][:, idx], lower=lo[idx], upper=hi[idx])
+        w[todo] = box_qp_masked(Hs[todo], q[todo], F[todo], lower=lo, upper=hi)
         if not len(pairs):
             break
         act = np.abs(w[todo]) > ACTIVE

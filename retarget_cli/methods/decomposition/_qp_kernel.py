@@ -112,6 +112,62 @@ def pdas_frames_weighted(Htri, Q, lo, hi, max_iter, X, done):  # pragma: no cove
 
 
 @njit(cache=True, nogil=True)
+def pdas_frames_masked(H, Q, free, lo, hi, max_iter, X, done):  # pragma: no cover - compiled
+    """:func:`pdas_frames` with a full Hessian per frame and each frame's QP over its own *free* variables.
+
+    Parameters
+    ----------
+    H : ndarray, shape (T, K, K)
+        Symmetric positive semi-definite Hessians (only the entries of free variables are read).
+    Q : ndarray, shape (T, K)
+    free : ndarray of bool, shape (T, K)
+        The variables of frame ``t``'s problem; the others are held at 0 (``X[t]`` is 0 there).
+    lo, hi, max_iter, X, done
+        As for :func:`pdas_frames` (``lo ≤ 0 ≤ hi``).
+
+    Notes
+    -----
+    Each frame's reduced Hessian ``H_t[F_t, F_t]`` is regularised as :func:`pdas_frames_weighted` does
+    (``1e-14·max(diag)`` on its diagonal) and solved by the same iteration from the unconstrained
+    minimiser. A frame without free variables is done, at 0.
+    """
+    T, K = Q.shape
+    idx = np.empty(K, np.int64)
+    hbuf = np.empty(K * K)
+    qs = np.empty(K)
+    ls = np.empty(K)
+    us = np.empty(K)
+    xs = np.empty(K)
+    status, F, prevF, N, L, dinv, b, x, bad, grad, Z = _workspace(K)
+    for t in range(T):
+        m = 0
+        for i in range(K):
+            X[t, i] = 0.0
+            if free[t, i]:
+                idx[m] = i
+                m += 1
+        if m == 0:
+            done[t] = True
+            continue
+        Hs = hbuf[:m * m].reshape((m, m))
+        hscale = 1e-300
+        for a in range(m):
+            hscale = max(hscale, abs(H[t, idx[a], idx[a]]))
+        for a in range(m):
+            for c in range(m):
+                Hs[a, c] = H[t, idx[a], idx[c]]
+            Hs[a, a] += 1e-14 * hscale
+            qs[a] = Q[t, idx[a]]
+            ls[a] = lo[idx[a]]
+            us[a] = hi[idx[a]]
+        done[t] = _frame(Hs, qs[:m], ls[:m], us[:m], qs[:m], True, False, None, hscale, max_iter, xs[:m],
+                         status[:m], F[:m], prevF[:m], N[:m], L, dinv[:m], b[:m], x[:m], bad[:m], grad[:m], Z[:m])
+        if done[t]:
+            for a in range(m):
+                X[t, idx[a]] = xs[a]
+
+
+@njit(cache=True, nogil=True)
 def _workspace(K):  # pragma: no cover - compiled
     """Scratch arrays of :func:`_frame`, allocated once per call."""
     return (np.empty(K, np.int8), np.empty(K, np.int64), np.empty(K, np.int64), np.empty(K, np.int64),
@@ -362,6 +418,49 @@ def _axpy(alpha, H, j, y, n):  # pragma: no cover - compiled
     """``y[:n] += alpha·H[j, :n]``."""
     for i in range(n):
         y[i] += alpha * H[j, i]
+
+
+@njit(cache=True, nogil=True)
+def principal_csc(indptr, indices, data, keep, n):  # pragma: no cover - compiled
+    """The principal submatrix ``H[keep][:, keep]`` of a CSC matrix with sorted row indices, in CSC.
+
+    Parameters
+    ----------
+    indptr, indices, data : ndarray
+        The CSC arrays of ``H`` (n, n), row indices sorted within each column.
+    keep : ndarray of int, shape (m,)
+        Ascending indices.
+    n : int
+
+    Returns
+    -------
+    indptr, indices, data : ndarray
+        Of the (m, m) submatrix, row indices sorted (what scipy's slicing gives, without its two passes).
+    """
+    m = len(keep)
+    new = np.full(n, -1, np.int64)
+    for a in range(m):
+        new[keep[a]] = a
+    ptr = np.zeros(m + 1, indptr.dtype)
+    count = 0
+    for a in range(m):
+        j = keep[a]
+        for p in range(indptr[j], indptr[j + 1]):
+            if new[indices[p]] >= 0:
+                count += 1
+        ptr[a + 1] = count
+    rows = np.empty(count, indices.dtype)
+    vals = np.empty(count, data.dtype)
+    k = 0
+    for a in range(m):
+        j = keep[a]
+        for p in range(indptr[j], indptr[j + 1]):
+            r = new[indices[p]]
+            if r >= 0:
+                rows[k] = r
+                vals[k] = data[p]
+                k += 1
+    return ptr, rows, vals
 
 
 def warm_up(weighted: bool) -> None:

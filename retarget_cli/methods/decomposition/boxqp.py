@@ -375,6 +375,62 @@ def box_qp_weighted(Htri, Q, *, lower=0.0, upper=np.inf, sum_to=None, max_iter: 
     return np.clip(X, lo, hi)
 
 
+def box_qp_masked(H, Q, free, *, lower=0.0, upper=np.inf, max_iter: int = 30) -> np.ndarray:
+    """:func:`box_qp_weighted` with each frame's problem over its own variables: ``min ½ x_tᵀH_t x_t − q_tᵀx_t``
+    over ``x_t[F_t]``, ``l ≤ x_t ≤ u``, ``x_t = 0`` off the free set ``F_t``.
+
+    Every frame is solved by the compiled per-frame kernel
+    (:func:`retarget_cli.methods.decomposition._qp_kernel.pdas_frames_masked`: the primal–dual active-set
+    iteration of :func:`box_qp_weighted` on the reduced Hessian ``H_t[F_t, F_t]``, certified by its KKT
+    conditions), whatever the free sets, so frames of many different sets cost one call; a frame it leaves
+    unsettled is finished by :func:`box_qp_weighted`'s numpy iteration with the frames of its free set.
+
+    Parameters
+    ----------
+    H : ndarray, shape (T, K, K)
+        Symmetric positive semi-definite Hessians.
+    Q : ndarray, shape (T, K)
+    free : ndarray of bool, shape (T, K)
+    lower, upper : float or ndarray, shape (K,)
+        Bounds, ``lower ≤ 0 ≤ upper``.
+    max_iter : int
+
+    Returns
+    -------
+    ndarray, shape (T, K)
+        Zero off each frame's free set.
+    """
+    Q = np.atleast_2d(np.asarray(Q, dtype=np.float64))
+    T, K = Q.shape
+    H = np.ascontiguousarray(H, dtype=np.float64)
+    F = np.ascontiguousarray(free, dtype=bool)
+    if H.shape != (T, K, K) or F.shape != (T, K):
+        raise ShapeError(f"H, free: expected shapes ({T}, {K}, {K}) and ({T}, {K}), got {H.shape} and {F.shape}")
+    lo, hi = _bounds(lower, upper, K, None)
+    if np.any(lo > 0) or np.any(hi < 0):
+        raise ParameterError("box_qp_masked: every range must contain 0")
+    X = np.zeros((T, K))
+    if T == 0 or K == 0:
+        return X
+    _await_kernel(True)
+    from ._qp_kernel import pdas_frames_masked
+
+    done = np.empty(T, dtype=bool)
+    pdas_frames_masked(H, np.ascontiguousarray(Q), F, lo, hi, int(max_iter), X, done)
+    left = np.flatnonzero(~done)
+    if left.size:
+        log.debug("box_qp_masked: %d of %d frames left by the compiled kernel", left.size, T)
+        pats, inv = np.unique(F[left], axis=0, return_inverse=True)
+        for g, pat in enumerate(pats):
+            ks = left[inv.ravel() == g]
+            idx = np.flatnonzero(pat)
+            iu, ju = np.triu_indices(len(idx))
+            Hsub = H[ks][:, idx][:, :, idx]
+            X[np.ix_(ks, idx)] = box_qp_weighted(Hsub[:, iu, ju], Q[ks][:, idx], lower=lo[idx], upper=hi[idx],
+                                                 max_iter=max_iter, compiled=False)
+    return np.clip(X, lo, hi)
+
+
 def _equality_ls_stacked(H, Q, eq):
     """:func:`_equality_ls` for a Hessian per frame, H (n, K, K) and Q (n, K): a batched solve.
 

@@ -277,6 +277,11 @@ def _second_difference(T: int):
     return sparse.diags([np.ones(T - 2), -2 * np.ones(T - 2), np.ones(T - 2)], [0, 1, 2], shape=(T - 2, T), format="csr")
 
 
+#: :func:`sparse_box_qp` slices its reduced matrices with the compiled kernel from this many nonzeros of H on
+#: (smaller systems spare a process numba's start-up; the matrices are the same either way).
+_SLICE_KERNEL_MIN_NNZ = 200_000
+
+
 def sparse_box_qp(H, q, lower, upper, x0, *, max_iter: int = 60):
     """``min ½ xᵀHx − qᵀx`` subject to ``lower ≤ x ≤ upper``, for a large sparse positive definite *H*.
 
@@ -307,6 +312,19 @@ def sparse_box_qp(H, q, lower, upper, x0, *, max_iter: int = 60):
     x = np.clip(np.asarray(x0, dtype=np.float64), lo, hi_v)
     Hbig = H.tocsc()
     n = len(q)
+    # a large system's reduced matrices are sliced by the compiled kernel (the same matrix as scipy's slicing,
+    # in a tenth of the time); the right-hand side's products then come from the rows of H in CSR
+    compiled = Hbig.nnz >= _SLICE_KERNEL_MIN_NNZ
+    if compiled:
+        from scipy import sparse
+
+        from ._qp_kernel import principal_csc
+
+        Hbig = Hbig.copy() if not Hbig.has_sorted_indices else Hbig
+        Hbig.sort_indices()
+        Hrows = H.tocsr()
+        Hrows = Hrows.copy() if not Hrows.has_sorted_indices else Hrows
+        Hrows.sort_indices()
     status = np.zeros(n, dtype=np.int8)
     status[x <= lo] = -1
     status[x >= hi_v] = 1
@@ -317,9 +335,16 @@ def sparse_box_qp(H, q, lower, upper, x0, *, max_iter: int = 60):
         F = np.flatnonzero(status == 0)
         xB = np.where(status == -1, lo, np.where(status == 1, hi_v, 0.0))
         x = xB.copy()
+        if F.size and compiled:
+            # bound variables are often all at a zero bound: then the right-hand side is q_F itself
+            rhs = q[F] - (Hrows @ xB)[F] if xB.any() else q[F]
+            ptr, rows, vals = principal_csc(Hbig.indptr, Hbig.indices, Hbig.data, F, n)
+            HF = sparse.csc_matrix((vals, rows, ptr), shape=(F.size, F.size))
+        elif F.size:
+            HrF = Hbig[F]  # the free rows, taken once (the slicing costs as much as a factorisation)
+            rhs = q[F] - HrF @ xB if xB.any() else q[F]
+            HF = HrF[:, F].tocsc()
         if F.size:
-            rhs = q[F] - Hbig[F] @ xB
-            HF = Hbig[F][:, F].tocsc()
             try:
                 x[F] = splu(HF).solve(rhs)
             except RuntimeError:  # singular reduced Hessian: least-squares solve
