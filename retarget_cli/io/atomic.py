@@ -127,7 +127,10 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
 
     Same layout as :func:`numpy.savez_compressed` (readable by
     :func:`numpy.load`), but members carry a fixed timestamp and are written
-    in the order given.
+    in the order given. The archive is streamed into the temporary file
+    (:func:`atomic_open`), each member deflated as it is written: no copy of a
+    member or of the archive is held in memory (a long take's ``landmarks.npz``
+    is a few KB a frame).
 
     Parameters
     ----------
@@ -138,20 +141,35 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
     compress : bool
         Deflate members (default) or store them.
     """
-    buf = io.BytesIO()
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-    with zipfile.ZipFile(buf, "w", compression=method) as zf:
-        for name, value in arrays.items():
-            arr = np.asanyarray(value)
-            if arr.dtype == object:
-                raise ParameterError(f"array {name!r} has dtype object; refusing to pickle")
+    members = []
+    for name, value in arrays.items():
+        arr = np.asanyarray(value)
+        if arr.dtype == object:
+            raise ParameterError(f"array {name!r} has dtype object; refusing to pickle")
+        members.append((name, arr))
+    with atomic_open(path, "wb") as fh, zipfile.ZipFile(fh, "w", compression=method) as zf:
+        for name, arr in members:
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
             info.compress_type = method
             info.external_attr = 0o644 << 16
-            member = io.BytesIO()
-            np.lib.format.write_array(member, arr, allow_pickle=False)
-            zf.writestr(info, member.getvalue())
-    write_bytes(path, buf.getvalue())
+            # the member's size, known before it is written (as ``writestr`` knows it): zipfile picks the
+            # header's format (ZIP64 or not) from it, so the bytes are those of writing the member whole
+            info.file_size = _npy_size(arr)
+            with zf.open(info, "w") as dest:
+                np.lib.format.write_array(dest, arr, allow_pickle=False)
+
+
+def _npy_size(arr: np.ndarray) -> int:
+    """Bytes of *arr* in the ``.npy`` format (:func:`numpy.lib.format.write_array`): its header, then its data."""
+    header = io.BytesIO()
+    fmt = np.lib.format
+    try:
+        fmt.write_array_header_1_0(header, fmt.header_data_from_array_1_0(arr))
+    except ValueError:  # a header too long for format 1.0: write_array moves to 2.0
+        header = io.BytesIO()
+        fmt.write_array_header_2_0(header, fmt.header_data_from_array_1_0(arr))
+    return len(header.getvalue()) + arr.nbytes
 
 
 #: Largest array a data file may hold once loaded (bytes); guards against zip bombs and huge headers.
