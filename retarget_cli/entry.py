@@ -48,9 +48,35 @@ def _stop_on_signals() -> None:
             signal.signal(getattr(signal, name), _on_signal)
 
 
+#: glibc's ``M_MMAP_THRESHOLD`` (mallopt parameter), and the value the console script fixes it at (glibc's own
+#: starting value, 128 KiB).
+_M_MMAP_THRESHOLD, MMAP_THRESHOLD = -3, 128 * 1024
+
+
+def fix_mmap_threshold(nbytes: int = MMAP_THRESHOLD) -> bool:
+    """Keep glibc's mmap threshold at *nbytes*: every larger block (a numpy array of a take, a window's
+    state) is mapped on its own and given back to the system when freed.
+
+    Left to itself glibc raises the threshold to the largest block freed so far (up to 32 MB), so that a long
+    take's arrays (a few MB each) come from the heap afterwards, where what is freed stays with the process
+    and the heap fragments: ``track`` on the 3-minute synthetic take of ``bench/gaps.py --long`` peaked
+    7.4 MB higher, and 1.6 KB a frame of the growth from 1 to 3 minutes was that (docs/benchmarks.md).
+    Returns whether it was set (False where the C library is not glibc).
+    """
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):  # not glibc
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
+
+
 def main(argv=None) -> None:
     """Run the CLI; exit with its status (130 on Ctrl-C, 143/129 on SIGTERM/SIGHUP, 1 or 2 on an error)."""
     _stop_on_signals()
+    fix_mmap_threshold()
     try:
         import click
 
