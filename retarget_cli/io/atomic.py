@@ -147,6 +147,10 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
         arr = value if isinstance(value, NpyChunks) else np.asanyarray(value)
         if arr.dtype == object:
             raise ParameterError(f"array {name!r} has dtype object; refusing to pickle")
+        if isinstance(arr, np.ndarray) and arr.ndim and arr.flags.c_contiguous and arr.size and arr.dtype.itemsize:
+            # written from the array itself ~1 MiB of rows at a time (write_array would copy up to 16 MiB)
+            row = max(arr.nbytes // len(arr), 1)
+            arr = NpyChunks(arr.shape, arr.dtype, lambda a, b, v=arr: v[a:b], max(1, (1 << 20) // row))
         members.append((name, arr))
     with atomic_open(path, "wb") as fh, zipfile.ZipFile(fh, "w", compression=method) as zf:
         for name, arr in members:
@@ -161,7 +165,7 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
                 if isinstance(arr, NpyChunks):
                     dest.write(header)
                     for block in arr.blocks():
-                        dest.write(block)
+                        dest.write(block.reshape(-1).view(np.uint8))
                 else:
                     np.lib.format.write_array(dest, arr, allow_pickle=False)
 
