@@ -29,7 +29,7 @@ from ..methods.tracking.detect import Detector, detector_installed
 from ..methods.tracking.facemark import train_lbf
 from ..methods.tracking.gaze import EYES_68
 from ..methods.tracking.gaze import gaze as gaze_fn
-from ..methods.tracking.head import CHUNK, apply_similarity, estimate_head, fit_head, invert_similarity, stabilized_rows
+from ..methods.tracking.head import apply_similarity, estimate_head, fit_head, invert_similarity, stabilized_rows
 from ..methods.tracking.head import smooth_head as _smooth
 from ..methods.tracking.head import smooth_head as smooth_head_fn
 from ..methods.tracking.headpose import head_pose as fit_head_pose
@@ -144,6 +144,11 @@ IMPORT_PARAMS = [
 
 
 
+#: Frames whose float32 landmarks (raw, stabilized, saved) ``track`` makes at once: a few hundred KB, so that
+#: what it holds while saving does not grow with the take.
+BLOCK = 512
+
+
 def _all_track_params() -> list:
     """``track``'s declarations and the settings registered trackers add."""
     return [*PARAMS, *tracker_params(p.name for p in PARAMS)]
@@ -231,8 +236,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         spill = RowSpill(output, points.shape, np.float32)
     try:
         if spill is not None:
-            for a in range(0, len(points), CHUNK):
-                spill.write(points[a:a + CHUNK])
+            for a in range(0, len(points), BLOCK):
+                spill.write(points[a:a + BLOCK])
         points, _, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
                                            anchors=[i for i in index if i < len(points)], in_place=True,
                                            keep_raw=False)
@@ -289,7 +294,7 @@ def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, v
         stab = stab.astype(np.float32, copy=False)
     else:  # mapped a block of rows at a time while saving, as estimate_head(dtype=float32) maps them
         inverse = invert_similarity(head)
-        stab = NpyChunks(points.shape, np.float32, lambda a, b: stabilized_rows(inverse, points, a, b), CHUNK)
+        stab = NpyChunks(points.shape, np.float32, lambda a, b: stabilized_rows(inverse, points, a, b), BLOCK)
     mean_conf = float(conf.mean())
     meta = {
         "tracker": method,
@@ -308,11 +313,11 @@ def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, v
     if found is not None:
         meta["gaps"], meta["segments"] = gaps, int(segment.max()) + 1
     shape = points.shape
-    save_landmarks(output, Landmarks(NpyChunks(shape, np.float32, lambda a, b: points[a:b]),
-                                     NpyChunks(shape[:2], np.float32, lambda a, b: conf[a:b]),
+    save_landmarks(output, Landmarks(NpyChunks(shape, np.float32, lambda a, b: points[a:b], BLOCK),
+                                     NpyChunks(shape[:2], np.float32, lambda a, b: conf[a:b], BLOCK),
                                      head, stab, source.fps, np.array([W, H]), None, meta,
                                      frames=frame_numbers, times=source.times(frame_numbers),
-                                     points_raw=None if spill is None else spill.chunks(),
+                                     points_raw=None if spill is None else spill.chunks(BLOCK),
                                      neutral=None if calibration is None else calibration[0],
                                      neutral_confidence=None if calibration is None else calibration[1],
                                      found=found, segment=segment,
