@@ -48,9 +48,35 @@ def _stop_on_signals() -> None:
             signal.signal(getattr(signal, name), _on_signal)
 
 
+#: glibc's ``M_MMAP_THRESHOLD`` (mallopt parameter), and the value the console script fixes it at (1 MiB).
+_M_MMAP_THRESHOLD, MMAP_THRESHOLD = -3, 1 << 20
+
+
+def fix_mmap_threshold(nbytes: int = MMAP_THRESHOLD) -> bool:
+    """Keep glibc's mmap threshold at *nbytes*: every larger block (a long take's per-frame arrays, a window's
+    state) is mapped on its own and given back to the system when freed.
+
+    Left to itself glibc raises the threshold to the largest block freed so far (up to 32 MB), so that a long
+    take's arrays (a few MB each) come from the heap afterwards, where what is freed stays with the process
+    and the heap fragments: ``track`` on the 3-minute synthetic take of ``bench/gaps.py --long`` peaked
+    7.4 MB higher. A mapped block costs page faults each time it is made: at 128 KiB (glibc's starting value)
+    every decoded 256x256 frame was one, 23 times the faults; at 1 MiB 10 times, for the same peak
+    (docs/benchmarks.md). Returns whether it was set (False where the C library is not glibc).
+    """
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):  # not glibc
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
+
+
 def main(argv=None) -> None:
     """Run the CLI; exit with its status (130 on Ctrl-C, 143/129 on SIGTERM/SIGHUP, 1 or 2 on an error)."""
     _stop_on_signals()
+    fix_mmap_threshold()
     try:
         import click
 

@@ -127,7 +127,10 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
 
     Same layout as :func:`numpy.savez_compressed` (readable by
     :func:`numpy.load`), but members carry a fixed timestamp and are written
-    in the order given.
+    in the order given. The archive is streamed into the temporary file
+    (:func:`atomic_open`), each member deflated as it is written: no copy of a
+    member or of the archive is held in memory (a long take's ``landmarks.npz``
+    is a few KB a frame).
 
     Parameters
     ----------
@@ -138,20 +141,139 @@ def savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compress: b
     compress : bool
         Deflate members (default) or store them.
     """
-    buf = io.BytesIO()
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-    with zipfile.ZipFile(buf, "w", compression=method) as zf:
-        for name, value in arrays.items():
-            arr = np.asanyarray(value)
-            if arr.dtype == object:
-                raise ParameterError(f"array {name!r} has dtype object; refusing to pickle")
+    members = []
+    for name, value in arrays.items():
+        arr = value if isinstance(value, NpyChunks) else np.asanyarray(value)
+        if arr.dtype == object:
+            raise ParameterError(f"array {name!r} has dtype object; refusing to pickle")
+        if isinstance(arr, np.ndarray) and arr.ndim and arr.flags.c_contiguous and arr.size and arr.dtype.itemsize:
+            # written from the array itself ~1 MiB of rows at a time (write_array would copy up to 16 MiB)
+            row = max(arr.nbytes // len(arr), 1)
+            arr = NpyChunks(arr.shape, arr.dtype, lambda a, b, v=arr: v[a:b], max(1, (1 << 20) // row))
+        members.append((name, arr))
+    with atomic_open(path, "wb") as fh, zipfile.ZipFile(fh, "w", compression=method) as zf:
+        for name, arr in members:
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
             info.compress_type = method
             info.external_attr = 0o644 << 16
-            member = io.BytesIO()
-            np.lib.format.write_array(member, arr, allow_pickle=False)
-            zf.writestr(info, member.getvalue())
-    write_bytes(path, buf.getvalue())
+            header = _npy_header(arr)
+            # the member's size, known before it is written (as ``writestr`` knows it): zipfile picks the
+            # header's format (ZIP64 or not) from it, so the bytes are those of writing the member whole
+            info.file_size = len(header) + int(np.prod(arr.shape, dtype=np.int64)) * arr.dtype.itemsize
+            with zf.open(info, "w") as dest:
+                if isinstance(arr, NpyChunks):
+                    dest.write(header)
+                    for block in arr.blocks():
+                        dest.write(block.reshape(-1).view(np.uint8))
+                else:
+                    np.lib.format.write_array(dest, arr, allow_pickle=False)
+
+
+@dataclass(frozen=True)
+class NpyChunks:
+    """An array that :func:`savez` writes a block of rows at a time, never holding it whole.
+
+    *rows* ``(a, b)`` gives rows ``a:b`` (any dtype: converted to *dtype* as ``numpy.asarray`` would); the
+    member's bytes are those of the whole array (``rows(0, n)``) saved in the ``.npy`` format.
+    """
+
+    shape: tuple
+    dtype: np.dtype
+    rows: object
+    block: int = 4096
+
+    def __post_init__(self):
+        object.__setattr__(self, "shape", tuple(int(n) for n in self.shape))
+        object.__setattr__(self, "dtype", np.dtype(self.dtype))
+
+    def blocks(self):
+        """The rows in order, *block* at a time, as C-ordered arrays of :attr:`dtype`."""
+        n = self.shape[0] if self.shape else 1
+        for a in range(0, n, self.block):
+            b = min(n, a + self.block)
+            part = np.ascontiguousarray(self.rows(a, b), dtype=self.dtype)
+            if part.shape != (b - a, *self.shape[1:]):
+                raise ParameterError(f"rows {a}:{b}: expected shape {(b - a, *self.shape[1:])}, got {part.shape}")
+            yield part
+
+
+def _npy_header(arr) -> bytes:
+    """The ``.npy`` header :func:`numpy.lib.format.write_array` writes for *arr* (an array or :class:`NpyChunks`)."""
+    fmt = np.lib.format
+    if isinstance(arr, NpyChunks):
+        d = {"descr": fmt.dtype_to_descr(arr.dtype), "fortran_order": False, "shape": arr.shape}
+    else:
+        d = fmt.header_data_from_array_1_0(arr)
+    header = io.BytesIO()
+    try:
+        fmt.write_array_header_1_0(header, d)
+    except ValueError:  # a header too long for format 1.0: write_array moves to 2.0
+        header = io.BytesIO()
+        fmt.write_array_header_2_0(header, d)
+    return header.getvalue()
+
+
+class RowSpill:
+    """Rows of an array kept in a temporary file beside *path* instead of in memory: written once, in order
+    (:meth:`write`), read back a block at a time (:meth:`chunks`, for :func:`savez`), removed on :meth:`close`.
+
+    The file is a :func:`part_name` of *path* (a killed run's is removed by :func:`remove_stale_parts`) and
+    passes the write guard like *path*. Use as a context manager.
+    """
+
+    def __init__(self, path, shape, dtype):
+        path = Path(path)
+        check_write(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.shape, self.dtype, self.n = tuple(int(n) for n in shape), np.dtype(dtype), 0
+        self._row = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
+        self._fh, self.path = None, None
+        while True:
+            tmp = part_name(path, ".npy")
+            try:
+                fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o600)
+                break
+            except FileExistsError:
+                continue
+        self.path, self._fh = tmp, os.fdopen(fd, "w+b")
+
+    def write(self, rows) -> None:
+        """Append *rows* (k, *shape[1:]), converted to the spill's dtype."""
+        part = np.ascontiguousarray(rows, dtype=self.dtype)
+        if part.shape[1:] != self.shape[1:] or self.n + len(part) > self.shape[0]:
+            raise ParameterError(f"spill: rows of shape {part.shape} do not fit {self.shape} after {self.n} rows")
+        self._fh.seek(self.n * self._row)
+        self._fh.write(part.tobytes())
+        self.n += len(part)
+
+    def _read(self, a: int, b: int) -> np.ndarray:
+        out = np.empty((b - a, *self.shape[1:]), self.dtype)
+        self._fh.seek(a * self._row)
+        if self._fh.readinto(memoryview(out).cast("B")) != out.nbytes:
+            raise OSError(f"{self.path}: short read")
+        return out
+
+    def chunks(self, block: int = 4096) -> NpyChunks:
+        """The spilled array as a :func:`savez` member (every row must have been written)."""
+        if self.n != self.shape[0]:
+            raise ParameterError(f"spill: {self.n} of {self.shape[0]} rows written")
+        self._fh.flush()
+        return NpyChunks(self.shape, self.dtype, self._read, block)
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+        if self.path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 #: Largest array a data file may hold once loaded (bytes); guards against zip bombs and huge headers.

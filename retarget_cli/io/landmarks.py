@@ -20,7 +20,7 @@ from ..errors import InputError, ParameterError
 from ..methods.gaps import segments as gap_segments
 from ..methods.gaps import segments_of
 from ..methods.tracking.head import estimate_head
-from .atomic import load_npz, savez
+from .atomic import NpyChunks, load_npz, savez
 
 #: A landmark whose confidence is at or below this is lost in that frame.
 LOST_CONFIDENCE = 1e-3
@@ -145,13 +145,18 @@ class Landmarks:
 
 
 def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
-    """Atomically write *lm* in the ``landmarks.npz`` contract."""
+    """Atomically write *lm* in the ``landmarks.npz`` contract.
+
+    ``points``, ``confidence``, ``stabilized`` and ``points_raw`` may be
+    :class:`~retarget_cli.io.atomic.NpyChunks` of float32: written a block of rows at a time, so a long take's
+    float32 copies are never held whole (the bytes are those of the arrays they give).
+    """
     T, L = lm.points.shape[:2]
     arrays = {
-        "points": np.asarray(lm.points, dtype=np.float32),
-        "confidence": np.asarray(lm.confidence, dtype=np.float32),
+        "points": _float32(lm.points),
+        "confidence": _float32(lm.confidence),
         "head": np.asarray(lm.head, dtype=np.float32),
-        "stabilized": np.asarray(lm.stabilized, dtype=np.float32),
+        "stabilized": _float32(lm.stabilized),
         "fps": np.float64(lm.fps),
         "frame_size": np.asarray(lm.frame_size, dtype=np.int64),
     }
@@ -169,7 +174,7 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
         if arrays["times"].shape != (T,):
             raise ParameterError(f"times: expected shape {(T,)}, got {arrays['times'].shape}")
     if lm.points_raw is not None:
-        arrays["points_raw"] = np.asarray(lm.points_raw, dtype=np.float32)
+        arrays["points_raw"] = _float32(lm.points_raw)
         if arrays["points_raw"].shape != (T, L, 2):
             raise ParameterError(f"points_raw: expected shape {(T, L, 2)}, got {arrays['points_raw'].shape}")
     if lm.neutral is not None:
@@ -190,6 +195,15 @@ def save_landmarks(path: str | os.PathLike, lm: Landmarks) -> None:
     meta = {"version": __version__, **lm.meta}
     arrays["meta"] = np.array(json.dumps(meta, sort_keys=True))
     savez(path, arrays)
+
+
+def _float32(value):
+    """*value* as float32: an array, or an :class:`~retarget_cli.io.atomic.NpyChunks` of float32 as it is."""
+    if isinstance(value, NpyChunks):
+        if value.dtype != np.float32:
+            raise ParameterError(f"expected float32 rows, got {value.dtype}")
+        return value
+    return np.asarray(value, dtype=np.float32)
 
 
 def _gaze_arrays(lm: Landmarks, T: int) -> dict:

@@ -14,7 +14,7 @@ from .._validate import check_name
 from ..config import Command, Flag, Param, check_indices, check_size, check_strings, output_flag, validate_params
 from ..errors import FaceLostError, InputError, ParameterError, TruncatedInputError
 from ..io.annotations import read_annotations, read_csv_landmarks
-from ..io.atomic import check_not_input, digest_files, load_npz, sha256_file, tracked_outputs
+from ..io.atomic import NpyChunks, RowSpill, check_not_input, digest_files, load_npz, sha256_file, tracked_outputs
 from ..io.face_detector import face_detector_file
 from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
@@ -29,7 +29,7 @@ from ..methods.tracking.detect import Detector, detector_installed
 from ..methods.tracking.facemark import train_lbf
 from ..methods.tracking.gaze import EYES_68
 from ..methods.tracking.gaze import gaze as gaze_fn
-from ..methods.tracking.head import apply_similarity, estimate_head, invert_similarity
+from ..methods.tracking.head import apply_similarity, estimate_head, fit_head, invert_similarity, stabilized_rows
 from ..methods.tracking.head import smooth_head as _smooth
 from ..methods.tracking.head import smooth_head as smooth_head_fn
 from ..methods.tracking.headpose import head_pose as fit_head_pose
@@ -144,6 +144,11 @@ IMPORT_PARAMS = [
 
 
 
+#: Frames whose float32 landmarks (raw, stabilized, saved) ``track`` makes at once: a few hundred KB, so that
+#: what it holds while saving does not grow with the take.
+BLOCK = 512
+
+
 def _all_track_params() -> list:
     """``track``'s declarations and the settings registered trackers add."""
     return [*PARAMS, *tracker_params(p.name for p in PARAMS)]
@@ -222,21 +227,61 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     if need_auto and "detector" in spec.needs:
         write_auto_init(init_out, points[int(np.argmax(coverage.found))] if coverage is not None else points[0])
     found, segment, gaps = _coverage(coverage, len(points), frame_numbers, source, video)
-    points, raw, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
-                                         anchors=[i for i in index if i < len(points)], in_place=True)
-    # the take's per-frame arrays kept once each: what is only saved is kept as the file stores it (float32)
-    raw = None if raw is None else raw.astype(np.float32, copy=False)
-    held = held_confidence(conf, found)
-    # only the calibration reads the stabilized landmarks at full precision; else they are kept as saved
-    head, stab = estimate_head(points, held, rigid_points=rigid_points,
-                               dtype=np.float64 if neutral is not None or smooth_head else np.float32)
-    if smooth_head:
-        head = smooth_head_fn(head, smooth_head)
-        stab = apply_similarity(invert_similarity(head), points)
-    if neutral is None:
-        stab = stab.astype(np.float32, copy=False)
-    pose3d = _head_pose_3d(points, held, (W, H)) if head_pose else None
-    del held
+    # the take's per-frame arrays held once each, the float64 points and confidences only (issues #31, #33):
+    # the tracker's points go to a file beside the output before the filter writes over them, the stabilized
+    # landmarks and the float32 copies are made a block of rows at a time while saving
+    conf = np.require(conf, np.float64, ["W"])
+    spill = None
+    if fset["filter"] != "none":
+        spill = RowSpill(output, points.shape, np.float32)
+    try:
+        if spill is not None:
+            for a in range(0, len(points), BLOCK):
+                spill.write(points[a:a + BLOCK])
+        points, _, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
+                                           anchors=[i for i in index if i < len(points)], in_place=True,
+                                           keep_raw=False)
+        return _finish_track(
+            points, conf, spill, fmeta, found=found, segment=segment, gaps=gaps, output=output, video=video,
+            source=source, frame_numbers=frame_numbers, files=files, size=(W, H), rigid_points=rigid_points,
+            smooth_head=smooth_head, head_pose=head_pose, gaze=gaze, neutral=neutral, overlay=overlay,
+            spec=spec, objects=objects, tracker_settings=tracker_settings, fset=fset, progress=progress,
+            method=method, settings=settings, given=given, init_out=init_out, ann=ann, auto=auto, init=init,
+            model=model, params={"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
+                                 "downscale": downscale, "start": start, "end": end, "step": step,
+                                 "smooth_head": smooth_head, "head_pose": head_pose,
+                                 **({"fuse": fuse} if "fuse" in spec.settings else {}),
+                                 **{k: v for k, v in settings.items() if k in spec.settings}},
+            fps=fps)
+    finally:
+        if spill is not None:
+            spill.close()
+
+
+def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, video, source, frame_numbers, files,
+                  size, rigid_points, smooth_head, head_pose, gaze, neutral, overlay, spec, objects,
+                  tracker_settings, fset, progress, method, settings, given, init_out, ann, auto, init, model,
+                  params, fps) -> list[Path]:
+    """The rest of :func:`run_track` once the points are filtered: head motion, 3D head pose, gaze, calibration,
+    ``landmarks.npz`` (and the overlay). *points* (T, L, 2) and *conf* (T, L) are float64 and writable; *spill*
+    holds the tracker's points (or None: no filter)."""
+    W, H = size
+    start, end, step = params["start"], params["end"], params["step"]
+    # a gap frame's confidences are those of the frame whose landmarks it holds while the head is fitted
+    # (held_confidence, written into conf and undone after: no copy of the take's confidences)
+    undo = _hold_gap_confidence(conf, found)
+    stab = None
+    if neutral is not None or smooth_head:  # the calibration and the smoothing read them at full precision
+        head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+        if smooth_head:
+            head = smooth_head_fn(head, smooth_head)
+            stab = apply_similarity(invert_similarity(head), points)
+    else:
+        head = fit_head(points, conf, rigid_points=rigid_points)
+    pose3d = _head_pose_3d(points, conf, (W, H)) if head_pose else None
+    if undo is not None:
+        conf[undo[0]] = undo[1]
+    del undo
     gz = None
     if gaze and points.shape[1] == 68:
         gz = _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,
@@ -245,18 +290,15 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
                                      fps=fps)
-    stab = stab.astype(np.float32, copy=False)
+    if stab is not None:
+        stab = stab.astype(np.float32, copy=False)
+    else:  # mapped a block of rows at a time while saving, as estimate_head(dtype=float32) maps them
+        inverse = invert_similarity(head)
+        stab = NpyChunks(points.shape, np.float32, lambda a, b: stabilized_rows(inverse, points, a, b), BLOCK)
     mean_conf = float(conf.mean())
-    if not overlay:  # from here they are only saved: kept as the file stores them (float32), once each
-        conf = conf.astype(np.float32)
-        points = points.astype(np.float32)
     meta = {
         "tracker": method,
-        "parameters": {"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
-                       "downscale": downscale, "start": start, "end": end, "step": step,
-                       "smooth_head": smooth_head, "head_pose": head_pose,
-                       **({"fuse": fuse} if "fuse" in spec.settings else {}),
-                       **{k: v for k, v in settings.items() if k in spec.settings}},
+        "parameters": params,
         "filter": fmeta,
         "source": Path(video).name,
         "source_sha256": sha256_file(files[0]) if len(files) == 1 else digest_files(files),
@@ -270,8 +312,12 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
         meta["neutral"] = calibration[2]
     if found is not None:
         meta["gaps"], meta["segments"] = gaps, int(segment.max()) + 1
-    save_landmarks(output, Landmarks(points, conf, head, stab, source.fps, np.array([W, H]), None, meta,
-                                     frames=frame_numbers, times=source.times(frame_numbers), points_raw=raw,
+    shape = points.shape
+    save_landmarks(output, Landmarks(NpyChunks(shape, np.float32, lambda a, b: points[a:b], BLOCK),
+                                     NpyChunks(shape[:2], np.float32, lambda a, b: conf[a:b], BLOCK),
+                                     head, stab, source.fps, np.array([W, H]), None, meta,
+                                     frames=frame_numbers, times=source.times(frame_numbers),
+                                     points_raw=None if spill is None else spill.chunks(BLOCK),
                                      neutral=None if calibration is None else calibration[0],
                                      neutral_confidence=None if calibration is None else calibration[1],
                                      found=found, segment=segment,
@@ -591,7 +637,7 @@ def _coverage(coverage, T: int, frame_numbers, source, video):
 
 
 def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), window=WINDOW, margin=MARGIN,
-                    in_place=False):
+                    in_place=False, keep_raw=True):
     """:func:`~._landmark_filter.apply_filter` on each segment of the take apart (the whole take without
     *segment*), so that nothing is smoothed across a gap or a scene cut; frames in gaps stay as they are.
     A segment longer than :data:`~retarget_cli.methods.decomposition.temporal.WINDOW` + ``MARGIN`` frames is
@@ -602,15 +648,17 @@ def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), 
     *in_place* (float64 *points* of a take of more than one window): the filtered points are written into
     *points* itself (each window's rows once the next window has read its input, so every window reads the
     tracker's points) and the raw points returned are a float32 copy taken first: the take's landmarks are
-    held once at full precision, not twice.
+    held once at full precision, not twice. *keep_raw* false: no raw points are returned (None; the caller
+    kept them already), and none are copied.
 
     Returns (points (T, L, 2), raw (T, L, 2) or None, meta) like ``apply_filter``.
     """
     whole = segment is None or len(segments_of(segment)) == 1 and (segment >= 0).all()
     if whole and len(take_windows(len(points), window, margin)) == 1:
-        return apply_filter(points, conf, fps=fps, settings=settings, where=where, anchors=anchors)
+        out, raw, meta = apply_filter(points, conf, fps=fps, settings=settings, where=where, anchors=anchors)
+        return out, raw if keep_raw else None, meta
     in_place = in_place and isinstance(points, np.ndarray) and points.dtype == np.float64
-    if settings["filter"] == "none":
+    if settings["filter"] == "none" or not keep_raw:
         raw = None
     elif in_place:
         raw = points.astype(np.float32)
@@ -690,6 +738,20 @@ def held_confidence(conf, found):
     f = np.asarray(found, bool)
     last = np.maximum.accumulate(np.where(f, np.arange(len(f)), -1))
     return np.asarray(conf)[np.where(last >= 0, last, int(np.argmax(f)))]
+
+
+def _hold_gap_confidence(conf, found):
+    """:func:`held_confidence` written into *conf* itself: each gap frame's row takes the confidences of the
+    frame whose landmarks it holds. Returns what undoes it (the rows and their values), or None (no gap)."""
+    if found is None or np.all(found):
+        return None
+    f = np.asarray(found, bool)
+    last = np.maximum.accumulate(np.where(f, np.arange(len(f)), -1))
+    src = np.where(last >= 0, last, int(np.argmax(f)))
+    rows = np.flatnonzero(src != np.arange(len(f)))
+    saved = conf[rows].copy()
+    conf[rows] = conf[src[rows]]  # the rows read from are found ones, which this does not change
+    return rows, saved
 
 
 def _write_track_overlay(overlay, video, points, conf, head, source, *, start, end, step, fps, progress):

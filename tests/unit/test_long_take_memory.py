@@ -70,3 +70,98 @@ def test_stabilized_landmarks_in_float32_chunks_are_the_float64_ones_rounded(mon
     h32, s32 = head_mod.estimate_head(P, C, dtype=np.float32)
     assert s32.dtype == np.float32 and np.array_equal(h32, h64)
     assert s32.tobytes() == s64.astype(np.float32).tobytes()
+
+
+def test_an_npz_is_streamed_to_its_file_not_built_in_memory(tmp_path):
+    """``savez`` deflates each member into the temporary file as it goes: before, the archive, a copy of it and
+    two copies of the largest member were held (~5 KB a frame for a take's landmarks); the bytes are unchanged."""
+    import io
+    import zipfile
+
+    from retarget_cli.io import atomic
+
+    def in_memory(arrays) -> bytes:  # the former implementation: the whole archive built in a buffer
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for name, arr in arrays.items():
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=atomic._ZIP_EPOCH)
+                info.compress_type, info.external_attr = zipfile.ZIP_DEFLATED, 0o644 << 16
+                member = io.BytesIO()
+                np.lib.format.write_array(member, np.asanyarray(arr), allow_pickle=False)
+                zf.writestr(info, member.getvalue())
+        return buf.getvalue()
+
+    peaks = {}
+    for T in (2000, 4000):
+        rng = np.random.default_rng(T)
+        arrays = {"points": rng.normal(200, 30, (T, 68, 2)).astype(np.float32),
+                  "confidence": rng.uniform(0, 1, (T, 68)).astype(np.float32),
+                  "fortran": np.asfortranarray(rng.normal(size=(T, 3))), "meta": np.array('{"a": 1}'),
+                  "empty": np.zeros((0, 68, 2), np.float32)}
+        path = tmp_path / f"t{T}.npz"
+        peaks[T] = _traced_peak(lambda p=path, a=arrays: atomic.savez(p, a))
+        assert path.read_bytes() == in_memory(arrays)
+    per_frame = (peaks[4000] - peaks[2000]) / 2000
+    assert per_frame < 64, f"writing the npz grows by {per_frame:.0f} bytes a frame"
+
+
+def test_rows_given_a_block_at_a_time_or_spilled_to_a_file_save_as_the_array(tmp_path):
+    """``NpyChunks`` (rows made while saving) and ``RowSpill`` (rows kept in a file beside the output) give the
+    bytes of the whole float32 array; the spill file is a ``.part`` beside the output, removed on close."""
+    from retarget_cli.io.atomic import PART_RE, NpyChunks, RowSpill, savez
+
+    rng = np.random.default_rng(5)
+    P = rng.normal(200, 30, (1000, 68, 2))
+    C = rng.uniform(0, 1, (1000, 68))
+    savez(tmp_path / "whole.npz", {"points": P.astype(np.float32), "confidence": C.astype(np.float32)})
+    out = tmp_path / "out" / "landmarks.npz"
+    with RowSpill(out, P.shape, np.float32) as spill:
+        for a in range(0, len(P), 300):
+            spill.write(P[a:a + 300])
+        assert spill.path.parent == out.parent and PART_RE.match(spill.path.name)
+        savez(out, {"points": spill.chunks(block=128),
+                    "confidence": NpyChunks(C.shape, np.float32, lambda a, b: C[a:b], block=77)})
+    assert not spill.path.exists() and sorted(p.name for p in out.parent.iterdir()) == ["landmarks.npz"]
+    assert out.read_bytes() == (tmp_path / "whole.npz").read_bytes()
+
+
+def test_gap_confidences_held_in_place_are_held_confidence_and_undone():
+    """``track`` fits the head with each gap frame holding its source frame's confidences written into the
+    take's own array (no copy of it), then puts the gap rows back as they were."""
+    from retarget_cli.stages.track import _hold_gap_confidence, held_confidence
+
+    rng = np.random.default_rng(2)
+    found = np.ones(40, bool)
+    found[:3] = found[10:15] = found[30:] = False
+    conf = np.where(found[:, None], rng.uniform(0.2, 1, (40, 68)), 0.0)
+    before = conf.copy()
+    undo = _hold_gap_confidence(conf, found)
+    assert np.array_equal(conf, held_confidence(before, found))
+    conf[undo[0]] = undo[1]
+    assert np.array_equal(conf, before)
+    assert _hold_gap_confidence(conf, np.ones(40, bool)) is None
+
+
+def test_the_head_alone_and_stabilized_rows_are_estimate_heads():
+    """``fit_head`` is ``estimate_head``'s head; ``stabilized_rows`` over any blocks its stabilized landmarks."""
+    from retarget_cli.methods.tracking.head import estimate_head, fit_head, invert_similarity, stabilized_rows
+
+    rng = np.random.default_rng(4)
+    T = 500
+    P = rng.normal(size=(68, 2))[None] * 40 + 200 + np.cumsum(rng.normal(size=(T, 1, 2)), axis=0) \
+        + rng.normal(size=(T, 68, 2))
+    C = rng.uniform(0.2, 1.0, (T, 68))
+    head, stab = estimate_head(P, C)
+    assert np.array_equal(fit_head(P, C), head)
+    inv = invert_similarity(head)
+    rows = np.concatenate([stabilized_rows(inv, P, a, min(T, a + 123)) for a in range(0, T, 123)])
+    assert np.array_equal(rows, stab)
+
+
+def test_the_console_script_fixes_the_mmap_threshold():
+    """On glibc the console script keeps the mmap threshold fixed (mallopt accepts it); elsewhere it is a no-op."""
+    import platform
+
+    from retarget_cli.entry import fix_mmap_threshold
+
+    assert fix_mmap_threshold() is (platform.libc_ver()[0] == "glibc")

@@ -115,6 +115,39 @@ def invert_similarity(head) -> np.ndarray:
 CHUNK = 4096
 
 
+def fit_head(points, confidence=None, *, rigid_points=None, reference_frame: int = 0) -> np.ndarray:
+    """The head motion of :func:`estimate_head` alone (its ``head``; the stabilized landmarks not made).
+
+    Parameters and errors as :func:`estimate_head`.
+
+    Returns
+    -------
+    head : ndarray, shape (T, 2, 3), float64
+        Similarity mapping stabilized coordinates to image pixels (``head[reference_frame]`` the identity).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 3 or points.shape[2] != 2 or points.shape[0] == 0:
+        raise ShapeError(f"points: expected shape (T, L, 2) with T >= 1, got {points.shape}")
+    T, L, _ = points.shape
+    idx = default_rigid_points(L) if rigid_points is None else np.asarray(rigid_points, dtype=int)
+    if idx.size < 2 or idx.min() < 0 or idx.max() >= L:
+        raise ShapeError(f"rigid_points: need at least 2 indices in [0, {L}), got {idx.tolist()}")
+    if not 0 <= reference_frame < T:
+        raise ShapeError(f"reference_frame: expected 0 <= frame < {T}, got {reference_frame}")
+    conf = None if confidence is None else np.asarray(confidence, dtype=np.float64)[:, idx]
+    ref = points[reference_frame, idx]
+    if not np.all(np.isfinite(ref)):
+        raise ShapeError(f"points: reference frame {reference_frame} has non-finite rigid points")
+    return fit_similarity(ref, points[:, idx], conf)
+
+
+def stabilized_rows(inverse, points, a: int, b: int) -> np.ndarray:
+    """Rows ``a:b`` of the stabilized landmarks (float64): *points* (T, L, 2) mapped through *inverse* (T, 2, 3),
+    the inverse of :func:`fit_head`'s head (:func:`invert_similarity`). Each row is mapped on its own, so the
+    rows are those of mapping the whole take at once."""
+    return apply_similarity(inverse[a:b], np.asarray(points[a:b], dtype=np.float64))
+
+
 def estimate_head(points, confidence=None, *, rigid_points=None, reference_frame: int = 0, dtype=np.float64):
     """Separate head motion from expression (the routine every consumer uses).
 
@@ -146,25 +179,14 @@ def estimate_head(points, confidence=None, *, rigid_points=None, reference_frame
         Landmarks with the head motion removed.
     """
     points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 3 or points.shape[2] != 2 or points.shape[0] == 0:
-        raise ShapeError(f"points: expected shape (T, L, 2) with T >= 1, got {points.shape}")
-    T, L, _ = points.shape
-    idx = default_rigid_points(L) if rigid_points is None else np.asarray(rigid_points, dtype=int)
-    if idx.size < 2 or idx.min() < 0 or idx.max() >= L:
-        raise ShapeError(f"rigid_points: need at least 2 indices in [0, {L}), got {idx.tolist()}")
-    if not 0 <= reference_frame < T:
-        raise ShapeError(f"reference_frame: expected 0 <= frame < {T}, got {reference_frame}")
-    conf = None if confidence is None else np.asarray(confidence, dtype=np.float64)[:, idx]
-    ref = points[reference_frame, idx]
-    if not np.all(np.isfinite(ref)):
-        raise ShapeError(f"points: reference frame {reference_frame} has non-finite rigid points")
-    head = fit_similarity(ref, points[:, idx], conf)
+    head = fit_head(points, confidence, rigid_points=rigid_points, reference_frame=reference_frame)
     inverse = invert_similarity(head)
     if np.dtype(dtype) == np.float64:
         return head, apply_similarity(inverse, points)
+    T = len(points)
     stabilized = np.empty(points.shape, dtype)
     for a in range(0, T, CHUNK):
-        stabilized[a:a + CHUNK] = apply_similarity(inverse[a:a + CHUNK], points[a:a + CHUNK])
+        stabilized[a:a + CHUNK] = stabilized_rows(inverse, points, a, a + CHUNK)
     return head, stabilized
 
 
