@@ -24,6 +24,28 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v")
 PREFETCH = 4
 
 
+def _reader(cap, convert, reuse: bool):
+    """``read() -> frame or None`` of *cap*, each frame passed through *convert*.
+
+    *reuse*: decode each frame into the buffer of the one before (``cv2.VideoCapture.read(image)``) when
+    *convert* made a new array of it (the decoded frame is then seen by no one else). A 1080p BGR frame is
+    6 MB: above the mmap threshold the console script fixes (:func:`retarget_cli.entry.fix_mmap_threshold`),
+    a new one is mapped and its pages faulted in for every frame (2.1 s of system CPU per 587 1080p frames).
+    """
+    buf = None
+
+    def read():
+        nonlocal buf
+        ok, frame = cap.read() if buf is None else cap.read(buf)
+        if not ok:
+            return None
+        out = convert(frame)
+        buf = frame if reuse and out is not frame and not np.shares_memory(out, frame) else None
+        return out
+
+    return read
+
+
 class _Failed:
     """An exception raised by the decoding thread, to re-raise in the consumer."""
 
@@ -49,20 +71,23 @@ def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator
         caller's thread.
     gray : bool
         Convert colour frames to grayscale (``cv2.COLOR_BGR2GRAY``) in the
-        decoding thread, off the consumer's time.
+        decoding thread, off the consumer's time (a ``cv2.VideoCapture`` then
+        decodes each colour frame into the buffer of the one before: see
+        :func:`_reader`).
 
     Yields
     ------
     ndarray
         Each frame, in order.
     """
+    import cv2
+
     convert = to_gray if gray else (lambda frame: frame)
+    read = _reader(cap, convert, gray and isinstance(cap, cv2.VideoCapture))
     if prefetch <= 0:
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                return
-            yield convert(frame)
+        while (frame := read()) is not None:
+            yield frame
+        return
     q: queue.Queue = queue.Queue(maxsize=prefetch)
     stop = threading.Event()
     end = object()
@@ -80,10 +105,10 @@ def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator
         item = end
         try:
             while not stop.is_set():
-                ok, frame = cap.read()
-                if not ok:
+                frame = read()
+                if frame is None:
                     break
-                if not put(convert(frame)):
+                if not put(frame):
                     return
         except BaseException as exc:  # handed to the consumer
             item = _Failed(exc)
