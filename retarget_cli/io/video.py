@@ -53,7 +53,7 @@ class _Failed:
         self.exc = exc
 
 
-def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator[np.ndarray]:
+def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False, reuse: bool | None = None) -> Iterator[np.ndarray]:
     """Frames of ``cap.read()`` until it fails, decoded ahead in a background thread.
 
     OpenCV releases the GIL while it decodes, so decoding the next frames
@@ -74,6 +74,9 @@ def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator
         decoding thread, off the consumer's time (a ``cv2.VideoCapture`` then
         decodes each colour frame into the buffer of the one before: see
         :func:`_reader`).
+    reuse : bool, optional
+        Decode into the previous frame's buffer as *gray* does for a ``cv2.VideoCapture`` (default: *gray*
+        and *cap* is one); *cap*'s ``read`` must then take the buffer as ``read(image)``.
 
     Yields
     ------
@@ -83,7 +86,7 @@ def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator
     import cv2
 
     convert = to_gray if gray else (lambda frame: frame)
-    read = _reader(cap, convert, gray and isinstance(cap, cv2.VideoCapture))
+    read = _reader(cap, convert, gray and isinstance(cap, cv2.VideoCapture) if reuse is None else bool(reuse))
     if prefetch <= 0:
         while (frame := read()) is not None:
             yield frame

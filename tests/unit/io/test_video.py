@@ -49,6 +49,35 @@ def test_prefetching_reader_yields_identical_frames(small_take, prefetch):
 
 
 @pytest.mark.parametrize("prefetch", [0, 4])
+def test_gray_reader_decodes_into_one_buffer_and_yields_fresh_frames(small_take, monkeypatch, prefetch):
+    """A gray reader hands OpenCV the previous colour frame to decode into (no new 6 MB array per 1080p
+    frame), and every gray frame it yields is still an array of its own."""
+    given = []
+
+    class Capture:  # (a Python subclass of cv2.VideoCapture crashes the garbage collector)
+        def __init__(self, path):
+            self.cap = cv2.VideoCapture(str(path))
+
+        def read(self, image=None):
+            given.append(image)
+            return self.cap.read() if image is None else self.cap.read(image)
+
+    ref = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in _plain(small_take / "face.mp4")]
+    with VideoReader(small_take / "face.mp4", prefetch=prefetch, gray=True) as r:  # the real capture
+        np.testing.assert_array_equal(np.stack(list(r)), np.stack(ref))
+    got = list(decode_frames(Capture(small_take / "face.mp4"), prefetch=prefetch, gray=True, reuse=True))
+    assert len(got) == len(ref) == 60
+    for a, b in zip(got, ref):
+        np.testing.assert_array_equal(a, b)
+    assert given[0] is None and all(g is not None for g in given[1:])
+    assert len({id(g) for g in given[1:]}) == 1  # one colour buffer throughout
+    assert not any(np.shares_memory(a, b) for a, b in zip(got, got[1:]))
+    given.clear()
+    colour = list(decode_frames(Capture(small_take / "face.mp4"), prefetch=prefetch))
+    assert len({id(f) for f in colour}) == 60 and given == [None] * 61  # colour frames are handed out: never reused
+
+
+@pytest.mark.parametrize("prefetch", [0, 4])
 def test_gray_reader_converts_every_frame(small_take, tmp_path, prefetch):
     import cv2
 
