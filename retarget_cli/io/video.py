@@ -23,6 +23,55 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v")
 #: Frames decoded ahead by :class:`VideoReader` (the bound of its queue).
 PREFETCH = 4
 
+#: glibc's ``mallopt`` parameters ``M_TRIM_THRESHOLD`` and ``M_MMAP_THRESHOLD``.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+#: The mmap threshold the console script fixes (:data:`retarget_cli.entry.MMAP_THRESHOLD`), and glibc's
+#: default trim threshold: what :func:`large_frame_allocations` restores.
+MMAP_THRESHOLD, TRIM_THRESHOLD = 1 << 20, 128 << 10
+#: Inside :func:`large_frame_allocations`: blocks below the first come from the heap, and up to the second of
+#: free heap is kept for the next frame's blocks.
+LARGE_FRAME_MMAP, LARGE_FRAME_TRIM = 8 << 20, 32 << 20
+
+
+@contextlib.contextmanager
+def large_frame_allocations(frame_bytes: int):
+    """Per-frame blocks of a loop over frames of *frame_bytes* bytes (a BGR frame) kept on the heap.
+
+    Above the 1 MiB mmap threshold the console script fixes (for a long take's memory:
+    :func:`retarget_cli.entry.fix_mmap_threshold`), every block OpenCV and numpy make per frame of a large
+    video (the gray frame, Lucas-Kanade's pyramids and derivative buffers: 2.8 MB for a 1080p face) is a
+    fresh mapping whose pages fault in and are given back each time: on d9 at 1080p, 6.5 of ``track``'s
+    33 CPU seconds were system time, against 0.5 with this. Inside the block, glibc (only) serves blocks
+    under :data:`LARGE_FRAME_MMAP` from the heap and keeps up to :data:`LARGE_FRAME_TRIM` of it free; after,
+    the thresholds are restored and the free heap given back (``malloc_trim``). Frames of at most
+    :data:`MMAP_THRESHOLD` bytes: nothing changes. Arrays and results are the same either way.
+    """
+    libc = _glibc() if frame_bytes > MMAP_THRESHOLD else None
+    if libc is None:
+        yield
+        return
+    libc.mallopt(_M_MMAP_THRESHOLD, LARGE_FRAME_MMAP)
+    libc.mallopt(_M_TRIM_THRESHOLD, LARGE_FRAME_TRIM)
+    try:
+        yield
+    finally:
+        libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+        libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+        libc.malloc_trim(0)
+
+
+def _glibc():
+    """The C library with ``mallopt`` and ``malloc_trim`` typed (None where it is not glibc)."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt.argtypes, libc.mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+        libc.malloc_trim.argtypes, libc.malloc_trim.restype = [ctypes.c_size_t], ctypes.c_int
+    except (OSError, AttributeError):
+        return None
+    return libc
+
 
 def _reader(cap, convert, reuse: bool):
     """``read() -> frame or None`` of *cap*, each frame passed through *convert*.

@@ -20,6 +20,7 @@ from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
 from ..io.landmarks import Landmarks, save_landmarks
 from ..io.overlay import write_overlay
+from ..io.video import large_frame_allocations
 from ..methods.decomposition.temporal import MARGIN, WINDOW, take_windows
 from ..methods.gaps import describe_gaps, gap_summary, segment_ids, segments_of
 from ..methods.neutral import align_shape, find_rest_frame
@@ -218,9 +219,10 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
             raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
                              f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
         index = _annotation_index(ann, src, (W, H), start, end, step, missing=source.missing)
-        points, conf, coverage = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings,
-                                              progress=progress, keep_partial=keep_partial,
-                                              where=init_out or init or video)
+        with large_frame_allocations(W * H * 3):
+            points, conf, coverage = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings,
+                                                  progress=progress, keep_partial=keep_partial,
+                                                  where=init_out or init or video)
         frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
         files = source.files()
     conf = _lose_missing(conf, frame_numbers, source.missing)
@@ -706,7 +708,7 @@ def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings
     """
     T = len(points)
     with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=True, warn_missing=False) as src, \
-            progress(T, "gaze") as bar:
+            progress(T, "gaze") as bar, large_frame_allocations(src.frame_size[0] * src.frame_size[1] * 3):
         g = gaze_fn(islice(src, T), points, confidence=conf, progress=bar.update)  # only the T tracked (truncated video)
     valid = ~g.held
     P = np.asarray(points, dtype=np.float64)

@@ -159,3 +159,44 @@ def test_decoding_errors_reach_the_consumer_in_order():
             got.append(int(f[0, 0]))
     assert got == [1, 2, 3]
     assert not _decode_threads()
+
+
+def test_large_frame_allocations_keep_blocks_on_the_heap_and_restore(monkeypatch):
+    """Around a loop over frames above the 1 MiB mmap threshold the thresholds are raised, then restored and the
+    free heap trimmed, also when the loop raises; smaller frames leave the allocator alone."""
+    import retarget_cli.io.video as video
+
+    calls = []
+
+    class Libc:
+        def mallopt(self, param, value):
+            calls.append(("mallopt", param, value))
+            return 1
+
+        def malloc_trim(self, pad):
+            calls.append(("trim", pad))
+            return 1
+
+    monkeypatch.setattr(video, "_glibc", lambda: Libc())
+    with video.large_frame_allocations(512 * 480 * 3):
+        pass
+    assert calls == []
+    with pytest.raises(RuntimeError), video.large_frame_allocations(1920 * 1080 * 3):
+        assert calls == [("mallopt", -3, video.LARGE_FRAME_MMAP), ("mallopt", -1, video.LARGE_FRAME_TRIM)]
+        raise RuntimeError("a frame failed")
+    assert calls[2:] == [("mallopt", -3, video.MMAP_THRESHOLD), ("mallopt", -1, video.TRIM_THRESHOLD), ("trim", 0)]
+    assert video.MMAP_THRESHOLD == __import__("retarget_cli.entry", fromlist=["x"]).MMAP_THRESHOLD
+
+
+def test_large_frame_allocations_on_this_libc():
+    """The real C library: glibc takes the settings (the block runs either way)."""
+    import platform
+
+    import retarget_cli.io.video as video
+
+    libc = video._glibc()
+    if platform.libc_ver()[0] == "glibc":
+        assert libc is not None and libc.mallopt(video._M_MMAP_THRESHOLD, video.MMAP_THRESHOLD) == 1
+    with video.large_frame_allocations(1920 * 1080 * 3):
+        a = np.ones((1080, 1920), np.uint8)
+    assert int(a.sum()) == 1920 * 1080
