@@ -40,8 +40,8 @@ def large_frame_allocations(frame_bytes: int):
     Above the 1 MiB mmap threshold the console script fixes (for a long take's memory:
     :func:`retarget_cli.entry.fix_mmap_threshold`), every block OpenCV and numpy make per frame of a large
     video (the gray frame, Lucas-Kanade's pyramids and derivative buffers: 2.8 MB for a 1080p face) is a
-    fresh mapping whose pages fault in and are given back each time: on d9 at 1080p, 6.5 of ``track``'s
-    33 CPU seconds were system time, against 0.5 with this. Inside the block, glibc (only) serves blocks
+    fresh mapping whose pages fault in and are given back each time: on d9 at 1080p, 8.4-9.7 of ``track``'s
+    32-40 CPU seconds were system time, 0.7-0.9 with this (docs/benchmarks.md, issue #31). Inside the block, glibc (only) serves blocks
     under :data:`LARGE_FRAME_MMAP` from the heap and keeps up to :data:`LARGE_FRAME_TRIM` of it free; after,
     the thresholds are restored and the free heap given back (``malloc_trim``). Frames of at most
     :data:`MMAP_THRESHOLD` bytes: nothing changes. Arrays and results are the same either way.
