@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from itertools import islice
 from pathlib import Path
@@ -273,21 +274,34 @@ def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, v
     # (held_confidence, written into conf and undone after: no copy of the take's confidences)
     undo = _hold_gap_confidence(conf, found)
     stab = None
-    if neutral is not None or smooth_head:  # the calibration and the smoothing read them at full precision
-        head, stab = estimate_head(points, conf, rigid_points=rigid_points)
-        if smooth_head:
-            head = smooth_head_fn(head, smooth_head)
-            stab = apply_similarity(invert_similarity(head), points)
-    else:
-        head = fit_head(points, conf, rigid_points=rigid_points)
-    pose3d = _head_pose_3d(points, conf, (W, H)) if head_pose else None
-    if undo is not None:
-        conf[undo[0]] = undo[1]
-    del undo
     gz = None
-    if gaze and points.shape[1] == 68:
-        gz = _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,
-                         progress=progress)
+    want_gaze = gaze and points.shape[1] == 68
+
+    def gaze_pass():
+        return _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,
+                           progress=progress)
+
+    if neutral is None and not smooth_head and undo is None and want_gaze:
+        # no gap frame borrowed confidences (conf is only read): the head fits run on a worker thread while the
+        # gaze pass decodes the video again (numba's kernel and OpenCV release the GIL); the same results
+        with ThreadPoolExecutor(1, thread_name_prefix="retarget-head") as pool:
+            heads = pool.submit(_fit_heads, points, conf, rigid_points, (W, H), head_pose)
+            gz = gaze_pass()
+            head, pose3d = heads.result()
+    else:
+        if neutral is not None or smooth_head:  # the calibration and the smoothing read them at full precision
+            head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+            if smooth_head:
+                head = smooth_head_fn(head, smooth_head)
+                stab = apply_similarity(invert_similarity(head), points)
+            pose3d = _head_pose_3d(points, conf, (W, H)) if head_pose else None
+        else:
+            head, pose3d = _fit_heads(points, conf, rigid_points, (W, H), head_pose)
+        if undo is not None:
+            conf[undo[0]] = undo[1]
+        if want_gaze:
+            gz = gaze_pass()
+    del undo
     calibration = None
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
@@ -333,6 +347,13 @@ def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, v
                              progress=progress)
         written.append(Path(overlay))
     return written
+
+
+def _fit_heads(points, conf, rigid_points, frame_size, head_pose: bool):
+    """The 2D head motion (:func:`~retarget_cli.methods.tracking.head.fit_head`) and, with *head_pose*, the
+    3D head pose (:func:`_head_pose_3d`, else None) of the landmarks *points* (T, L, 2)."""
+    head = fit_head(points, conf, rigid_points=rigid_points)
+    return head, (_head_pose_3d(points, conf, frame_size) if head_pose else None)
 
 
 def _head_pose_3d(points, confidence, frame_size):
