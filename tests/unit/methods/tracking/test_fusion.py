@@ -197,3 +197,42 @@ def test_threaded_tracker_raises_a_bad_frame_where_the_sequential_one_does():
         with pytest.raises(ShapeError, match="uint8"):
             track_detect(frames, detector=det, threads=threads, progress=seen.append)
         assert seen == list(range(6)), threads  # frames 0-5 tracked, then the error
+
+
+@needs_detector
+def test_track_stage_head_fits_beside_the_gaze_pass_give_the_sequential_file(tmp_path, monkeypatch):
+    """run_track fits the head on a worker thread while the gaze pass runs; the file is the one of the same
+    work done one after the other (an executor that runs each job when it is submitted)."""
+    from concurrent.futures import Future
+
+    import retarget_cli.stages.track as track_stage
+    from retarget_cli.stages import run_track
+
+    class InPlace:
+        submitted = 0
+
+        def __init__(self, *a, **kw):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args):
+            InPlace.submitted += 1
+            f = Future()
+            f.set_result(fn(*args))
+            return f
+
+    kw = dict(video=str(SAMPLE / "face.mp4"), init="auto", start=40, end=70)
+    run_track(output=str(tmp_path / "a.npz"), **kw)
+    monkeypatch.setattr(track_stage, "ThreadPoolExecutor", InPlace)
+    run_track(output=str(tmp_path / "b.npz"), **kw)
+    assert InPlace.submitted == 1
+    with np.load(tmp_path / "a.npz") as a, np.load(tmp_path / "b.npz") as b:
+        assert "gaze" in a.files and "head_angles" in a.files
+        for k in a.files:
+            if k != "meta":
+                assert np.array_equal(a[k], b[k]), k
