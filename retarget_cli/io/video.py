@@ -43,7 +43,9 @@ def large_frame_allocations(frame_bytes: int):
     fresh mapping whose pages fault in and are given back each time: on d9 at 1080p, 8.4-9.7 of ``track``'s
     32-40 CPU seconds were system time, 0.7-0.9 with this (docs/benchmarks.md, issue #31). Inside the block, glibc (only) serves blocks
     under :data:`LARGE_FRAME_MMAP` from the heap and keeps up to :data:`LARGE_FRAME_TRIM` of it free; after,
-    the thresholds are restored and the free heap given back (``malloc_trim``). Frames of at most
+    the thresholds are set to the console script's (:data:`MMAP_THRESHOLD`, :data:`TRIM_THRESHOLD`; glibc has no
+    getter: a process that had left the mmap threshold dynamic has it fixed at 1 MiB from then on) and the
+    free heap given back (``malloc_trim``). Frames of at most
     :data:`MMAP_THRESHOLD` bytes: nothing changes. Arrays and results are the same either way.
     """
     libc = _glibc() if frame_bytes > MMAP_THRESHOLD else None
