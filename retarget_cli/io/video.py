@@ -23,6 +23,79 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v")
 #: Frames decoded ahead by :class:`VideoReader` (the bound of its queue).
 PREFETCH = 4
 
+#: glibc's ``mallopt`` parameters ``M_TRIM_THRESHOLD`` and ``M_MMAP_THRESHOLD``.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+#: The mmap threshold the console script fixes (:data:`retarget_cli.entry.MMAP_THRESHOLD`), and glibc's
+#: default trim threshold: what :func:`large_frame_allocations` restores.
+MMAP_THRESHOLD, TRIM_THRESHOLD = 1 << 20, 128 << 10
+#: Inside :func:`large_frame_allocations`: blocks below the first come from the heap, and up to the second of
+#: free heap is kept for the next frame's blocks.
+LARGE_FRAME_MMAP, LARGE_FRAME_TRIM = 8 << 20, 32 << 20
+
+
+@contextlib.contextmanager
+def large_frame_allocations(frame_bytes: int):
+    """Per-frame blocks of a loop over frames of *frame_bytes* bytes (a BGR frame) kept on the heap.
+
+    Above the 1 MiB mmap threshold the console script fixes (for a long take's memory:
+    :func:`retarget_cli.entry.fix_mmap_threshold`), every block OpenCV and numpy make per frame of a large
+    video (the gray frame, Lucas-Kanade's pyramids and derivative buffers: 2.8 MB for a 1080p face) is a
+    fresh mapping whose pages fault in and are given back each time: on d9 at 1080p, 8.4-9.7 of ``track``'s
+    32-40 CPU seconds were system time, 0.7-0.9 with this (docs/benchmarks.md, issue #31). Inside the block, glibc (only) serves blocks
+    under :data:`LARGE_FRAME_MMAP` from the heap and keeps up to :data:`LARGE_FRAME_TRIM` of it free; after,
+    the thresholds are set to the console script's (:data:`MMAP_THRESHOLD`, :data:`TRIM_THRESHOLD`; glibc has no
+    getter: a process that had left the mmap threshold dynamic has it fixed at 1 MiB from then on) and the
+    free heap given back (``malloc_trim``). Frames of at most
+    :data:`MMAP_THRESHOLD` bytes: nothing changes. Arrays and results are the same either way.
+    """
+    libc = _glibc() if frame_bytes > MMAP_THRESHOLD else None
+    if libc is None:
+        yield
+        return
+    libc.mallopt(_M_MMAP_THRESHOLD, LARGE_FRAME_MMAP)
+    libc.mallopt(_M_TRIM_THRESHOLD, LARGE_FRAME_TRIM)
+    try:
+        yield
+    finally:
+        libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+        libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+        libc.malloc_trim(0)
+
+
+def _glibc():
+    """The C library with ``mallopt`` and ``malloc_trim`` typed (None where it is not glibc)."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt.argtypes, libc.mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+        libc.malloc_trim.argtypes, libc.malloc_trim.restype = [ctypes.c_size_t], ctypes.c_int
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+def _reader(cap, convert, reuse: bool):
+    """``read() -> frame or None`` of *cap*, each frame passed through *convert*.
+
+    *reuse*: decode each frame into the buffer of the one before (``cv2.VideoCapture.read(image)``) when
+    *convert* made a new array of it (the decoded frame is then seen by no one else). A 1080p BGR frame is
+    6 MB: above the mmap threshold the console script fixes (:func:`retarget_cli.entry.fix_mmap_threshold`),
+    a new one is mapped and its pages faulted in for every frame (2.1 s of system CPU per 587 1080p frames).
+    """
+    buf = None
+
+    def read():
+        nonlocal buf
+        ok, frame = cap.read() if buf is None else cap.read(buf)
+        if not ok:
+            return None
+        out = convert(frame)
+        buf = frame if reuse and out is not frame and not np.shares_memory(out, frame) else None
+        return out
+
+    return read
+
 
 class _Failed:
     """An exception raised by the decoding thread, to re-raise in the consumer."""
@@ -31,7 +104,7 @@ class _Failed:
         self.exc = exc
 
 
-def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator[np.ndarray]:
+def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False, reuse: bool | None = None) -> Iterator[np.ndarray]:
     """Frames of ``cap.read()`` until it fails, decoded ahead in a background thread.
 
     OpenCV releases the GIL while it decodes, so decoding the next frames
@@ -49,20 +122,26 @@ def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator
         caller's thread.
     gray : bool
         Convert colour frames to grayscale (``cv2.COLOR_BGR2GRAY``) in the
-        decoding thread, off the consumer's time.
+        decoding thread, off the consumer's time (a ``cv2.VideoCapture`` then
+        decodes each colour frame into the buffer of the one before: see
+        :func:`_reader`).
+    reuse : bool, optional
+        Decode into the previous frame's buffer as *gray* does for a ``cv2.VideoCapture`` (default: *gray*
+        and *cap* is one); *cap*'s ``read`` must then take the buffer as ``read(image)``.
 
     Yields
     ------
     ndarray
         Each frame, in order.
     """
+    import cv2
+
     convert = to_gray if gray else (lambda frame: frame)
+    read = _reader(cap, convert, gray and isinstance(cap, cv2.VideoCapture) if reuse is None else bool(reuse))
     if prefetch <= 0:
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                return
-            yield convert(frame)
+        while (frame := read()) is not None:
+            yield frame
+        return
     q: queue.Queue = queue.Queue(maxsize=prefetch)
     stop = threading.Event()
     end = object()
@@ -80,10 +159,10 @@ def decode_frames(cap, prefetch: int = PREFETCH, gray: bool = False) -> Iterator
         item = end
         try:
             while not stop.is_set():
-                ok, frame = cap.read()
-                if not ok:
+                frame = read()
+                if frame is None:
                     break
-                if not put(convert(frame)):
+                if not put(frame):
                     return
         except BaseException as exc:  # handed to the consumer
             item = _Failed(exc)

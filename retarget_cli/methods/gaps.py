@@ -209,10 +209,11 @@ class CutDetector:
         hist = np.bincount((g[::4, ::4] >> 4).ravel(), minlength=16).astype(np.float64)
         return thumb.astype(np.float32) / 255.0, hist / hist.sum()
 
-    def __call__(self, frame) -> bool:
+    def __call__(self, frame, features=None) -> bool:
         """Whether *frame* starts a new shot (False for the first frame); :attr:`last` keeps the two
-        differences to the frame before."""
-        feats = self.features(frame)
+        differences to the frame before. *features*: :meth:`features` of *frame* when already computed (in
+        another thread, say); *frame* is then not read."""
+        feats = self.features(frame) if features is None else features
         prev, self._prev = self._prev, feats
         if prev is None:
             self.last = (0.0, 0.0)

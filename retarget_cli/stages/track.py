@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from itertools import islice
 from pathlib import Path
@@ -20,6 +21,7 @@ from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
 from ..io.landmarks import Landmarks, save_landmarks
 from ..io.overlay import write_overlay
+from ..io.video import large_frame_allocations
 from ..methods.decomposition.temporal import MARGIN, WINDOW, take_windows
 from ..methods.gaps import describe_gaps, gap_summary, segment_ids, segments_of
 from ..methods.neutral import align_shape, find_rest_frame
@@ -218,9 +220,10 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
             raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
                              f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
         index = _annotation_index(ann, src, (W, H), start, end, step, missing=source.missing)
-        points, conf, coverage = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings,
-                                              progress=progress, keep_partial=keep_partial,
-                                              where=init_out or init or video)
+        with large_frame_allocations(W * H * 3):
+            points, conf, coverage = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings,
+                                                  progress=progress, keep_partial=keep_partial,
+                                                  where=init_out or init or video)
         frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
         files = source.files()
     conf = _lose_missing(conf, frame_numbers, source.missing)
@@ -271,21 +274,34 @@ def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, v
     # (held_confidence, written into conf and undone after: no copy of the take's confidences)
     undo = _hold_gap_confidence(conf, found)
     stab = None
-    if neutral is not None or smooth_head:  # the calibration and the smoothing read them at full precision
-        head, stab = estimate_head(points, conf, rigid_points=rigid_points)
-        if smooth_head:
-            head = smooth_head_fn(head, smooth_head)
-            stab = apply_similarity(invert_similarity(head), points)
-    else:
-        head = fit_head(points, conf, rigid_points=rigid_points)
-    pose3d = _head_pose_3d(points, conf, (W, H)) if head_pose else None
-    if undo is not None:
-        conf[undo[0]] = undo[1]
-    del undo
     gz = None
-    if gaze and points.shape[1] == 68:
-        gz = _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,
-                         progress=progress)
+    want_gaze = gaze and points.shape[1] == 68
+
+    def gaze_pass():
+        return _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,
+                           progress=progress)
+
+    if neutral is None and not smooth_head and undo is None and want_gaze:
+        # no gap frame borrowed confidences (conf is only read): the head fits run on a worker thread while the
+        # gaze pass decodes the video again (numba's kernel and OpenCV release the GIL); the same results
+        with ThreadPoolExecutor(1, thread_name_prefix="retarget-head") as pool:
+            heads = pool.submit(_fit_heads, points, conf, rigid_points, (W, H), head_pose)
+            gz = gaze_pass()
+            head, pose3d = heads.result()
+    else:
+        if neutral is not None or smooth_head:  # the calibration and the smoothing read them at full precision
+            head, stab = estimate_head(points, conf, rigid_points=rigid_points)
+            if smooth_head:
+                head = smooth_head_fn(head, smooth_head)
+                stab = apply_similarity(invert_similarity(head), points)
+            pose3d = _head_pose_3d(points, conf, (W, H)) if head_pose else None
+        else:
+            head, pose3d = _fit_heads(points, conf, rigid_points, (W, H), head_pose)
+        if undo is not None:
+            conf[undo[0]] = undo[1]
+        if want_gaze:
+            gz = gaze_pass()
+    del undo
     calibration = None
     if neutral is not None:
         calibration = _track_neutral(neutral, spec, objects, tracker_settings, stab, conf, rigid_points=rigid_points,
@@ -331,6 +347,13 @@ def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, v
                              progress=progress)
         written.append(Path(overlay))
     return written
+
+
+def _fit_heads(points, conf, rigid_points, frame_size, head_pose: bool):
+    """The 2D head motion (:func:`~retarget_cli.methods.tracking.head.fit_head`) and, with *head_pose*, the
+    3D head pose (:func:`_head_pose_3d`, else None) of the landmarks *points* (T, L, 2)."""
+    head = fit_head(points, conf, rigid_points=rigid_points)
+    return head, (_head_pose_3d(points, conf, frame_size) if head_pose else None)
 
 
 def _head_pose_3d(points, confidence, frame_size):
@@ -706,7 +729,7 @@ def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings
     """
     T = len(points)
     with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=True, warn_missing=False) as src, \
-            progress(T, "gaze") as bar:
+            progress(T, "gaze") as bar, large_frame_allocations(src.frame_size[0] * src.frame_size[1] * 3):
         g = gaze_fn(islice(src, T), points, confidence=conf, progress=bar.update)  # only the T tracked (truncated video)
     valid = ~g.held
     P = np.asarray(points, dtype=np.float64)

@@ -33,6 +33,7 @@ import itertools
 import logging
 import operator
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -185,10 +186,17 @@ class Detector:
                                  for i in order], np.float64)
         return np.zeros((0, 4))
 
+    @staticmethod
+    def pixel_box(box) -> tuple[int, int, int, int]:
+        """The whole-pixel box ``(left, top, w, h)`` the predictor fits for *box* ``[left, top, w, h]``: two
+        boxes with the same pixel box give the same landmarks on the same frame."""
+        x, y, w, h = (int(round(v)) for v in box)
+        return x, y, max(w, 1), max(h, 1)
+
     def landmarks(self, gray, box) -> np.ndarray:
         """The 68 landmarks ``(68, 2)`` (0-based pixel centres) of the face in *box* ``[left, top, w, h]``."""
-        x, y, w, h = (int(round(v)) for v in box)
-        rect = self._dlib.rectangle(x, y, x + max(w, 1) - 1, y + max(h, 1) - 1)
+        x, y, w, h = self.pixel_box(box)
+        rect = self._dlib.rectangle(x, y, x + w - 1, y + h - 1)
         shape = self.predictor(np.ascontiguousarray(gray), rect)
         return np.array([[p.x, p.y] for p in shape.parts()], np.float64)
 
@@ -421,18 +429,42 @@ class FlowFusion:
         self._P = None
         # the filter's per-frame state, in preallocated arrays (a segment's rows, not lists of per-frame arrays)
         self._capacity, self._xf = int(capacity), None
+        self._pending = None  # (frame, future) of start_flow
 
-    def _flow(self, g) -> tuple[np.ndarray, np.ndarray]:
-        """Flow of the current estimate from the previous frame to *g*.
+    def start_flow(self, g, pool) -> None:
+        """Begin the flow of the current estimate to the frame *g* on *pool* (a
+        :class:`concurrent.futures.Executor`), for the :meth:`step` of *g* to take.
+
+        OpenCV's Lucas-Kanade releases the GIL, so the flow runs on another core while the caller fits the
+        frame's detection. The flow reads the state as it is now (the previous frame and estimate); the
+        result is the one :meth:`step` would compute itself, whatever the timing. Nothing is started
+        before the first frame of a track.
+        """
+        self._take_flow(None)
+        self._pending = None if self._x is None else (g, pool.submit(self._flow, g, self._g, self._x))
+
+    def _take_flow(self, g):
+        """The flow :meth:`start_flow` began for *g*, or None; a flow begun is waited for even when not taken
+        (none outlives its frame)."""
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return None
+        flow = pending[1].result()
+        return flow if pending[0] is g else None
+
+    def _flow(self, g, g_prev=None, x=None) -> tuple[np.ndarray, np.ndarray]:
+        """Flow of the estimate *x* (L, 2) (default: the current one) from the frame *g_prev* (default: the
+        previous one) to *g*.
 
         Returns the displacement (L, 2) and the motion variance ``q`` (L,). Both frames are cropped
         to the points' box (:class:`~retarget_cli.methods.tracking.lk._Box`), so the cost does not grow with
         the video's resolution.
         """
 
-        x = self._x
+        x = self._x if x is None else x
+        g_prev = self._g if g_prev is None else g_prev
         box = _Box(x, (g.shape[1], g.shape[0]), self.window, self.levels)
-        moved, fb = box.flow(box.crop(self._g), box.crop(g), x.astype(np.float32).reshape(-1, 1, 2), self._lk)
+        moved, fb = box.flow(box.crop(g_prev), box.crop(g), x.astype(np.float32).reshape(-1, 1, 2), self._lk)
         ok = np.isfinite(fb)
         u = moved.reshape(-1, 2).astype(np.float64) - x
         if not ok.any():
@@ -467,13 +499,14 @@ class FlowFusion:
             The forward (causal) estimate of this frame.
         """
         st = self.settings
+        flow = self._take_flow(g)
         if self._x is None or reset:
             if detection is None:
                 raise ShapeError("fusion: the first frame of a track needs a detection")
             xp = np.asarray(detection, np.float64).copy()
             Pp = np.full(len(xp), _NO_INFORMATION)
         else:
-            u, q = self._flow(g)
+            u, q = self._flow(g) if flow is None else flow
             xp, Pp = self._x + u, np.minimum(self._P + q, _NO_INFORMATION)
         if detection is None:
             x, P = xp, Pp
@@ -509,6 +542,7 @@ class FlowFusion:
         The smoother runs in place over the forward estimates (no copy of the segment's state): call it once,
         when the segment ends; the fuser is spent after it.
         """
+        self._take_flow(None)
         if self._xf is None:
             return np.zeros((0, 0, 2))
         xs, Pf, xp, Pp = self._xf.array, self._Pf.array, self._xp.array, self._Pp.array
@@ -523,12 +557,13 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
                  downscale: float | str = 1.0, tau: float = 0.05, max_jump: float = 0.5, max_disagreement: float = 0.08,
                  lost_frames: int = 25, fuse: bool = True, fusion: FusionSettings | None = None, progress=None,
                  gaps: bool = False, search_every: int = SEARCH_EVERY, min_confidence: float = MIN_FOUND_CONFIDENCE,
-                 cuts: CutDetector | None = None):
+                 cuts: CutDetector | None = None, threads: bool = True):
     """Landmarks on every frame by the pretrained detector, the face box following the previous frame.
 
     Per frame: the predictor fits the box of the previous frame's landmarks
     (:func:`box_from_points`, calibrated on the last detection), then fits
-    again in the box of that fit; the second fit is kept. The confidence of
+    again in the box of that fit (unless that box rounds to the same pixels:
+    the fit would be the first again); the second fit is kept. The confidence of
     point ``i`` is ``exp(-d_i / (tau * s))`` with ``d_i`` the distance between
     the two fits and ``s`` the eye-corner span. The landmarks look lost when
     the median disagreement exceeds *max_disagreement* of ``s``, or the box
@@ -573,6 +608,11 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
     min_confidence : float
     cuts : CutDetector, optional
         Scene-cut test of ``gaps=True`` (default :class:`~retarget_cli.methods.gaps.CutDetector`).
+    threads : bool
+        Overlap the per-frame work on two worker threads (OpenCV releases the GIL): the next frame's
+        grayscale, scaling and scene-cut thumbnail, and the fusion's optical flow while the shape predictor
+        fits the frame. Each result is taken in frame order, so the output is the same as with False
+        (everything in the caller's thread), whatever the timing.
 
     Returns
     -------
@@ -604,14 +644,20 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         frames = itertools.chain([first], frames)
     ann = _checked_annotations(annotations, downscale)
     k = float(downscale)
+    cuts = (cuts or CutDetector()) if gaps else None
+    pool = ThreadPoolExecutor(2, thread_name_prefix="retarget-track") if threads else None
     track = _DetectTrack(det, ann, k, (lambda: FlowFusion(fusion, capacity=capacity)) if fuse else None, tau=tau,
                          max_jump=max_jump, max_disagreement=max_disagreement, lost_frames=lost_frames, gaps=gaps,
-                         search_every=search_every, min_confidence=min_confidence,
-                         cuts=(cuts or CutDetector()) if gaps else None, hint=hint, capacity=capacity)
-    for t, frame in enumerate(frames):
-        track.frame(t, _scaled(_gray(frame), k))
-        if progress is not None:
-            progress(t)
+                         search_every=search_every, min_confidence=min_confidence, cuts=cuts, hint=hint,
+                         capacity=capacity, pool=pool)
+    try:
+        for t, (g, feats) in enumerate(_prepared(frames, k, cuts, pool)):
+            track.frame(t, g, feats)
+            if progress is not None:
+                progress(t)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     if not track.pts:
         raise ShapeError("frames: the sequence is empty")
     track.end_segment()
@@ -628,6 +674,33 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         return out, conf
     return out, conf, Coverage(np.array(track.found, bool), np.array(track.status, np.int8),
                                np.array(track.cut, bool))
+
+
+def _prepare_frame(frame, k: float, cuts: CutDetector | None):
+    """A frame as :class:`_DetectTrack` takes it: grayscale at the detection scale *k* (H', W') and its
+    scene-cut features (:meth:`~retarget_cli.methods.gaps.CutDetector.features`; None without *cuts*)."""
+    g = _scaled(_gray(frame), k)
+    return g, (None if cuts is None else cuts.features(g))
+
+
+def _prepared(frames, k: float, cuts: CutDetector | None, pool=None):
+    """:func:`_prepare_frame` of each of *frames*, in order; with *pool* the next frame is prepared there while
+    the caller works on the current one (one frame ahead)."""
+    if pool is None:
+        for frame in frames:
+            yield _prepare_frame(frame, k, cuts)
+        return
+    it = iter(frames)
+    ahead = None
+    for frame in it:
+        ahead = pool.submit(_prepare_frame, frame, k, cuts)
+        break
+    while ahead is not None:
+        current, ahead = ahead.result(), None
+        for frame in it:
+            ahead = pool.submit(_prepare_frame, frame, k, cuts)
+            break
+        yield current
 
 
 def _checked_annotations(annotations, downscale: float) -> dict[int, np.ndarray]:
@@ -652,8 +725,9 @@ class _DetectTrack:
     """
 
     def __init__(self, det, ann, k, fusion, *, tau, max_jump, max_disagreement, lost_frames, gaps=False,
-                 search_every=SEARCH_EVERY, min_confidence=MIN_FOUND_CONFIDENCE, cuts=None, hint=None, capacity=256):
-        self.det, self.ann, self.k, self.fusion = det, ann, k, fusion
+                 search_every=SEARCH_EVERY, min_confidence=MIN_FOUND_CONFIDENCE, cuts=None, hint=None, capacity=256,
+                 pool=None):
+        self.det, self.ann, self.k, self.fusion, self.pool = det, ann, k, fusion, pool
         self.hint = hint  # the face detector's boxes on the first frame at scale k, when already known
         self.tau, self.max_jump, self.max_disagreement, self.lost_frames = tau, max_jump, max_disagreement, lost_frames
         self.gaps, self.search_every, self.min_confidence, self.cuts = gaps, max(1, int(search_every)), \
@@ -666,11 +740,14 @@ class _DetectTrack:
         self.status: list[int] = []
         self.cut: list[bool] = []
 
-    def frame(self, t: int, g) -> None:
-        """Landmarks of frame *t* (grayscale at the detection scale) appended to :attr:`pts` and :attr:`conf`."""
+    def frame(self, t: int, g, cut_features=None) -> None:
+        """Landmarks of frame *t* (grayscale at the detection scale) appended to :attr:`pts` and :attr:`conf`;
+        *cut_features*: the scene-cut test's features of *g* when already computed."""
         if t > 0:
             self.hint = None
-        cut = bool(self.cuts(g)) and t > 0 if self.cuts is not None else False
+        if self.fuser is not None and self.pool is not None:
+            self.fuser.start_flow(g, self.pool)  # on another core while the predictor fits the frame
+        cut = bool(self.cuts(g, cut_features)) and t > 0 if self.cuts is not None else False
         self.cut.append(cut)
         P, c, fresh, status = None, None, False, NO_FACE
         if t in self.ann:
@@ -735,7 +812,8 @@ class _DetectTrack:
         box = box_from_points(self.P_prev, calib)
         first = det.landmarks(g, box)
         box1 = box_from_points(first, calib)
-        second = det.landmarks(g, box1)
+        # the second fit in the same whole-pixel box would repeat the first (2-7 % of the frames of d3, d9, d12)
+        second = first.copy() if det.pixel_box(box1) == det.pixel_box(box) else det.landmarks(g, box1)
         _, s, _ = _frame_of(second)
         d = np.linalg.norm(second - first, axis=1)
         jump = np.linalg.norm((box1[:2] + box1[2:] / 2) - (box[:2] + box[2:] / 2)) / box[2]
@@ -754,7 +832,8 @@ class _DetectTrack:
         if found is None:
             return None, None
         self.calib = calibrate_box(found, fbox)
-        again = det.landmarks(g, box_from_points(found, self.calib))
+        box = box_from_points(found, self.calib)  # (fbox again, to rounding: then the fit is found's own)
+        again = found.copy() if det.pixel_box(box) == det.pixel_box(fbox) else det.landmarks(g, box)
         _, s, _ = _frame_of(again)
         return found, np.exp(-np.linalg.norm(again - found, axis=1) / (self.tau * s))
 

@@ -49,6 +49,35 @@ def test_prefetching_reader_yields_identical_frames(small_take, prefetch):
 
 
 @pytest.mark.parametrize("prefetch", [0, 4])
+def test_gray_reader_decodes_into_one_buffer_and_yields_fresh_frames(small_take, monkeypatch, prefetch):
+    """A gray reader hands OpenCV the previous colour frame to decode into (no new 6 MB array per 1080p
+    frame), and every gray frame it yields is still an array of its own."""
+    given = []
+
+    class Capture:  # (a Python subclass of cv2.VideoCapture crashes the garbage collector)
+        def __init__(self, path):
+            self.cap = cv2.VideoCapture(str(path))
+
+        def read(self, image=None):
+            given.append(image)
+            return self.cap.read() if image is None else self.cap.read(image)
+
+    ref = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in _plain(small_take / "face.mp4")]
+    with VideoReader(small_take / "face.mp4", prefetch=prefetch, gray=True) as r:  # the real capture
+        np.testing.assert_array_equal(np.stack(list(r)), np.stack(ref))
+    got = list(decode_frames(Capture(small_take / "face.mp4"), prefetch=prefetch, gray=True, reuse=True))
+    assert len(got) == len(ref) == 60
+    for a, b in zip(got, ref):
+        np.testing.assert_array_equal(a, b)
+    assert given[0] is None and all(g is not None for g in given[1:])
+    assert len({id(g) for g in given[1:]}) == 1  # one colour buffer throughout
+    assert not any(np.shares_memory(a, b) for a, b in zip(got, got[1:]))
+    given.clear()
+    colour = list(decode_frames(Capture(small_take / "face.mp4"), prefetch=prefetch))
+    assert len({id(f) for f in colour}) == 60 and given == [None] * 61  # colour frames are handed out: never reused
+
+
+@pytest.mark.parametrize("prefetch", [0, 4])
 def test_gray_reader_converts_every_frame(small_take, tmp_path, prefetch):
     import cv2
 
@@ -130,3 +159,44 @@ def test_decoding_errors_reach_the_consumer_in_order():
             got.append(int(f[0, 0]))
     assert got == [1, 2, 3]
     assert not _decode_threads()
+
+
+def test_large_frame_allocations_keep_blocks_on_the_heap_and_restore(monkeypatch):
+    """Around a loop over frames above the 1 MiB mmap threshold the thresholds are raised, then restored and the
+    free heap trimmed, also when the loop raises; smaller frames leave the allocator alone."""
+    import retarget_cli.io.video as video
+
+    calls = []
+
+    class Libc:
+        def mallopt(self, param, value):
+            calls.append(("mallopt", param, value))
+            return 1
+
+        def malloc_trim(self, pad):
+            calls.append(("trim", pad))
+            return 1
+
+    monkeypatch.setattr(video, "_glibc", lambda: Libc())
+    with video.large_frame_allocations(512 * 480 * 3):
+        pass
+    assert calls == []
+    with pytest.raises(RuntimeError), video.large_frame_allocations(1920 * 1080 * 3):
+        assert calls == [("mallopt", -3, video.LARGE_FRAME_MMAP), ("mallopt", -1, video.LARGE_FRAME_TRIM)]
+        raise RuntimeError("a frame failed")
+    assert calls[2:] == [("mallopt", -3, video.MMAP_THRESHOLD), ("mallopt", -1, video.TRIM_THRESHOLD), ("trim", 0)]
+    assert video.MMAP_THRESHOLD == __import__("retarget_cli.entry", fromlist=["x"]).MMAP_THRESHOLD
+
+
+def test_large_frame_allocations_on_this_libc():
+    """The real C library: glibc takes the settings (the block runs either way)."""
+    import platform
+
+    import retarget_cli.io.video as video
+
+    libc = video._glibc()
+    if platform.libc_ver()[0] == "glibc":
+        assert libc is not None and libc.mallopt(video._M_MMAP_THRESHOLD, video.MMAP_THRESHOLD) == 1
+    with video.large_frame_allocations(1920 * 1080 * 3):
+        a = np.ones((1080, 1920), np.uint8)
+    assert int(a.sum()) == 1920 * 1080

@@ -4,6 +4,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 from detector_marks import needs_detector
 
 from retarget_cli.methods.tracking.detect import FlowFusion, FusionSettings, eye_opening
@@ -157,3 +158,81 @@ def test_track_cli_no_fuse_keeps_the_raw_detections(tmp_path):
         runs[name] = load_landmarks(out)
     assert runs["raw"].meta["parameters"]["fuse"] is False and runs["fused"].meta["parameters"]["fuse"] is True
     assert not np.allclose(runs["raw"].points[1:], runs["fused"].points[1:], atol=1e-3)
+
+
+@needs_detector
+def test_threaded_tracker_gives_the_sequential_result():
+    """track_detect with its worker threads (the next frame prepared, the flow beside the predictor) returns
+    the very arrays of the sequential loop, with and without gaps (scene-cut test) and fusion."""
+    from retarget_cli.io.frames import FrameSource
+    from retarget_cli.methods.tracking.detect import Detector, track_detect
+
+    with FrameSource(str(SAMPLE / "face.mp4"), start=40, end=100, gray=True) as src:
+        frames = list(src)
+    frames[30:] = frames[30:][::-1]  # a jump in the take: the cut test and a fresh detection on the way
+    det = Detector()
+    for kw in ({}, {"gaps": True}, {"fuse": False, "gaps": True}):
+        seq = track_detect(frames, detector=det, threads=False, **kw)
+        par = track_detect(iter(frames), detector=det, threads=True, **kw)
+        assert len(seq) == len(par) == (3 if kw.get("gaps") else 2)
+        for a, b in zip(seq[:2], par[:2]):
+            assert a.shape[0] == len(frames)
+            assert np.array_equal(a, b), kw
+        if kw.get("gaps"):
+            assert np.array_equal(seq[2].cuts, par[2].cuts) and np.array_equal(seq[2].status, par[2].status)
+
+
+@needs_detector
+def test_threaded_tracker_raises_a_bad_frame_where_the_sequential_one_does():
+    from retarget_cli.errors import ShapeError
+    from retarget_cli.io.frames import FrameSource
+    from retarget_cli.methods.tracking.detect import Detector, track_detect
+
+    with FrameSource(str(SAMPLE / "face.mp4"), start=40, end=50, gray=True) as src:
+        frames = list(src)
+    frames[6] = frames[6].astype(np.float32)
+    det = Detector()
+    for threads in (False, True):
+        seen = []
+        with pytest.raises(ShapeError, match="uint8"):
+            track_detect(frames, detector=det, threads=threads, progress=seen.append)
+        assert seen == list(range(6)), threads  # frames 0-5 tracked, then the error
+
+
+@needs_detector
+def test_track_stage_head_fits_beside_the_gaze_pass_give_the_sequential_file(tmp_path, monkeypatch):
+    """run_track fits the head on a worker thread while the gaze pass runs; the file is the one of the same
+    work done one after the other (an executor that runs each job when it is submitted)."""
+    from concurrent.futures import Future
+
+    import retarget_cli.stages.track as track_stage
+    from retarget_cli.stages import run_track
+
+    class InPlace:
+        submitted = 0
+
+        def __init__(self, *a, **kw):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args):
+            InPlace.submitted += 1
+            f = Future()
+            f.set_result(fn(*args))
+            return f
+
+    kw = dict(video=str(SAMPLE / "face.mp4"), init="auto", start=40, end=70)
+    run_track(output=str(tmp_path / "a.npz"), **kw)
+    monkeypatch.setattr(track_stage, "ThreadPoolExecutor", InPlace)
+    run_track(output=str(tmp_path / "b.npz"), **kw)
+    assert InPlace.submitted == 1
+    with np.load(tmp_path / "a.npz") as a, np.load(tmp_path / "b.npz") as b:
+        assert "gaze" in a.files and "head_angles" in a.files
+        for k in a.files:
+            if k != "meta":
+                assert np.array_equal(a[k], b[k]), k
