@@ -168,6 +168,109 @@ def pdas_frames_masked(H, Q, free, lo, hi, max_iter, X, done):  # pragma: no cov
 
 
 @njit(cache=True, nogil=True)
+def nnls_gram_pairs(G, which, B, W, tol, max_iter, ok):  # pragma: no cover - compiled
+    """Warm-started Lawson–Hanson NNLS in Gram form for many small problems, each with one of several Grams.
+
+    Problem ``p`` is ``min wᵀG_s w − 2 b_pᵀw`` subject to ``w ≥ 0`` with ``s = which[p]``, i.e.
+    ``‖q − Bᵀw‖²`` with ``G = B Bᵀ``, ``b = B q`` (Chuang & Bregler's eq. 4). It is the iteration of
+    :func:`retarget_cli.methods.selection._nnls_gram` with ``warm_optimal``: the passive set starts at
+    the support of ``W[p]`` (least squares on it already), the most violated zero weight enters, and
+    an infeasible least-squares point steps back to the boundary, dropping the weights it zeroes;
+    the same tolerances. Each least-squares solve is a Cholesky factorisation of ``G_PP``.
+
+    Parameters
+    ----------
+    G : ndarray, shape (n, K, K)
+        Symmetric positive semi-definite Grams.
+    which : ndarray of int, shape (P,)
+        The Gram of each problem.
+    B : ndarray, shape (P, K)
+    W : ndarray, shape (P, K)
+        In: non-negative starts, optimal on their support. Out: the solutions of the problems marked ok.
+    tol : ndarray, shape (n,)
+        Gradient tolerance of each Gram (``1e-11·max(diag G_s)``).
+    max_iter : int
+        Weights entering the passive set, at most.
+    ok : ndarray of bool, shape (P,)
+        Out: False where *max_iter* was reached or a ``G_PP`` was numerically singular (the caller
+        solves those problems another way).
+    """
+    n_p, K = B.shape
+    passive = np.empty(K, np.bool_)
+    idx = np.empty(K, np.int64)
+    L = np.empty((K, K))
+    dinv = np.empty(K)
+    z = np.empty(K)
+    w = np.empty(K)
+    for p in range(n_p):
+        H = G[which[p]]
+        b = B[p]
+        for i in range(K):
+            w[i] = W[p, i]
+            passive[i] = w[i] > 0.0
+        ok[p] = False
+        for _ in range(max_iter):
+            # the most violated zero weight enters (first index on ties, as numpy's argmax)
+            j = -1
+            gbest = tol[which[p]]
+            for i in range(K):
+                if passive[i]:
+                    continue
+                g = b[i]
+                for a in range(K):
+                    g -= w[a] * H[a, i]
+                if g > gbest:
+                    gbest = g
+                    j = i
+            if j < 0:
+                ok[p] = True
+                break
+            passive[j] = True
+            singular = False
+            for _inner in range(K + 1):
+                m = 0
+                for i in range(K):
+                    if passive[i]:
+                        idx[m] = i
+                        m += 1
+                if not _factor(H, idx, 0, m, L, dinv):
+                    singular = True
+                    break
+                for a in range(m):
+                    z[a] = b[idx[a]]
+                _solve(L, dinv, m, z)
+                alpha = np.inf
+                for a in range(m):
+                    if z[a] <= 0.0:
+                        wi = w[idx[a]]
+                        r = wi / (wi - z[a]) if wi - z[a] != 0.0 else np.inf
+                        alpha = min(alpha, r)
+                if alpha == np.inf:  # feasible: the least-squares point is the new iterate
+                    for i in range(K):
+                        w[i] = 0.0
+                    for a in range(m):
+                        w[idx[a]] = z[a]
+                    break
+                alpha = min(max(alpha, 0.0), 1.0)
+                wmax = 0.0
+                for a in range(m):
+                    i = idx[a]
+                    w[i] = w[i] + alpha * (z[a] - w[i])
+                    wmax = max(wmax, abs(w[i]))
+                cut = 1e-14 * max(1.0, wmax)
+                for a in range(m):
+                    i = idx[a]
+                    if not w[i] > cut:
+                        passive[i] = False
+                        w[i] = 0.0
+            if singular:
+                break
+        if ok[p]:
+            for i in range(K):
+                W[p, i] = w[i]
+
+
+@njit(cache=True, nogil=True)
 def _workspace(K):  # pragma: no cover - compiled
     """Scratch arrays of :func:`_frame`, allocated once per call."""
     return (np.empty(K, np.int8), np.empty(K, np.int64), np.empty(K, np.int64), np.empty(K, np.int64),
