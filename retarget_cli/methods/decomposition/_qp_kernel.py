@@ -210,64 +210,81 @@ def nnls_gram_pairs(G, which, B, W, tol, max_iter, ok):  # pragma: no cover - co
             passive[i] = w[i] > 0.0
         ok[p] = False
         for _ in range(max_iter):
-            # the most violated zero weight enters (first index on ties, as numpy's argmax)
-            j = -1
-            gbest = tol[which[p]]
-            for i in range(K):
-                if passive[i]:
-                    continue
-                g = b[i]
-                for a in range(K):
-                    g -= w[a] * H[a, i]
-                if g > gbest:
-                    gbest = g
-                    j = i
+            j = _entering(H, b, w, passive, tol[which[p]])
             if j < 0:
                 ok[p] = True
                 break
             passive[j] = True
             singular = False
-            for _inner in range(K + 1):
-                m = 0
-                for i in range(K):
-                    if passive[i]:
-                        idx[m] = i
-                        m += 1
-                if not _factor(H, idx, 0, m, L, dinv):
-                    singular = True
+            for _inner in range(K + 1):  # least squares on the passive set, stepping back while infeasible
+                status = _ls_step(H, b, w, passive, idx, L, dinv, z)
+                singular = status < 0
+                if status != 1:
                     break
-                for a in range(m):
-                    z[a] = b[idx[a]]
-                _solve(L, dinv, m, z)
-                alpha = np.inf
-                for a in range(m):
-                    if z[a] <= 0.0:
-                        wi = w[idx[a]]
-                        r = wi / (wi - z[a]) if wi - z[a] != 0.0 else np.inf
-                        alpha = min(alpha, r)
-                if alpha == np.inf:  # feasible: the least-squares point is the new iterate
-                    for i in range(K):
-                        w[i] = 0.0
-                    for a in range(m):
-                        w[idx[a]] = z[a]
-                    break
-                alpha = min(max(alpha, 0.0), 1.0)
-                wmax = 0.0
-                for a in range(m):
-                    i = idx[a]
-                    w[i] = w[i] + alpha * (z[a] - w[i])
-                    wmax = max(wmax, abs(w[i]))
-                cut = 1e-14 * max(1.0, wmax)
-                for a in range(m):
-                    i = idx[a]
-                    if not w[i] > cut:
-                        passive[i] = False
-                        w[i] = 0.0
             if singular:
                 break
         if ok[p]:
             for i in range(K):
                 W[p, i] = w[i]
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of nnls_gram_pairs, inlined into it)
+def _entering(H, b, w, passive, tol):  # pragma: no cover - compiled
+    """The zero weight whose gradient ``b − Hw`` is largest and above *tol* (the first on ties), or -1."""
+    K = len(b)
+    j = -1
+    gbest = tol
+    for i in range(K):
+        if passive[i]:
+            continue
+        g = b[i]
+        for a in range(K):
+            g -= w[a] * H[a, i]
+        if g > gbest:
+            gbest = g
+            j = i
+    return j
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of nnls_gram_pairs, inlined into it)
+def _ls_step(H, b, w, passive, idx, L, dinv, z):  # pragma: no cover - compiled
+    """Least squares on the passive set: 0 when feasible (*w* is the point), 1 after stepping *w* back to
+    the boundary and dropping the weights it zeroes from *passive*, -1 when ``H_PP`` is singular."""
+    K = len(b)
+    m = 0
+    for i in range(K):
+        if passive[i]:
+            idx[m] = i
+            m += 1
+    if not _factor(H, idx, 0, m, L, dinv):
+        return -1
+    for a in range(m):
+        z[a] = b[idx[a]]
+    _solve(L, dinv, m, z)
+    alpha = np.inf
+    for a in range(m):
+        if z[a] <= 0.0:
+            wi = w[idx[a]]
+            alpha = min(alpha, wi / (wi - z[a]) if wi != z[a] else np.inf)
+    if alpha == np.inf:
+        for i in range(K):
+            w[i] = 0.0
+        for a in range(m):
+            w[idx[a]] = z[a]
+        return 0
+    alpha = min(max(alpha, 0.0), 1.0)
+    wmax = 0.0
+    for a in range(m):
+        i = idx[a]
+        w[i] = w[i] + alpha * (z[a] - w[i])
+        wmax = max(wmax, abs(w[i]))
+    cut = 1e-14 * max(1.0, wmax)
+    for a in range(m):
+        i = idx[a]
+        if not w[i] > cut:
+            passive[i] = False
+            w[i] = 0.0
+    return 1
 
 
 @njit(cache=True, nogil=True)
