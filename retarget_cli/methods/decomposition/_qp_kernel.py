@@ -8,6 +8,10 @@ runs the whole iteration in registers and cache instead: a Cholesky
 factorisation of ``H_FF`` per iteration, and the KKT check on the full
 gradient.
 
+:func:`nnls_gram_pairs` is the same idea for greedy key selection
+(:mod:`retarget_cli.methods.selection`): many small warm-started NNLS problems
+in Gram form, each frame's trial with each candidate key, in one call.
+
 The module is imported on first use only: importing numba takes a few tenths
 of a second, and the first call loads, or on a new machine compiles, the
 kernel (``cache=True`` keeps the compiled code next to this file, or in
