@@ -31,6 +31,7 @@ import numpy as np
 
 from .._validate import check_array
 from ..errors import ParameterError, ShapeError
+from .blas import small_blas
 from .decomposition import reconstruction_error
 
 log = logging.getLogger(__name__)
@@ -431,13 +432,70 @@ class _Greedy:
             order = order[:screen]
         best = None
         for s in range(0, len(order), 64):
-            XC = X @ X[cands[order[s:s + 64]]].T
-            for j, i in enumerate(order[s:s + 64]):
-                c = int(cands[i])
-                E, upd = self.try_add(c, XC[:, j])
+            sel = cands[order[s:s + 64]]
+            XC = X @ X[sel].T
+            trials = self.try_many(sel, XC) if self.BATCHED else (self.try_add(int(c), XC[:, j])
+                                                                 for j, c in enumerate(sel))
+            for j, (E, upd) in enumerate(trials):
                 if best is None or E < best[1] - 1e-12 * max(best[1], 1.0):
-                    best = (c, E, upd, XC[:, j].copy())
+                    best = (int(sel[j]), E, upd, XC[:, j].copy())
         return best
+
+    #: Score candidates by :meth:`try_many` (all at once) rather than one :meth:`try_add` each (the reference).
+    BATCHED = True
+
+    def try_many(self, sel, XC):
+        """:meth:`try_add` for every candidate in *sel* at once (``XC = X @ X[sel].T``, shape (T, n)).
+
+        The same problems and the same Lawson-Hanson iteration, warm-started from the current
+        weights, on the same frames (those whose optimality condition the candidate violates),
+        all candidates' frames solved by one call of a compiled kernel
+        (:func:`retarget_cli.methods.decomposition._qp_kernel.nnls_gram_pairs`; a frame it cannot
+        settle goes to :meth:`try_add`'s numpy iteration). Returns a list of (E, update), one per candidate.
+        """
+        from .decomposition._qp_kernel import nnls_gram_pairs
+
+        k = len(self.keys)
+        thr = 1e-11 * self.norm2.max()
+        tried, Gs, which, Bs, Ws = [], [], [], [], []
+        for j, c in enumerate(sel):
+            c = int(c)
+            xc = XC[:, j]
+            corr = xc - self.W @ self.XB[c]
+            rows = np.flatnonzero(corr > thr)
+            if not len(rows):
+                tried.append(None)
+                continue
+            which.append(np.full(len(rows), len(Gs)))
+            Gs.append(np.block([[self.G, self.XB[c][:, None]], [self.XB[c][None, :], self.norm2[c]]]))
+            Bs.append(np.hstack([self.XB[rows], xc[rows, None]]))
+            Ws.append(np.hstack([self.W[rows], np.zeros((len(rows), 1))]))
+            tried.append((c, rows, xc))
+        if Gs:
+            G3 = np.ascontiguousarray(Gs)
+            tol = 1e-11 * np.maximum(np.einsum("nkk->nk", G3).max(1), 1e-300)
+            W_all = np.concatenate(Ws)
+            ok = np.empty(len(W_all), bool)
+            nnls_gram_pairs(G3, np.concatenate(which), np.concatenate(Bs), W_all, tol, 3 * (k + 1) + 10, ok)
+            splits = np.cumsum([len(w) for w in Ws])[:-1]
+            W_parts, ok_parts = np.split(W_all, splits), np.split(ok, splits)
+        out, g = [], 0
+        for t in tried:
+            if t is None:
+                out.append((float(self.err.sum()), None))
+                continue
+            c, rows, xc = t
+            G, b, W, done = Gs[g], Bs[g], W_parts[g], ok_parts[g]
+            g += 1
+            e = self.norm2[rows] - 2 * np.einsum("tk,tk->t", W, b) + np.einsum("tk,tk->t", W @ G, W)
+            e = np.maximum(e, 0.0)
+            if not done.all():  # not settled by the kernel: the numpy iteration, from the same start
+                left = ~done
+                self.keys_for_G = self.keys + [c]
+                W0 = np.hstack([self.W[rows[left]], np.zeros((int(left.sum()), 1))])
+                W[left], e[left] = self._solve(G, b[left], W0, rows[left], warm_optimal=True)
+            out.append((float(self.err.sum() - self.err[rows].sum() + e.sum()), (rows, W, e, G, xc)))
+        return out
 
 
 def greedy(features, k: int, *, include=(), screen: int | None = GREEDY_SCREEN, swap: bool = False,
@@ -457,6 +515,8 @@ def greedy(features, k: int, *, include=(), screen: int | None = GREEDY_SCREEN, 
     cannot change). To stay fast only the *screen* candidates with the
     largest exact lower bound on their gain (the gain of the new key's weight
     alone, the others held) are scored; ``screen=None`` scores every frame.
+    The screened candidates' solves run together, one compiled call per step
+    (:meth:`_Greedy.try_many`), with BLAS single-threaded.
 
     With ``swap=True`` (``greedy-swap``), exchange passes follow: each key
     (except *include*) is removed and the best frame put in its place, which
@@ -485,6 +545,12 @@ def greedy(features, k: int, *, include=(), screen: int | None = GREEDY_SCREEN, 
     if screen is not None and screen < 1:
         raise ShapeError(f"screen: expected >= 1 or None, got {screen}")
     X = _centre(X, point_dim)
+    with small_blas():  # many small products and solves: BLAS threads only add overhead (and CPU)
+        return _greedy(X, uid, k, inc, screen, swap, max_passes)
+
+
+def _greedy(X, uid, k, inc, screen, swap, max_passes) -> np.ndarray:
+    """The steps of :func:`greedy` on the centred features *X*."""
     g = _Greedy(X, uid)
     g.set_keys(inc[:k])
     while len(g.keys) < k:

@@ -8,6 +8,10 @@ runs the whole iteration in registers and cache instead: a Cholesky
 factorisation of ``H_FF`` per iteration, and the KKT check on the full
 gradient.
 
+:func:`nnls_gram_pairs` is the same idea for greedy key selection
+(:mod:`retarget_cli.methods.selection`): many small warm-started NNLS problems
+in Gram form, each frame's trial with each candidate key, in one call.
+
 The module is imported on first use only: importing numba takes a few tenths
 of a second, and the first call loads, or on a new machine compiles, the
 kernel (``cache=True`` keeps the compiled code next to this file, or in
@@ -165,6 +169,126 @@ def pdas_frames_masked(H, Q, free, lo, hi, max_iter, X, done):  # pragma: no cov
         if done[t]:
             for a in range(m):
                 X[t, idx[a]] = xs[a]
+
+
+@njit(cache=True, nogil=True)
+def nnls_gram_pairs(G, which, B, W, tol, max_iter, ok):  # pragma: no cover - compiled
+    """Warm-started Lawson–Hanson NNLS in Gram form for many small problems, each with one of several Grams.
+
+    Problem ``p`` is ``min wᵀG_s w − 2 b_pᵀw`` subject to ``w ≥ 0`` with ``s = which[p]``, i.e.
+    ``‖q − Bᵀw‖²`` with ``G = B Bᵀ``, ``b = B q`` (Chuang & Bregler's eq. 4). It is the iteration of
+    :func:`retarget_cli.methods.selection._nnls_gram` with ``warm_optimal``: the passive set starts at
+    the support of ``W[p]`` (least squares on it already), the most violated zero weight enters, and
+    an infeasible least-squares point steps back to the boundary, dropping the weights it zeroes;
+    the same tolerances. Each least-squares solve is a Cholesky factorisation of ``G_PP``.
+
+    Parameters
+    ----------
+    G : ndarray, shape (n, K, K)
+        Symmetric positive semi-definite Grams.
+    which : ndarray of int, shape (P,)
+        The Gram of each problem.
+    B : ndarray, shape (P, K)
+    W : ndarray, shape (P, K)
+        In: non-negative starts, optimal on their support. Out: the solutions of the problems marked ok.
+    tol : ndarray, shape (n,)
+        Gradient tolerance of each Gram (``1e-11·max(diag G_s)``).
+    max_iter : int
+        Weights entering the passive set, at most.
+    ok : ndarray of bool, shape (P,)
+        Out: False where *max_iter* was reached or a ``G_PP`` was numerically singular (the caller
+        solves those problems another way).
+    """
+    n_p, K = B.shape
+    passive = np.empty(K, np.bool_)
+    idx = np.empty(K, np.int64)
+    L = np.empty((K, K))
+    dinv = np.empty(K)
+    z = np.empty(K)
+    w = np.empty(K)
+    for p in range(n_p):
+        H = G[which[p]]
+        b = B[p]
+        for i in range(K):
+            w[i] = W[p, i]
+            passive[i] = w[i] > 0.0
+        ok[p] = False
+        for _ in range(max_iter):
+            j = _entering(H, b, w, passive, tol[which[p]])
+            if j < 0:
+                ok[p] = True
+                break
+            passive[j] = True
+            singular = False
+            for _inner in range(K + 1):  # least squares on the passive set, stepping back while infeasible
+                status = _ls_step(H, b, w, passive, idx, L, dinv, z)
+                singular = status < 0
+                if status != 1:
+                    break
+            if singular:
+                break
+        if ok[p]:
+            for i in range(K):
+                W[p, i] = w[i]
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of nnls_gram_pairs, inlined into it)
+def _entering(H, b, w, passive, tol):  # pragma: no cover - compiled
+    """The zero weight whose gradient ``b − Hw`` is largest and above *tol* (the first on ties), or -1."""
+    K = len(b)
+    j = -1
+    gbest = tol
+    for i in range(K):
+        if passive[i]:
+            continue
+        g = b[i]
+        for a in range(K):
+            g -= w[a] * H[a, i]
+        if g > gbest:
+            gbest = g
+            j = i
+    return j
+
+
+@njit(cache=True, nogil=True, inline="always")  # (a step of nnls_gram_pairs, inlined into it)
+def _ls_step(H, b, w, passive, idx, L, dinv, z):  # pragma: no cover - compiled
+    """Least squares on the passive set: 0 when feasible (*w* is the point), 1 after stepping *w* back to
+    the boundary and dropping the weights it zeroes from *passive*, -1 when ``H_PP`` is singular."""
+    K = len(b)
+    m = 0
+    for i in range(K):
+        if passive[i]:
+            idx[m] = i
+            m += 1
+    if not _factor(H, idx, 0, m, L, dinv):
+        return -1
+    for a in range(m):
+        z[a] = b[idx[a]]
+    _solve(L, dinv, m, z)
+    alpha = np.inf
+    for a in range(m):
+        if z[a] <= 0.0:
+            wi = w[idx[a]]
+            alpha = min(alpha, wi / (wi - z[a]) if wi != z[a] else np.inf)
+    if alpha == np.inf:
+        for i in range(K):
+            w[i] = 0.0
+        for a in range(m):
+            w[idx[a]] = z[a]
+        return 0
+    alpha = min(max(alpha, 0.0), 1.0)
+    wmax = 0.0
+    for a in range(m):
+        i = idx[a]
+        w[i] = w[i] + alpha * (z[a] - w[i])
+        wmax = max(wmax, abs(w[i]))
+    cut = 1e-14 * max(1.0, wmax)
+    for a in range(m):
+        i = idx[a]
+        if not w[i] > cut:
+            passive[i] = False
+            w[i] = 0.0
+    return 1
 
 
 @njit(cache=True, nogil=True)

@@ -170,3 +170,83 @@ def test_evaluation_curve_and_winner():
         np.testing.assert_allclose(r["error"], reconstruction_error(X, X[r["frames"]]))
     win = curve_winner(rows, 5)
     assert win["error"] == min(win["errors"].values()) and win["winner"] in ("greedy", "greedy-swap")
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_batched_trials_choose_the_keys_of_the_one_by_one_reference(seed, monkeypatch):
+    # try_many (every screened candidate's trial NNLS in one compiled call) against try_add, one
+    # candidate at a time: the same keys, in the same order, for several k, include sets and screens.
+    X = landmark_take(150, seed=seed, noise=0.5)
+    cases = [(3, (), 16), (8, (0,), 16), (12, (0, 77), 16), (6, (5,), None), (5, (0,), 4)]
+    for k, include, screen in cases:
+        monkeypatch.setattr(_Greedy, "BATCHED", False)
+        ref = greedy(X, k, include=include, screen=screen)
+        ref_swap = greedy(X, k, include=include, screen=screen, swap=True)
+        monkeypatch.setattr(_Greedy, "BATCHED", True)
+        got = greedy(X, k, include=include, screen=screen)
+        np.testing.assert_array_equal(got, ref, err_msg=f"k={k}, include={include}, screen={screen}")
+        np.testing.assert_array_equal(greedy(X, k, include=include, screen=screen, swap=True), ref_swap)
+
+
+def test_batched_trials_give_the_reference_error_and_weights():
+    X = _centre(landmark_take(80, seed=4), 2)
+    _, _, uid = _check(X, 2, ())
+    g = _Greedy(X, uid)
+    keys = [0, 9, 23, 41]
+    g.set_keys(keys)
+    sel = np.array([3, 44, 60, 9 + 1])
+    XC = X @ X[sel].T
+    for (E, upd), c, j in zip(g.try_many(sel, XC), sel, range(len(sel))):
+        E_ref, upd_ref = g.try_add(int(c), XC[:, j])
+        np.testing.assert_allclose(E, E_ref, rtol=1e-10)
+        np.testing.assert_allclose(E, reconstruction_error(X, X[keys + [int(c)]]), rtol=1e-9)
+        np.testing.assert_array_equal(upd[0], upd_ref[0])  # the same frames re-solved
+        np.testing.assert_allclose(upd[1], upd_ref[1], atol=1e-9)
+
+
+def test_nnls_gram_pairs_kernel_satisfies_kkt_and_flags_what_it_cannot_solve():
+    from retarget_cli.methods.decomposition._qp_kernel import nnls_gram_pairs
+
+    rng = np.random.default_rng(2)
+    Bs = [rng.normal(size=(5, 12)), rng.normal(size=(5, 12))]
+    Q = rng.normal(size=(30, 12))
+    which = np.repeat([0, 1], 15)
+    G = np.stack([B @ B.T for B in Bs])
+    b = np.stack([Bs[s] @ q for s, q in zip(which, Q)])
+    W = np.zeros((30, 5))
+    ok = np.empty(30, bool)
+    nnls_gram_pairs(G, which, b, W, 1e-11 * np.einsum("nkk->nk", G).max(1), 25, ok)
+    assert ok.all() and (W >= 0).all()
+    for s, q, w in zip(which, Q, W):
+        grad = Bs[s] @ (q - w @ Bs[s])
+        assert np.all(grad <= 1e-9) and np.allclose(grad[w > 0], 0, atol=1e-9)
+        w_ref, _ = _nnls_gram(G[s], (Bs[s] @ q)[None], np.zeros((1, 5)))
+        np.testing.assert_allclose(w, w_ref[0], atol=1e-10)
+
+
+def test_batched_trials_finish_what_the_kernel_leaves_with_the_numpy_iteration(monkeypatch):
+    from retarget_cli.methods.decomposition import _qp_kernel
+
+    kernel = _qp_kernel.nnls_gram_pairs
+    left = []
+
+    def leaves_every_other(G, which, B, W, tol, max_iter, ok):
+        kernel(G, which, B, W, tol, max_iter, ok)
+        ok[::2] = False
+        W[::2] = -1.0  # garbage where not ok: the caller must not use it
+        left.append(len(ok[::2]))
+
+    X = _centre(landmark_take(80, seed=6), 2)
+    _, _, uid = _check(X, 2, ())
+    g = _Greedy(X, uid)
+    g.set_keys([0, 12, 30])
+    sel = np.array([5, 50, 66])
+    XC = X @ X[sel].T
+    ref = [g.try_add(int(c), XC[:, j]) for j, c in enumerate(sel)]
+    monkeypatch.setattr(_qp_kernel, "nnls_gram_pairs", leaves_every_other)
+    got = g.try_many(sel, XC)
+    assert left and left[0] > 0
+    for (E, upd), (E_ref, upd_ref) in zip(got, ref):
+        np.testing.assert_allclose(E, E_ref, rtol=1e-12)
+        assert (upd[1] >= 0).all()
+        np.testing.assert_allclose(upd[1], upd_ref[1], atol=1e-9)
