@@ -758,10 +758,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     others = [np.setdiff1d(fitted, i) if spill > 0 else fitted[:0] for i in ids]
     opts = dict(sparsity=sparsity, ridge=ridge, exclusive=pairs, robust_iterations=robust_iterations, spill=spill,
                 contact_weight=contact_weight, contact_tol=contact_tol, lid_closed=lid_closed, lip_closed=lip_closed)
-    if out is not None and (out.shape != (K, rig.n_sliders) or out.dtype != np.float64):
-        raise ShapeError(f"out: expected a float64 array of shape ({K}, {rig.n_sliders}), got {out.dtype} {out.shape}")
-    W = np.zeros((K, rig.n_sliders)) if out is None else out
-    W[...] = 0.0
+    W = _zeroed_out(out, K, rig.n_sliders)
     sq = np.zeros(K)
     cnt = np.zeros(K)
     B0 = project(DL, R)
@@ -790,11 +787,20 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                 sq[k] += e2
                 cnt[k] += n2
         del fits
-    if P is not None:
-        W += np.where(owner < 0, P, 0.0)  # the preset sliders, as they were set
+    W += 0.0 if P is None else np.where(owner < 0, P, 0.0)  # the preset sliders, as they were set
     rms = np.sqrt(sq / np.maximum(cnt, 1e-300))
     return {"w": W, "owner": owner, "regions": names, "scale": float(s), "region_scales": scales * s,
             "rotation": R, "translation": t, "rms": rms}
+
+
+def _zeroed_out(out, K: int, n: int) -> np.ndarray:
+    """:func:`delta_pose`'s result array: *out* (float64 (K, n)) set to 0, or a new one."""
+    if out is None:
+        return np.zeros((K, n))
+    if out.shape != (K, n) or out.dtype != np.float64:
+        raise ShapeError(f"out: expected a float64 array of shape ({K}, {n}), got {out.dtype} {out.shape}")
+    out[...] = 0.0
+    return out
 
 
 def _float_dtype(x):
