@@ -20,7 +20,9 @@ and the whole run's peak against the first (shortest) take's.
 ``--from-landmarks FILE`` skips ``track`` (a 10-minute 1080p take is hours of tracking on a loaded 2-core
 machine): the rows of *FILE* (a shorter run's ``landmarks.npz``) before its first gap, looped back and forth
 to each length without gaps (one segment: the longest case for the solvers across frames), written into a
-fresh output folder, then ``retarget run --from select``.
+fresh output folder, then ``retarget run --from select``. The loop repeats the clip's few hundred shapes,
+which ``select`` counts once: ``--jitter PX`` adds seeded noise so that every frame is a distinct candidate,
+as in a real take. ``--until STAGE`` stops after that stage.
 
 Target (#31): the 10-minute take's peak under 1 GB and within 10 % of the 1-minute take's.
 
@@ -178,8 +180,10 @@ sys.exit(rc)
 """
 
 
-def tiled_landmarks(source: Path, T: int, path: Path) -> None:
-    """A take of *T* rows without gaps: the rows of *source* before its first gap, back and forth."""
+def tiled_landmarks(source: Path, T: int, path: Path, jitter: float = 0.0) -> None:
+    """A take of *T* rows without gaps: the rows of *source* before its first gap, back and forth; with
+    *jitter* (pixels), seeded Gaussian noise of that deviation added to its points and stabilized landmarks,
+    so that every frame is a distinct shape (as in a real long take; a loop repeats the clip's few hundred)."""
     from retarget_cli.io.landmarks import load_landmarks, save_landmarks
 
     lm = load_landmarks(source)
@@ -195,6 +199,10 @@ def tiled_landmarks(source: Path, T: int, path: Path) -> None:
         v = getattr(lm, key, None)
         if v is not None:
             setattr(lm, key, v[idx])
+    if jitter > 0:
+        rng = np.random.default_rng(0)
+        lm.points = (lm.points + rng.normal(0.0, jitter, lm.points.shape)).astype(lm.points.dtype)
+        lm.stabilized = (lm.stabilized + rng.normal(0.0, jitter, lm.stabilized.shape)).astype(lm.stabilized.dtype)
     lm.frames, lm.times = np.arange(T, dtype=np.int64), np.arange(T) / lm.fps
     lm.found, lm.segment = None, None
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -222,8 +230,10 @@ def run_take(video: Path, fps: float, minutes: float, args) -> dict:
     (work / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     extra = []
     if args.from_landmarks:
-        tiled_landmarks(args.from_landmarks, T, work / "run" / "landmarks.npz")
+        tiled_landmarks(args.from_landmarks, T, work / "run" / "landmarks.npz", args.jitter)
         extra = ["--from", "select"]
+    if args.until:
+        extra += ["--until", args.until]
     t = time.perf_counter()
     res = subprocess.run([sys.executable, "-c", CHILD, str(work / "config.yaml"), *extra], cwd=ROOT,
                          capture_output=True, text=True)
@@ -237,9 +247,11 @@ def run_take(video: Path, fps: float, minutes: float, args) -> dict:
         reported = json.loads(str(d["meta"])).get("gaps", [])
         tracked = len(d["points"])
     curves = sorted(run.rglob("curves.npz"))
-    with np.load(curves[0]) as d:
-        rows = len(d["curves"])
-        finite = bool(np.isfinite(d["curves"]).all())
+    rows, finite = 0, True
+    if curves:  # (none with --until before apply)
+        with np.load(curves[0]) as d:
+            rows = len(d["curves"])
+            finite = bool(np.isfinite(d["curves"]).all())
     want = [] if args.from_landmarks else gaps_for(T, fps)
     got = [(int(g["start"]), int(g["frames"])) for g in reported if g.get("reason") != "cut"]
     out.update(minutes=minutes, frames=T, tracked=tracked, curve_rows=rows, finite=finite, seconds=secs,
@@ -279,6 +291,10 @@ def parse_args(argv):
     p.add_argument("--from-landmarks", type=Path,
                    help="skip track: a landmarks.npz (a shorter run's) tiled to each length without gaps, "
                         "then select .. apply")
+    p.add_argument("--jitter", type=float, default=0.0,
+                   help="with --from-landmarks: Gaussian noise (pixels, seeded) added to the tiled landmarks so "
+                        "that every frame is distinct (default 0: the loop repeats the clip's frames)")
+    p.add_argument("--until", choices=STAGES[1:], help="the last stage run (default: apply)")
     return p.parse_args(argv)
 
 
@@ -307,7 +323,9 @@ def main(argv=None) -> int:
             args.json.write_text(json.dumps(rows, indent=1))
         log(f"{m:g} min: peak {rows[-1]['peak_mb']:.1f} MB, {rows[-1]['seconds']:.0f} s; "
             + ", ".join(f"{st['stage']} {st['peak_mb']:.0f} MB" for st in rows[-1]["stages"]))
-    what = (f"{args.from_landmarks.name} looped without gaps, `retarget run {args.config.name} --from select`"
+    what = (f"{args.from_landmarks.name} looped without gaps"
+            + (f", jitter {args.jitter:g} px" if args.jitter else "")
+            + f", `retarget run {args.config.name} --from select" + (f" --until {args.until}`" if args.until else "`")
             if args.from_landmarks else f"{CLIP} at {SIZE[0]}x{SIZE[1]} looped, a 1-3 s black gap every 30 s; "
             f"`retarget run {args.config.name}` (video swapped, init auto)")
     print(f"Long take: {what}, in a fresh process; peak RSS per stage (VmHWM, reset at each stage's start):\n")

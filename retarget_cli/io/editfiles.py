@@ -92,25 +92,31 @@ def _csv_table(path: Path, text: str) -> tuple[list, np.ndarray]:
     InputError
         Naming the file and the line of a row that is short, long or holds something that is not a number.
     """
-    numbered = [(i + 1, ln) for i, ln in enumerate(text.splitlines()) if ln.strip()]
-    if not numbered:
+    lines = text.splitlines()
+    first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
+    if first is None:
         raise InputError(f"{path}: empty CSV")
-    header = [h.strip() for h in next(csv.reader([numbered[0][1]]))]
+    header = [h.strip() for h in next(csv.reader([lines[first]]))]
     if "frame" not in header:
         raise InputError(f"{path}: the header needs a 'frame' column, got {','.join(header)}")
-    rows = []
-    for lineno, ln in numbered[1:]:
+    # each row parsed into its place: a long take's rows are never held as lists of Python floats (~2 KB a row)
+    rows, n = np.empty((len(lines) - first - 1, len(header))), 0
+    for lineno in range(first + 2, len(lines) + 1):
+        ln = lines[lineno - 1]
+        if not ln.strip():
+            continue
         cells = ln.split(",")
         if len(cells) != len(header):
             raise InputError(f"{path}:{lineno}: {len(cells)} values, expected {len(header)} (one per header column)")
         try:
-            rows.append([float(x) for x in cells])
+            rows[n] = [float(x) for x in cells]
         except ValueError:
             bad = next(x for x in cells if not _is_number(x))
             raise InputError(f"{path}:{lineno}: {bad.strip()[:40]!r} is not a number") from None
-    if not rows:
+        n += 1
+    if not n:
         raise InputError(f"{path}: no rows after the header")
-    return header, np.array(rows, dtype=np.float64)
+    return header, rows[:n] if n < len(rows) else rows
 
 
 def _is_number(text: str) -> bool:

@@ -265,27 +265,29 @@ def rest_shape(stabilized, confidence=None) -> RestShape:
     if not usable.any():
         raise ValueError("no frame has every landmark finite")
     Q = np.where(np.isfinite(P), P, 0.0)
-    iod = np.median(np.linalg.norm(Q[usable, 36] - Q[usable, 45], axis=1)) if P.shape[1] == 68 else \
+    T, L = P.shape[:2]
+    del P, conf  # a long take: one (T, L, 2) float64 copy held below, scaled in place
+    iod = np.median(np.linalg.norm(Q[usable, 36] - Q[usable, 45], axis=1)) if L == 68 else \
         np.median(np.ptp(Q[usable], axis=1).max(axis=1))
-    Q = Q / (iod if iod > 0 else 1.0)
-    if P.shape[1] == 68:
+    Q /= iod if iod > 0 else 1.0
+    if L == 68:
         openings = face_openings(Q)
         calm = _calm(openings, usable, np.linalg.norm(Q[:, _MOUTH_CORNERS[1]] - Q[:, _MOUTH_CORNERS[0]], axis=1))
         regions = [list(r) for r in REGIONS_68.values()]
     else:
-        openings, calm, regions = {}, usable.copy(), [list(range(P.shape[1]))]
+        openings, calm, regions = {}, usable.copy(), [list(range(L))]
     if not calm.any():
         calm = usable.copy()
     members = calm
-    for _ in range(MODE_ITERATIONS):
-        z = _distances(Q, np.median(Q[members], axis=0), regions, calm)
+    for _ in range(MODE_ITERATIONS):  # (the members' copy partitioned in place: the same medians, one copy)
+        z = _distances(Q, np.median(Q[members], axis=0, overwrite_input=True), regions, calm)
         nearer = calm & (z <= np.quantile(z[calm], MODE_KEEP))
         if nearer.sum() < MIN_MEMBERS:
             break
         members = nearer
-    z = _distances(Q, np.median(Q[members], axis=0), regions, calm)
+    z = _distances(Q, np.median(Q[members], axis=0, overwrite_input=True), regions, calm)
     order = np.flatnonzero(calm)[np.argsort(z[calm], kind="stable")]
-    members = np.zeros(len(P), bool)
+    members = np.zeros(T, bool)
     members[order[:max(MIN_MEMBERS, int(round(AVERAGED * len(order))))]] = True
     z = np.where(usable, z, np.inf)
     return RestShape(_held(z, usable, HOLD), calm, usable, members, openings)

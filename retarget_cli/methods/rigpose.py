@@ -623,7 +623,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                lid_closed: float = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
                smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, contact_tol: float = DEFAULT_CONTACT_TOL,
                contact_refs=None, front=None, spill: float = DEFAULT_SPILL, preset=None,
-               smooth_window: int | None = SMOOTH_WINDOW, smooth_margin: int = SMOOTH_MARGIN) -> dict:
+               smooth_window: int | None = SMOOTH_WINDOW, smooth_margin: int = SMOOTH_MARGIN, out=None) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
 
     The delta transfer of the module docstring: one scaled orthographic
@@ -702,6 +702,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         sliders that are *fixed*: their landmark displacement is a fixed offset, taken off each frame's
         displacement and off its contact gaps' targets before the other sliders are fitted, so what they
         already move (a rig's eyeLookDown lowering the lids) is not fitted twice; they are added to ``w``.
+    out : ndarray, shape (K, n), float64, optional
+        Where ``w`` is written (e.g. a long take's rows of the caller's array: no second copy of them).
 
     Returns
     -------
@@ -756,7 +758,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     others = [np.setdiff1d(fitted, i) if spill > 0 else fitted[:0] for i in ids]
     opts = dict(sparsity=sparsity, ridge=ridge, exclusive=pairs, robust_iterations=robust_iterations, spill=spill,
                 contact_weight=contact_weight, contact_tol=contact_tol, lid_closed=lid_closed, lip_closed=lip_closed)
-    W = np.zeros((K, rig.n_sliders))
+    W = _zeroed_out(out, K, rig.n_sliders)
     sq = np.zeros(K)
     cnt = np.zeros(K)
     B0 = project(DL, R)
@@ -789,6 +791,16 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     rms = np.sqrt(sq / np.maximum(cnt, 1e-300))
     return {"w": W, "owner": owner, "regions": names, "scale": float(s), "region_scales": scales * s,
             "rotation": R, "translation": t, "rms": rms}
+
+
+def _zeroed_out(out, K: int, n: int) -> np.ndarray:
+    """:func:`delta_pose`'s result array: *out* (float64 (K, n)) set to 0, or a new one."""
+    if out is None:
+        return np.zeros((K, n))
+    if out.shape != (K, n) or out.dtype != np.float64:
+        raise ShapeError(f"out: expected a float64 array of shape ({K}, {n}), got {out.dtype} {out.shape}")
+    out[...] = 0.0
+    return out
 
 
 def _float_dtype(x):

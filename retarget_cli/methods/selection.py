@@ -41,6 +41,9 @@ METHODS = ("pca-extremes", "kmeans", "convex-hull", "greedy", "greedy-swap")
 
 #: Candidates evaluated exactly per greedy step (ranked by an exact lower bound on their gain).
 GREEDY_SCREEN = 16
+#: Frames of a take whose ranking products greedy's screen forms at once, 512 candidates by this many frames
+#: (float32, 16 MB): a longer take's are summed block by block, so that its memory does not grow as T².
+RANK_COLUMNS = 8192
 
 
 # --------------------------------------------------------------------------- shared checks
@@ -424,9 +427,15 @@ class _Greedy:
         else:
             A, H, den = np.zeros((len(cands), 0)), np.zeros((len(X), 0), np.float32), self.norm2[cands]
         den = np.maximum(den, 1e-12 * self.norm2.max())
+        # blocks of 512 candidates by RANK_COLUMNS frames: a long take's (candidates, T) product is never held
+        # (a take of at most RANK_COLUMNS frames is one block of columns, as before)
         for s in range(0, len(cands), 512):
-            C = np.maximum(X32[s:s + 512] @ R32 - A[s:s + 512].astype(np.float32) @ H.T, 0)
-            lower[s:s + 512] = np.einsum("ct,ct->c", C, C) / den[s:s + 512]
+            A32 = A[s:s + 512].astype(np.float32)
+            acc = np.zeros(len(X32[s:s + 512]), np.float32)
+            for t in range(0, len(X), RANK_COLUMNS):
+                C = np.maximum(X32[s:s + 512] @ R32[:, t:t + RANK_COLUMNS] - A32 @ H[t:t + RANK_COLUMNS].T, 0)
+                acc += np.einsum("ct,ct->c", C, C)
+            lower[s:s + 512] = acc / den[s:s + 512]
         order = np.lexsort((cands, -lower))
         if screen is not None:
             order = order[:screen]

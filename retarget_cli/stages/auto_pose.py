@@ -504,8 +504,12 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
         rows = slice(part.start, part.stop) if isinstance(part, range) else part  # a segment: views, no copies
         res = delta_pose(r, vx, y0, Y[rows], weights=Cf[rows], neutral_weights=c0,
                          regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,
-                         preset=None if preset is None else preset[rows], **o)
-        W[rows], posed[rows] = res["w"], True
+                         preset=None if preset is None else preset[rows],
+                         out=W[rows] if isinstance(rows, slice) else None, **o)  # a segment's rows in place
+        if not isinstance(rows, slice):
+            W[rows] = res["w"]
+        posed[rows] = True
+        del res["w"]
         rms.extend(res["rms"])
         for f, e in zip(part, res["rms"]):
             log.debug("frame %d: landmark displacement rms %.3f px", f, e)

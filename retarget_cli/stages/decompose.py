@@ -92,6 +92,8 @@ def run_decompose(*, landmarks, keys, output, csv=None, solver="temporal", formu
         n_keys = max((len(r["frames"]) for r in kf.regions.values()), default=0)
         prefetch_kernel((peek_frames(landmarks) or 0) * n_keys, weighted=confidence)
     lm = load_landmarks(landmarks)
+    # not read here: a long take's other per-frame arrays are not held through the solves
+    lm.points_raw = lm.head = lm.head_angles = lm.head_translation = lm.gaze = lm.gaze_valid = None
     frames, times = lm.timing()
     kf.resolve_rows(frames, landmarks)  # keys are named by source frame: their rows
     stab, conf = lm.stabilized, lm.confidence  # float32; a region's rows become float64 once, below

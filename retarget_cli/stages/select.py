@@ -80,19 +80,24 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
     if contact_sheet and not video:
         raise InputError(f"{contact_sheet}: a contact sheet needs the video (--video, or select.video)")
     lm = load_landmarks(landmarks)
-    stab = lm.stabilized.astype(np.float64)
     source = lm.timing()[0]  # each row's source frame number: keys are named by it
     neutral = choose_neutral(neutral_frame, lm, landmarks=landmarks)
     include = () if neutral is None else (neutral.frame,)
     specs = region_specs(regions, lm.n_points, k)
+    # what the selection reads: a long take's other arrays are not held through it (the contact sheet's points)
+    stab, conf, found = lm.stabilized, lm.confidence, lm.found_mask
+    sheet = (lm.points, lm.frames, lm.source_fps) if contact_sheet else None
+    del lm
     result, tmpl, curves, chosen_k = {}, {}, {}, {}
     with progress(len(specs) * (7 if evaluate else 1), "select") as bar:
         for name, (idx, rk) in specs.items():
-            X = stab[:, idx].reshape(lm.n_frames, -1)
-            keep = _usable_frames(X, name, landmarks, include, lm.found_mask, rk,
-                                  lost=(lm.confidence[:, idx] <= LOST_CONFIDENCE).all(1))
+            # the region's rows at float64 (a long take's whole float64 landmarks are not held), the usable ones
+            X = stab[:, idx].astype(np.float64).reshape(len(source), -1)
+            keep = _usable_frames(X, name, landmarks, include, found, rk,
+                                  lost=(conf[:, idx] <= LOST_CONFIDENCE).all(1))
             local = {int(f): i for i, f in enumerate(keep)}
-            Xk = X[keep]
+            Xk = X if len(keep) == len(X) else X[keep]
+            del X
             inc = tuple(local[int(f)] for f in include)
             try:
                 frames = keep[select_keys(Xk, rk, method=method, include=inc, seed=seed, components=kmeans_components)]
@@ -128,9 +133,9 @@ def run_select(*, landmarks, output, template=None, method="greedy", k=12, regio
 
         if not is_sequence(video):
             video = _require(video, "video file")
-        write_contact_sheet(contact_sheet, video, lm.points,
-                            {n: (r["points"], r["rows"]) for n, r in result.items()}, source_frames=lm.frames,
-                            fps=lm.source_fps)
+        write_contact_sheet(contact_sheet, video, sheet[0],
+                            {n: (r["points"], r["rows"]) for n, r in result.items()}, source_frames=sheet[1],
+                            fps=sheet[2])
         written.append(Path(contact_sheet))
     return written
 

@@ -165,3 +165,93 @@ def test_the_console_script_fixes_the_mmap_threshold():
     from retarget_cli.entry import fix_mmap_threshold
 
     assert fix_mmap_threshold() is (platform.libc_ver()[0] == "glibc")
+
+
+def test_greedy_ranks_a_long_take_in_blocks_of_frames(monkeypatch):
+    """select's screen ranks 512 candidates against the take ``RANK_COLUMNS`` frames at a time: a take of more
+    frames than that grows by what it holds per frame (its rows, weights, errors), not by a (512, T) product
+    and its temporaries (~7 KB a frame when formed whole), and the keys are the same."""
+    from retarget_cli.methods import selection
+
+    rng = np.random.default_rng(0)
+
+    def take(T, D=20):  # every frame distinct: each is a candidate
+        return rng.normal(size=(T, 3)) @ rng.normal(size=(3, D)) + 0.05 * rng.normal(size=(T, D))
+
+    X1, X4 = take(1000), take(4000)
+    whole = selection.greedy(X4, 8, include=(0,))  # RANK_COLUMNS (8,192) above T: one block of columns
+    monkeypatch.setattr(selection, "RANK_COLUMNS", 256)
+    peaks, keys = {}, {}
+    for T, X in ((1000, X1), (4000, X4)):
+        peaks[T] = _traced_peak(lambda X=X, T=T: keys.setdefault(T, selection.greedy(X, 8, include=(0,))))
+    assert np.array_equal(keys[4000], whole)
+    per_frame = (peaks[4000] - peaks[1000]) / 3000
+    assert per_frame < 3000, f"greedy's selection grows by {per_frame:.0f} bytes a frame"
+
+
+def test_an_animation_csv_is_read_into_an_array_not_lists_of_floats(tmp_path):
+    """``read_animation`` parses each row into a preallocated array: holding every row as a list of Python floats
+    first was ~3.7 KB a frame for 57 sliders (measured); the values are those written."""
+    names = [f"s{j}" for j in range(57)]
+    peaks = {}
+    for T in (1500, 6000):
+        W = np.random.default_rng(T).uniform(0, 1, (T, 57))
+        path = tmp_path / f"c{T}.csv"
+        write_animation(path, names, W, np.arange(T), np.arange(T) / 30.0)
+        out = {}
+        peaks[T] = _traced_peak(lambda p=path, o=out: o.setdefault("a", read_animation(p)))
+        back = out["a"]
+        assert back[0] == names and np.abs(back[1] - W).max() <= 5e-7 and np.array_equal(back[2], np.arange(T))
+    per_frame = (peaks[6000] - peaks[1500]) / 4500
+    assert per_frame < 2500, f"reading the CSV grows by {per_frame:.0f} bytes a frame"
+
+
+def test_delta_pose_writes_a_segment_into_the_takes_array():
+    """``delta_pose(out=...)``: the sliders written into the caller's rows (no second (T, n) copy), as returned
+    without it; a wrong shape or dtype is refused."""
+    import pytest
+
+    from retarget_cli.errors import ShapeError
+    from retarget_cli.methods.rig import BlendshapeRig
+    from retarget_cli.methods.rigpose import delta_pose
+    from retarget_cli.synth.take import source_neutral
+
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    D = np.zeros((2, 68, 3))
+    D[0, [37, 38], 1] = V[[41, 40], 1] - V[[37, 38], 1]
+    D[1, 17:22, 1] = 0.05
+    rig = BlendshapeRig(V, D, ["eyeBlink_R", "browOuterUp_R"])
+    rng = np.random.default_rng(1)
+    truth = rng.uniform(0, 1, (40, 2))
+    X = np.stack([rig.evaluate(c) for c in truth])
+    Y = 140.0 * np.stack([X[:, :, 0], -X[:, :, 1]], axis=2) + 150.0 + 0.2 * rng.standard_normal((40, 68, 2))
+    Y0 = 140.0 * np.column_stack([V[:, 0], -V[:, 1]]) + 150.0
+    kw = dict(regions={"brows-eye": list(range(17, 22)) + list(range(36, 42))}, sparsity=0.0, ridge=1e-6,
+              contact_weight=0.0, smooth=1.0)
+    alone = delta_pose(rig, np.arange(68), Y0, Y[10:30], **kw)["w"]
+    W = np.full((40, 2), 7.0)
+    res = delta_pose(rig, np.arange(68), Y0, Y[10:30], out=W[10:30], **kw)
+    assert np.shares_memory(res["w"], W) and np.array_equal(W[10:30], alone)
+    assert (W[:10] == 7.0).all() and (W[30:] == 7.0).all() and np.abs(alone[:, 1] - truth[10:30, 1]).max() < 0.1
+    with pytest.raises(ShapeError, match="out"):
+        delta_pose(rig, np.arange(68), Y0, Y[10:30], out=np.zeros((20, 2), np.float32), **kw)
+
+
+def test_the_rest_shape_holds_one_float64_copy_of_the_take():
+    """``rest_shape`` (``neutral_frame: auto``) of a float32 take: one float64 copy, scaled in place, and the
+    members' medians partitioned in place; before, the input's float64 copy, its finite copy and the scaled
+    copy were held together (3.6 KB a frame traced on a looped d9 take, 2.65 KB after)."""
+    from retarget_cli.methods.neutral import rest_shape
+    from retarget_cli.synth.take import source_neutral
+
+    rng = np.random.default_rng(6)
+    n = source_neutral()[:, :2] * 100.0
+    peaks, rests = {}, {}
+    for T in (1500, 6000):
+        P = (n + rng.normal(0, 1.0, (T, 68, 2))).astype(np.float32)
+        C = rng.uniform(0.5, 1.0, (T, 68)).astype(np.float32)
+        peaks[T] = _traced_peak(lambda P=P, C=C, T=T: rests.setdefault(T, rest_shape(P, C)))
+        assert rests[T].members.sum() > 0 and np.isfinite(rests[T].distance[rests[T].usable]).all()
+    per_frame = (peaks[6000] - peaks[1500]) / 4500
+    assert per_frame < 3100, f"the rest shape grows by {per_frame:.0f} bytes a frame"
