@@ -449,6 +449,8 @@ class FlowFusion:
         pending, self._pending = self._pending, None
         if pending is None:
             return None
+        if pending[1].cancelled():  # the pool was shut down before it ran (an error ended the take): not taken
+            return None
         flow = pending[1].result()
         return flow if pending[0] is g else None
 
@@ -655,12 +657,12 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
             track.frame(t, g, feats)
             if progress is not None:
                 progress(t)
+        if not track.pts:
+            raise ShapeError("frames: the sequence is empty")
+        track.end_segment()  # while the pool lives: the last segment may wait for a flow begun on it
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
-    if not track.pts:
-        raise ShapeError("frames: the sequence is empty")
-    track.end_segment()
     if gaps and not any(track.found):
         raise FaceLostError(f"frame 0: no face found by the detector, nor in any of the {len(track.pts)} frames "
                             "of the take", 0, np.zeros((0, 68, 2)), np.zeros((0, 68)))

@@ -236,3 +236,23 @@ def test_track_stage_head_fits_beside_the_gaze_pass_give_the_sequential_file(tmp
         for k in a.files:
             if k != "meta":
                 assert np.array_equal(a[k], b[k]), k
+
+
+@needs_detector
+def test_threaded_tracker_ends_a_take_whose_face_has_left():
+    """The face leaves and does not come back: the take ends as the sequential loop ends it. (The race this
+    guards, a flow still queued behind two frame preparations when the pool was shut down before the last
+    segment's smoother took it, shows with the real clip: tests/cli/test_gaps_cli.py's keep-partial test.)"""
+    from retarget_cli.io.frames import FrameSource
+    from retarget_cli.methods.tracking.detect import Detector, track_detect
+
+    with FrameSource(str(SAMPLE / "face.mp4"), start=40, end=80, gray=True) as src:
+        frames = list(src)
+    frames[10:] = [np.zeros_like(f) for f in frames[10:]]
+    det = Detector()
+    seq = track_detect(frames, detector=det, threads=False, gaps=True)
+    par = track_detect(iter(frames), detector=det, threads=True, gaps=True)
+    for a, b in zip(seq[:2], par[:2]):
+        assert a.shape[0] == len(frames)
+        assert np.array_equal(a, b)
+    assert np.array_equal(seq[2].status, par[2].status)
