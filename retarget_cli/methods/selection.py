@@ -44,6 +44,10 @@ GREEDY_SCREEN = 16
 #: Frames of a take whose ranking products greedy's screen forms at once, 512 candidates by this many frames
 #: (float32, 16 MB): a longer take's are summed block by block, so that its memory does not grow as T².
 RANK_COLUMNS = 8192
+#: Screened candidates whose trial solves are formed and solved at once (:meth:`_Greedy.try_many`): each holds
+#: its frames' rows and weights, (k + 1) values a frame several times over, so a long take's step holds this
+#: many candidates' copies, not the whole screen's. The keys do not depend on it.
+TRIALS_AT_ONCE = 4
 
 
 # --------------------------------------------------------------------------- shared checks
@@ -440,8 +444,8 @@ class _Greedy:
         if screen is not None:
             order = order[:screen]
         best = None
-        for s in range(0, len(order), 64):
-            sel = cands[order[s:s + 64]]
+        for s in range(0, len(order), TRIALS_AT_ONCE):
+            sel = cands[order[s:s + TRIALS_AT_ONCE]]
             XC = X @ X[sel].T
             trials = self.try_many(sel, XC) if self.BATCHED else (self.try_add(int(c), XC[:, j])
                                                                  for j, c in enumerate(sel))
