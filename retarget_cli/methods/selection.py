@@ -528,8 +528,9 @@ def greedy(features, k: int, *, include=(), screen: int | None = GREEDY_SCREEN, 
     cannot change). To stay fast only the *screen* candidates with the
     largest exact lower bound on their gain (the gain of the new key's weight
     alone, the others held) are scored; ``screen=None`` scores every frame.
-    The screened candidates' solves run together, one compiled call per step
-    (:meth:`_Greedy.try_many`), with BLAS single-threaded.
+    The screened candidates' solves run together, one compiled call per
+    :data:`TRIALS_AT_ONCE` candidates (:meth:`_Greedy.try_many`), with BLAS
+    single-threaded.
 
     With ``swap=True`` (``greedy-swap``), exchange passes follow: each key
     (except *include*) is removed and the best frame put in its place, which
