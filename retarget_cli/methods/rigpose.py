@@ -322,15 +322,22 @@ LID_DEADBAND = 0.15
 DEFAULT_CONTACT_WEIGHT = 4.0
 #: Default inner-lip gap / mouth width, above the neutral frame's, below which the actor's lips count as closed.
 DEFAULT_LIP_CLOSED = 0.02
-#: Default lid gap / eye width at which the actor's tracked eye counts as closed (see docs/auto-pose.md).
-DEFAULT_LID_CLOSED = 0.15
+#: Default lid gap / eye width at which the actor's tracked eye counts as closed: None, relative to the eye's open
+#: reading (:data:`LID_CLOSED_FRACTION` of it, :func:`lid_closed_reading`); a number is that reading itself.
+DEFAULT_LID_CLOSED = None
+#: The tracked eye counts as closed at this fraction of its open reading (lid gap / eye width). A 68-point shape
+#: model never closes its lids: it reads closed lids at about a third of the open eye, as a fraction of the
+#: actor's own aperture (on the shared clips: d3 0.125-0.13 of 0.35-0.37, d9 with glasses 0.09-0.10 of
+#: 0.29-0.31, per the frames MediaPipe sees closed), so one absolute reading (0.15, the earlier default) closed
+#: d9's narrowed eyes in a smile, which MediaPipe and the picture see open (docs/auto-pose.md).
+LID_CLOSED_FRACTION = 0.42
 CONTACT_KINDS = ("lips", "lids")
 #: Percentiles of :func:`contact_references`: the take's closed lips and open eyes; the closed lips' readings
 #: are those within CLOSED_BAND (of the mouth width) of that percentile.
 CLOSED_PERCENTILE = 5.0
 CLOSED_BAND = 0.03
 #: The neutral frame's eye is the open reference unless it is closed by more than three quarters, from the take's
-#: open reading towards ``lid_closed`` (a squint, a wink, a blink).
+#: open reading towards its closed reading (:func:`lid_closed_reading`; a squint, a wink, a blink).
 NEUTRAL_OPEN = 0.25
 OPEN_PERCENTILE = 75.0
 #: Default tolerance of a contact gap, as a fraction of its feature's width on the rig (mouth or eye corners).
@@ -417,7 +424,13 @@ def contact_ratios(points, c: Contact) -> np.ndarray:
     return out[0] if one else out
 
 
-def contact_references(points, contact, confidence=None, *, neutral=None, lid_closed: float = DEFAULT_LID_CLOSED,
+def lid_closed_reading(lid_closed: float | None, r_open: float) -> float:
+    """The lid gap / eye width at which an eye whose open reading is *r_open* counts as closed: *lid_closed*
+    when given, else :data:`LID_CLOSED_FRACTION` of *r_open*."""
+    return LID_CLOSED_FRACTION * float(r_open) if lid_closed is None else float(lid_closed)
+
+
+def contact_references(points, contact, confidence=None, *, neutral=None, lid_closed: float | None = DEFAULT_LID_CLOSED,
                        closed_percentile: float = CLOSED_PERCENTILE,
                        open_percentile: float = OPEN_PERCENTILE) -> list[np.ndarray]:
     """What closed lips and open eyes read as in a take: the references of :func:`contact_targets`.
@@ -429,9 +442,9 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
     percentile (the cluster of closed lips: they meet in most takes, on more than that fraction of the
     frames); ``lids``, the *open_percentile* percentile of the mean lid gap / eye width
     (the eye at rest: open on most frames, blinks and squints below it, wide eyes above), or the *neutral*
-    frame's unless that is closed by more than three quarters of the way to *lid_closed*
-    (:data:`NEUTRAL_OPEN`), so that the neutral frame's eyes are the rig's at rest unless they squint, wink or
-    blink.
+    frame's unless that is closed by more than three quarters of the way to the closed reading
+    (:func:`lid_closed_reading` of *lid_closed* and the percentile; :data:`NEUTRAL_OPEN`), so that the neutral
+    frame's eyes are the rig's at rest unless they squint, wink or blink.
 
     Parameters
     ----------
@@ -441,8 +454,8 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
         Frames where a group's point has confidence 0 are left out of its statistic.
     neutral : array_like, shape (L, 2), optional
         The neutral frame's landmarks.
-    lid_closed : float
-        As :func:`contact_targets`.
+    lid_closed : float, optional
+        As :func:`contact_targets` (None: relative to each eye's open reading).
 
     Returns
     -------
@@ -464,13 +477,14 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
             r_open = float(np.percentile(r.mean(axis=1), open_percentile))
             if neutral is not None:
                 r_n = float(np.mean(contact_ratios(neutral, c)))
-                if r_n >= lid_closed + NEUTRAL_OPEN * (r_open - lid_closed):  # the neutral frame's eye is the rest
+                r_c = lid_closed_reading(lid_closed, r_open)
+                if r_n >= r_c + NEUTRAL_OPEN * (r_open - r_c):  # the neutral frame's eye is the rest
                     r_open = r_n
             out.append(np.full(len(c.pairs), r_open))
     return out
 
 
-def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_closed: float = DEFAULT_LID_CLOSED,
+def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_closed: float | None = DEFAULT_LID_CLOSED,
                     lip_closed: float = DEFAULT_LIP_CLOSED):
     """The gap rows of one contact group: what the rig's gaps must change by, from its rest pose.
 
@@ -485,7 +499,8 @@ def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_close
       the take's closed reading, less *lip_closed* (the tracker's noise on closed lips), never below 0: the
       character's lips part by as much of their width, and never cross;
     - ``lids``: the actor's openness ``o = (r_k − r_c) / (r_o − r_c)``, ``r_k`` the mean lid gap / eye width,
-      ``r_o`` the take's open reading and ``r_c = lid_closed`` (where the tracker's lids read closed),
+      ``r_o`` the take's open reading and ``r_c`` where the tracker's lids read closed (*lid_closed*, or
+      :data:`LID_CLOSED_FRACTION` of ``r_o`` without it: :func:`lid_closed_reading`),
       clipped at 0 and stretched by :data:`LID_DEADBAND` (an eye within it of open is open), poses the
       rig's gap between its rest gap (``o = 1``) and its most closed one (the
       slider among *free* that closes it most, at its bound, ``o = 0``); an eye wider than ``r_o`` widens
@@ -506,7 +521,9 @@ def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_close
         The sliders that may move.
     lower, upper : array_like, shape (n,)
         Slider ranges.
-    lid_closed, lip_closed : float
+    lid_closed : float, optional
+        The closed lids' reading (None: relative to the open one).
+    lip_closed : float
 
     Returns
     -------
@@ -543,11 +560,12 @@ def _contact_target(c: Contact, rig, ratio, ref, *, lid_closed: float, lip_close
     if c.kind == "lips":
         return G, np.maximum(ratio - np.asarray(ref) - lip_closed, 0.0) * width_rig, closed
     r_k, r_o = float(np.mean(ratio)), float(np.mean(ref))
-    if r_o - lid_closed <= 1e-6:
+    r_c = lid_closed_reading(lid_closed, r_o)
+    if r_o - r_c <= 1e-6:
         return G, np.zeros(len(c.pairs)), closed  # the open eye reads no more open than closed: no target
     if r_k >= r_o:
         return G, np.full(len(c.pairs), (r_k - r_o) * width_rig), closed
-    o = min(max((r_k - lid_closed) / (r_o - lid_closed), 0.0) / (1.0 - LID_DEADBAND), 1.0)
+    o = min(max((r_k - r_c) / (r_o - r_c), 0.0) / (1.0 - LID_DEADBAND), 1.0)
     return G, (1.0 - o) * closed, closed
 
 
@@ -620,7 +638,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                sparsity: float = DEFAULT_SPARSITY, ridge: float = DEFAULT_RIDGE, exclusive=None,
                region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
                contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
-               lid_closed: float = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
+               lid_closed: float | None = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
                smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, contact_tol: float = DEFAULT_CONTACT_TOL,
                contact_refs=None, front=None, spill: float = DEFAULT_SPILL, preset=None,
                smooth_window: int | None = SMOOTH_WINDOW, smooth_margin: int = SMOOTH_MARGIN, out=None) -> dict:
@@ -681,7 +699,9 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         that crosses, or is not closed where the actor's is, by more than *contact_tol* of its feature's
         width weighs :data:`CONTACT_BOOST` times more, up to :data:`CONTACT_PASSES` times. With the lids'
         groups, their :func:`lid_antagonists` join the *exclusive* pairs.
-    lid_closed, lip_closed : float
+    lid_closed : float, optional
+        See :func:`contact_targets` (None: relative to each eye's open reading).
+    lip_closed : float
         See :func:`contact_targets`.
     smooth : float
         λ of :func:`smooth_sliders` (the targets are then consecutive frames; 0: each frame alone).

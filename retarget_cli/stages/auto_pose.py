@@ -39,6 +39,7 @@ from ..methods.rigpose import (
     DEFAULT_RIDGE,
     DEFAULT_SPARSITY,
     FRONT_68,
+    LID_CLOSED_FRACTION,
     Contact,
     contact_references,
     delta_pose,
@@ -92,9 +93,10 @@ PARAMS = [
     Param("lip_closed", "setting", float, 0.02,
           "Inner-lip gap / mouth width, above the take's closed lips, below which the actor's lips count "
           "as closed (the tracker's noise on closed lips).", min=0),
-    Param("lid_closed", "setting", float, 0.15,
-          "Lid gap / eye width at or below which the tracked eye counts as closed (the 68-point detector's "
-          "closed lids read 0.09-0.19).", min=0),
+    Param("lid_closed", "setting", float, "auto",
+          f"Lid gap / eye width at or below which the tracked eye counts as closed; auto: {LID_CLOSED_FRACTION} of the eye's open "
+          "reading in the take (a 68-point detector reads closed lids at about a third of the open eye: "
+          "0.09-0.19 on the shared clips).", min=0, words=("auto",)),
     Param("sparsity", "setting", float, None,
           "L1 weight keeping unneeded sliders at 0, relative to the sliders' mean landmark energy "
           "(null: 0.01).", min=0, nullable=True),
@@ -185,7 +187,7 @@ def _mask_text(weights: np.ndarray) -> str:
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame="auto", sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=3.0, contact_weight=4.0,
-                  lip_closed=0.02, lid_closed=0.15, frontalize=False, gaze="auto", base_dir=None, cache_dir=None) -> list[Path]:
+                  lip_closed=0.02, lid_closed="auto", frontalize=False, gaze="auto", base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
     ``sliders.csv``, masks, ``targets.yaml`` (and ``curves.csv``).
 
@@ -223,6 +225,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
 
     if fit not in FITS:
         raise InputError(f"fit: expected one of {', '.join(FITS)}, got {fit!r}")
+    lid_closed = None if lid_closed == "auto" else lid_closed  # None: relative to each eye's open reading
     keys, landmarks, rig_path = _require(keys, "keys file"), _require(landmarks, "landmarks file"), _require(rig, "rig file")
     if landmark_vertices is not None:
         landmark_vertices = _require(landmark_vertices, "landmark-vertex map")

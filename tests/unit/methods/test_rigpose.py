@@ -11,6 +11,7 @@ from retarget_cli.methods.rigpose import (
     DEFAULT_LID_CLOSED,
     DEFAULT_LIP_CLOSED,
     FRONT_68,
+    LID_CLOSED_FRACTION,
     NEUTRAL_OPEN,
     contact_ratios,
     contact_references,
@@ -19,6 +20,7 @@ from retarget_cli.methods.rigpose import (
     frontal_rotation,
     infer_exclusive,
     lid_antagonists,
+    lid_closed_reading,
     project,
     rig_curves,
     rig_region_masks,
@@ -238,7 +240,41 @@ def test_contact_references_are_the_takes_closed_lips_and_open_eyes():
         neutral[[37, 38], 1] -= shift
         r_n = contact_ratios(neutral, eye).mean()
         assert contact_references(Y, CONTACT_68, neutral=neutral)[1][0] == pytest.approx(r_n if own else p75)
-        assert (r_n >= DEFAULT_LID_CLOSED + NEUTRAL_OPEN * (p75 - DEFAULT_LID_CLOSED)) == own
+        r_c = lid_closed_reading(DEFAULT_LID_CLOSED, p75)  # by default relative: a fraction of the open reading
+        assert r_c == pytest.approx(LID_CLOSED_FRACTION * p75)
+        assert (r_n >= r_c + NEUTRAL_OPEN * (p75 - r_c)) == own
+    assert lid_closed_reading(0.15, p75) == 0.15  # a number is the closed reading itself
+
+
+def test_the_closed_reading_is_relative_to_the_actors_open_eye():
+    """A 68-point tracker reads closed lids at about a third of the open eye, whatever the eye's size: a blink
+    at 0.3 of the open reading closes the character's eye, narrowed eyes at 0.6 of it (a smile) stay open in
+    part, for a large and a small eye alike; an absolute lid_closed keeps its meaning."""
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    D = np.zeros((1, 68, 3))
+    for up, lo in ((37, 41), (38, 40)):
+        D[0, up, 1] = V[lo, 1] - V[up, 1]  # eyeBlink_R: the upper lid onto the lower one
+    rig = BlendshapeRig(V, D, ["eyeBlink_R"])
+    eye = CONTACT_68[1]
+    kw = dict(regions={"eye": list(range(36, 42))}, sparsity=0.0, ridge=1e-6, contact=CONTACT_68, front=FRONT_68)
+    blink, narrow = list(range(20, 24)), list(range(40, 46))
+    for aperture in (1.0, 0.8):  # the actor's open eye as the synthetic face's, and a smaller one
+        Y0 = 140.0 * n + [150.0, 160.0]
+        for up, lo in ((37, 41), (38, 40)):
+            Y0[up, 1] = Y0[lo, 1] - aperture * (Y0[lo, 1] - Y0[up, 1])
+        r_o = contact_ratios(Y0, eye).mean()
+        Y = np.repeat(Y0[None], 60, axis=0)
+        for rows, f in ((blink, 0.3), (narrow, 0.6)):
+            for up, lo in ((37, 41), (38, 40)):
+                Y[rows, up, 1] = Y0[lo, 1] - f * (Y0[lo, 1] - Y0[up, 1])
+        assert contact_ratios(Y[narrow[0]], eye).mean() == pytest.approx(0.6 * r_o, rel=0.01)
+        w = delta_pose(rig, np.arange(68), Y0, Y, **kw)["w"][:, 0]
+        assert w[blink].min() > 0.95  # closed
+        assert 0.3 < w[narrow].max() < 0.85  # narrowed, not shut
+        assert np.abs(np.delete(w, blink + narrow)).max() < 0.01
+        shut = delta_pose(rig, np.arange(68), Y0, Y, lid_closed=0.65 * r_o, **kw)["w"][:, 0]
+        assert shut[narrow].min() > 0.95  # at or below an absolute lid_closed the eye is shut
 
 
 def test_frontal_rotation_snaps_to_the_rig_files_axes():
