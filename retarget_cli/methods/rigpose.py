@@ -322,8 +322,8 @@ LID_DEADBAND = 0.15
 DEFAULT_CONTACT_WEIGHT = 4.0
 #: Default inner-lip gap / mouth width, above the neutral frame's, below which the actor's lips count as closed.
 DEFAULT_LIP_CLOSED = 0.02
-#: Default lid gap / eye width at which the actor's tracked eye counts as closed: None, relative to the eye's open
-#: reading (:data:`LID_CLOSED_FRACTION` of it, :func:`lid_closed_reading`); a number is that reading itself.
+#: Default lid gap / eye width at which the actor's tracked eye counts as closed: None, the take's
+#: (:func:`take_lid_closed`: :data:`LID_CLOSED_FRACTION` of its open eyes' reading); a number is that reading.
 DEFAULT_LID_CLOSED = None
 #: The tracked eye counts as closed at this fraction of its open reading (lid gap / eye width). A 68-point shape
 #: model never closes its lids: it reads closed lids at about a third of the open eye, as a fraction of the
@@ -430,6 +430,49 @@ def lid_closed_reading(lid_closed: float | None, r_open: float) -> float:
     return LID_CLOSED_FRACTION * float(r_open) if lid_closed is None else float(lid_closed)
 
 
+def _tracked_ratios(P, C, c: Contact) -> np.ndarray:
+    """:func:`contact_ratios` of *c* in the frames of *P* (T, L, 2) where its points are tracked (finite, and
+    confidence above 0 in *C* (T, L) when given), shape (T', pairs); one row of zeros when there is none."""
+    r = contact_ratios(P, c)
+    ok = np.isfinite(r).all(axis=1)
+    if C is not None:
+        ok &= (C[:, [p for pair in c.pairs for p in pair] + list(c.corners)] > 0).all(axis=1)
+    return r[ok] if ok.any() else np.zeros((1, len(c.pairs)))
+
+
+def take_lid_closed(points, contact, confidence=None, *, fraction: float = LID_CLOSED_FRACTION,
+                    open_percentile: float = OPEN_PERCENTILE) -> float | None:
+    """The lid gap / eye width at which the take's tracked eyes count as closed: *fraction* of their open reading.
+
+    A 68-point shape model never shuts its lids: it reads closed lids at about a third of the open eye, as a
+    fraction of the actor's own aperture, so the closed reading is the take's, not a constant
+    (:data:`LID_CLOSED_FRACTION`).
+
+    Parameters
+    ----------
+    points : array_like, shape (T, L, 2)
+    contact : sequence of Contact
+    confidence : array_like, shape (T, L), optional
+        Frames where a group's point has confidence 0 are left out.
+    fraction : float
+    open_percentile : float
+        The open eye's reading: this percentile of each eye's mean lid gap / eye width over the take (as
+        :func:`contact_references`), averaged over the eyes.
+
+    Returns
+    -------
+    float or None
+        None without a ``lids`` group.
+    """
+    lids = [c for c in contact or () if c.kind == "lids"]
+    if not lids:
+        return None
+    P = check_array(points, "points", ndim=3)
+    C = None if confidence is None else np.asarray(confidence, dtype=np.float64)
+    return fraction * float(np.mean([np.percentile(_tracked_ratios(P, C, c).mean(axis=1), open_percentile)
+                                     for c in lids]))
+
+
 def contact_references(points, contact, confidence=None, *, neutral=None, lid_closed: float | None = DEFAULT_LID_CLOSED,
                        closed_percentile: float = CLOSED_PERCENTILE,
                        open_percentile: float = OPEN_PERCENTILE) -> list[np.ndarray]:
@@ -442,9 +485,9 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
     percentile (the cluster of closed lips: they meet in most takes, on more than that fraction of the
     frames); ``lids``, the *open_percentile* percentile of the mean lid gap / eye width
     (the eye at rest: open on most frames, blinks and squints below it, wide eyes above), or the *neutral*
-    frame's unless that is closed by more than three quarters of the way to the closed reading
-    (:func:`lid_closed_reading` of *lid_closed* and the percentile; :data:`NEUTRAL_OPEN`), so that the neutral
-    frame's eyes are the rig's at rest unless they squint, wink or blink.
+    frame's unless that is closed by more than three quarters of the way to *lid_closed*
+    (:data:`NEUTRAL_OPEN`), so that the neutral frame's eyes are the rig's at rest unless they squint, wink or
+    blink.
 
     Parameters
     ----------
@@ -455,7 +498,7 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
     neutral : array_like, shape (L, 2), optional
         The neutral frame's landmarks.
     lid_closed : float, optional
-        As :func:`contact_targets` (None: relative to each eye's open reading).
+        As :func:`contact_targets` (None: the take's, :func:`take_lid_closed`).
 
     Returns
     -------
@@ -463,13 +506,11 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
     """
     P = check_array(points, "points", ndim=3)
     C = None if confidence is None else np.asarray(confidence, dtype=np.float64)
+    if lid_closed is None:
+        lid_closed = take_lid_closed(P, contact, C, open_percentile=open_percentile)
     out = []
     for c in contact or ():
-        r = contact_ratios(P, c)
-        ok = np.isfinite(r).all(axis=1)
-        if C is not None:
-            ok &= (C[:, [p for pair in c.pairs for p in pair] + list(c.corners)] > 0).all(axis=1)
-        r = r[ok] if ok.any() else np.zeros((1, len(c.pairs)))
+        r = _tracked_ratios(P, C, c)
         if c.kind == "lips":
             low = np.percentile(r, closed_percentile, axis=0)
             out.append(np.array([np.median(r[r[:, j] <= low[j] + CLOSED_BAND, j]) for j in range(r.shape[1])]))
@@ -477,8 +518,7 @@ def contact_references(points, contact, confidence=None, *, neutral=None, lid_cl
             r_open = float(np.percentile(r.mean(axis=1), open_percentile))
             if neutral is not None:
                 r_n = float(np.mean(contact_ratios(neutral, c)))
-                r_c = lid_closed_reading(lid_closed, r_open)
-                if r_n >= r_c + NEUTRAL_OPEN * (r_open - r_c):  # the neutral frame's eye is the rest
+                if r_n >= lid_closed + NEUTRAL_OPEN * (r_open - lid_closed):  # the neutral frame's eye is the rest
                     r_open = r_n
             out.append(np.full(len(c.pairs), r_open))
     return out
@@ -499,8 +539,8 @@ def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_close
       the take's closed reading, less *lip_closed* (the tracker's noise on closed lips), never below 0: the
       character's lips part by as much of their width, and never cross;
     - ``lids``: the actor's openness ``o = (r_k − r_c) / (r_o − r_c)``, ``r_k`` the mean lid gap / eye width,
-      ``r_o`` the take's open reading and ``r_c`` where the tracker's lids read closed (*lid_closed*, or
-      :data:`LID_CLOSED_FRACTION` of ``r_o`` without it: :func:`lid_closed_reading`),
+      ``r_o`` the take's open reading and ``r_c`` where the tracker's lids read closed (*lid_closed*: the
+      take's, :func:`take_lid_closed`; without it :data:`LID_CLOSED_FRACTION` of ``r_o``),
       clipped at 0 and stretched by :data:`LID_DEADBAND` (an eye within it of open is open), poses the
       rig's gap between its rest gap (``o = 1``) and its most closed one (the
       slider among *free* that closes it most, at its bound, ``o = 0``); an eye wider than ``r_o`` widens
@@ -522,7 +562,7 @@ def contact_targets(c: Contact, Yk, ref, P0, B, free, lower, upper, *, lid_close
     lower, upper : array_like, shape (n,)
         Slider ranges.
     lid_closed : float, optional
-        The closed lids' reading (None: relative to the open one).
+        The closed lids' reading (:func:`take_lid_closed`; None: :data:`LID_CLOSED_FRACTION` of *ref*).
     lip_closed : float
 
     Returns
@@ -700,7 +740,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         width weighs :data:`CONTACT_BOOST` times more, up to :data:`CONTACT_PASSES` times. With the lids'
         groups, their :func:`lid_antagonists` join the *exclusive* pairs.
     lid_closed : float, optional
-        See :func:`contact_targets` (None: relative to each eye's open reading).
+        See :func:`contact_targets` (None: the take's, :func:`take_lid_closed` of the neutral and target frames).
     lip_closed : float
         See :func:`contact_targets`.
     smooth : float
@@ -757,9 +797,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         if i.size == 0 or i.min() < 0 or i.max() >= L:
             raise ShapeError(f"regions: {r!r} must list landmark ids in [0, {L})")
     P = _check_preset(preset, K, rig.n_sliders)
-    if contact_weight > 0 and contact and contact_refs is None:
-        contact_refs = contact_references(np.concatenate([Y0[None], Y]), contact, np.concatenate([c0[None], C]),
-                                          neutral=Y0, lid_closed=lid_closed)
+    if contact_weight > 0 and contact:
+        lid_closed, contact_refs = _take_contact(Y0, Y, c0, C, contact, lid_closed, contact_refs)
     groups = _region_contacts(contact if contact_weight > 0 else None, contact_refs, ids, L)
     X0, DL = rig_landmarks(rig, v)
     rig_ids = None if rigid is None else np.asarray(rigid, dtype=np.int64)
@@ -811,6 +850,18 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     rms = np.sqrt(sq / np.maximum(cnt, 1e-300))
     return {"w": W, "owner": owner, "regions": names, "scale": float(s), "region_scales": scales * s,
             "rotation": R, "translation": t, "rms": rms}
+
+
+def _take_contact(Y0, Y, c0, C, contact, lid_closed, contact_refs):
+    """:func:`delta_pose`'s *lid_closed* and *contact_refs*, each as given or (None) of the neutral and target
+    frames (:func:`take_lid_closed`, :func:`contact_references`)."""
+    if lid_closed is None or contact_refs is None:
+        P, W = np.concatenate([Y0[None], Y]), np.concatenate([c0[None], C])
+        if lid_closed is None:
+            lid_closed = take_lid_closed(P, contact, W)
+        if contact_refs is None:
+            contact_refs = contact_references(P, contact, W, neutral=Y0, lid_closed=lid_closed)
+    return lid_closed, contact_refs
 
 
 def _zeroed_out(out, K: int, n: int) -> np.ndarray:

@@ -49,6 +49,7 @@ from ..methods.rigpose import (
     rig_landmarks,
     rig_region_masks,
     slider_owners,
+    take_lid_closed,
 )
 from ..methods.tracking.head import estimate_head
 from ..methods.tracking.headpose import HeadPose, camera_angles, head_pose, rest_rotation
@@ -225,7 +226,7 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
 
     if fit not in FITS:
         raise InputError(f"fit: expected one of {', '.join(FITS)}, got {fit!r}")
-    lid_closed = None if lid_closed == "auto" else lid_closed  # None: relative to each eye's open reading
+    lid_closed = None if lid_closed == "auto" else lid_closed  # None: the take's (take_lid_closed)
     keys, landmarks, rig_path = _require(keys, "keys file"), _require(landmarks, "landmarks file"), _require(rig, "rig file")
     if landmark_vertices is not None:
         landmark_vertices = _require(landmark_vertices, "landmark-vertex map")
@@ -259,11 +260,12 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         if neutral.shape is not None:  # a calibration's shape stands in for its frame's landmarks
             Y[neutral.frame], Cf[neutral.frame] = Y0, C0
         contact, front = _contact_rows(lm_ids, lm.n_points)
+        lids = _lid_closed(lid_closed, Y, contact, Cf, "the take")
         opts = dict(sparsity=DEFAULT_SPARSITY if sparsity is None else sparsity,
                     ridge=DEFAULT_RIDGE if ridge is None else ridge, contact=contact, front=front,
-                    contact_refs=contact_references(Y, contact, Cf, neutral=Y0, lid_closed=lid_closed)
+                    contact_refs=contact_references(Y, contact, Cf, neutral=Y0, lid_closed=lids)
                     if contact else None,
-                    contact_weight=contact_weight, lip_closed=lip_closed, lid_closed=lid_closed,
+                    contact_weight=contact_weight, lip_closed=lip_closed, lid_closed=lids,
                     smooth=smooth if frames == "all" else 0.0)
         shots = _shot_neutrals(lm, posed, neutral.frame, (Y0, C0), lm_ids, Y, Cf, contact, lid_closed,
                                opts["contact_refs"], keep_home=neutral.record.get("source") != "take") \
@@ -454,7 +456,7 @@ def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contac
 
     Returns
     -------
-    list of (Y0 (M, 2), C0 (M,), contact references) or None
+    list of (Y0 (M, 2), C0 (M,), contact references, the lids' closed reading) or None
     """
     cuts = _cut_rows(lm)
     if not cuts:
@@ -462,7 +464,8 @@ def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contac
     bounds = [0, *cuts, lm.n_frames]
     home = int(np.searchsorted(cuts, neutral_frame, side="right"))
     found = lm.found_mask
-    cache, out = ({home: (neutral[0], neutral[1], refs)} if keep_home else {}), []
+    home_lids = _lid_closed(lid_closed, Y, contact, Cf) if keep_home else None
+    cache, out = ({home: (neutral[0], neutral[1], refs, home_lids)} if keep_home else {}), []
     for part in parts:
         k = int(np.searchsorted(cuts, part[0], side="right"))
         if k not in cache:
@@ -470,14 +473,27 @@ def _shot_neutrals(lm, parts, neutral_frame: int, neutral, lm_ids, Y, Cf, contac
             rows = rows[found[rows]]
             choice = find_rest_frame(lm.stabilized[rows], lm.confidence[rows])
             y0, c0 = choice.shape[lm_ids], choice.confidence[lm_ids]
-            shot_refs = contact_references(Y[rows], contact, Cf[rows], neutral=y0, lid_closed=lid_closed) \
+            shot_lids = _lid_closed(lid_closed, Y[rows], contact, Cf[rows], f"the shot of rows {bounds[k]}-{bounds[k + 1] - 1}")
+            shot_refs = contact_references(Y[rows], contact, Cf[rows], neutral=y0, lid_closed=shot_lids) \
                 if contact else None
-            cache[k] = (y0, c0, shot_refs)
+            cache[k] = (y0, c0, shot_refs, shot_lids)
             log.info("auto-pose: the shot of frames %d-%d (after a scene cut) is measured from its own rest shape "
                      "(rest frame %d)", *(int(lm.timing()[0][r]) for r in (bounds[k], bounds[k + 1] - 1,
                                                                            rows[choice.frame])))
         out.append(cache[k])
     return out
+
+
+def _lid_closed(lid_closed, Y, contact, Cf, what: str | None = None):
+    """``lid_closed`` as given, or (None: ``auto``) the closed-lid reading of the frames *Y* (T, M, 2)
+    (:func:`~retarget_cli.methods.rigpose.take_lid_closed`; None without lid pairs), logged as *what*'s."""
+    if lid_closed is not None or not contact:
+        return lid_closed
+    value = take_lid_closed(Y, contact, Cf)
+    if value is not None and what:
+        log.info("auto-pose: %s's tracked lids count as closed at or below %.3f of the eye width (%s of its open "
+                 "eyes' reading)", what, value, LID_CLOSED_FRACTION)
+    return value
 
 
 def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid, opts, shots=None, preset=None,
@@ -503,7 +519,8 @@ def _delta_poses(r, spec, vx, Y, Cf, frames, neutral, region_rows, fixed, rigid,
     rms = []
     for i, part in enumerate(frames):  # a list of frames per segment of the take, each smoothed on its own
         y0, c0, o = (*neutral, opts) if shots is None else (shots[i][0], shots[i][1],
-                                                            {**opts, "contact_refs": shots[i][2]})
+                                                            {**opts, "contact_refs": shots[i][2],
+                                                             "lid_closed": shots[i][3]})
         rows = slice(part.start, part.stop) if isinstance(part, range) else part  # a segment: views, no copies
         res = delta_pose(r, vx, y0, Y[rows], weights=Cf[rows], neutral_weights=c0,
                          regions=region_rows, exclusive=exclusive, fixed=fixed, rigid=rigid,

@@ -25,6 +25,7 @@ from retarget_cli.methods.rigpose import (
     rig_curves,
     rig_region_masks,
     slider_owners,
+    take_lid_closed,
 )
 from retarget_cli.synth.take import expression_curves, landmark_rig, source_neutral
 
@@ -240,10 +241,14 @@ def test_contact_references_are_the_takes_closed_lips_and_open_eyes():
         neutral[[37, 38], 1] -= shift
         r_n = contact_ratios(neutral, eye).mean()
         assert contact_references(Y, CONTACT_68, neutral=neutral)[1][0] == pytest.approx(r_n if own else p75)
-        r_c = lid_closed_reading(DEFAULT_LID_CLOSED, p75)  # by default relative: a fraction of the open reading
-        assert r_c == pytest.approx(LID_CLOSED_FRACTION * p75)
+        r_c = take_lid_closed(Y, CONTACT_68)  # by default the take's: a fraction of its open eyes' reading
         assert (r_n >= r_c + NEUTRAL_OPEN * (p75 - r_c)) == own
+    assert DEFAULT_LID_CLOSED is None
+    opens = [np.percentile(contact_ratios(Y, e).mean(axis=1), 75) for e in CONTACT_68[1:]]
+    assert take_lid_closed(Y, CONTACT_68) == pytest.approx(LID_CLOSED_FRACTION * np.mean(opens))
+    assert take_lid_closed(Y, CONTACT_68[:1]) is None  # no lids
     assert lid_closed_reading(0.15, p75) == 0.15  # a number is the closed reading itself
+    assert lid_closed_reading(None, p75) == pytest.approx(LID_CLOSED_FRACTION * p75)
 
 
 def test_the_closed_reading_is_relative_to_the_actors_open_eye():
@@ -261,7 +266,7 @@ def test_the_closed_reading_is_relative_to_the_actors_open_eye():
     blink, narrow = list(range(20, 24)), list(range(40, 46))
     for aperture in (1.0, 0.8):  # the actor's open eye as the synthetic face's, and a smaller one
         Y0 = 140.0 * n + [150.0, 160.0]
-        for up, lo in ((37, 41), (38, 40)):
+        for up, lo in ((37, 41), (38, 40), (43, 47), (44, 46)):  # both eyes
             Y0[up, 1] = Y0[lo, 1] - aperture * (Y0[lo, 1] - Y0[up, 1])
         r_o = contact_ratios(Y0, eye).mean()
         Y = np.repeat(Y0[None], 60, axis=0)
