@@ -103,9 +103,13 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Atomically write *data* to *path*."""
+    """Atomically write *data* to *path*; its sha256 is remembered for :func:`sha256_file` in this process
+    (a stage's outputs are hashed for its manifests, and again as the next stage's inputs)."""
     with atomic_open(path, "wb") as fh:
         fh.write(data)
+    digest = hashlib.sha256(data).hexdigest()
+    with contextlib.suppress(OSError):
+        _HASHES[_stat_key(os.stat(path))] = digest
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:
@@ -486,7 +490,9 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
 
     A file whose stat (device, inode, size, mtime_ns, ctime_ns) is one already hashed in this process, or
     in the active :func:`hash_memo`, is not read again, as git's index and make trust a file's stat; a file
-    changed within :data:`RACY_NS` of its hashing is not remembered.
+    changed within :data:`RACY_NS` of its hashing is not remembered, except a file this process just wrote
+    with :func:`write_bytes` (its bytes were hashed as written; a stage's manifest trusts the size and mtime
+    of its outputs the same way).
     """
     with open(path, "rb") as fh:
         st = os.fstat(fh.fileno())

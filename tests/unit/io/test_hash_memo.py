@@ -124,13 +124,14 @@ def test_the_memo_keeps_at_most_its_limit(tmp_path, fresh, monkeypatch):
     assert (memo_dir / "notes.txt").is_file()
 
 
-def test_cache_clear_removes_the_hashes_and_no_cache_bypasses_them(small_take, fresh, user_cache):
+def test_cache_clear_removes_the_hashes_and_no_cache_bypasses_them(small_take, fresh, user_cache, monkeypatch):
     (small_take / "keys.json").write_text("{}")
     hashes = user_cache.parent / "hashes"
     (small_take / "pose.yaml").write_text("output_dir: runout\nselect:\n  landmarks: truth_landmarks.npz\n  k: 3\n")
     res = CliRunner().invoke(main, ["run", str(small_take / "pose.yaml"), "--no-cache"])
     assert res.exit_code == 0, res.output
     assert not hashes.exists()
+    monkeypatch.setattr(atomic, "_HASHES", {})  # a new process
     res = CliRunner().invoke(main, ["run", str(small_take / "pose.yaml"), "--force"])
     assert res.exit_code == 0, res.output
     n = len(HashMemo(hashes).entries())
@@ -141,3 +142,14 @@ def test_cache_clear_removes_the_hashes_and_no_cache_bypasses_them(small_take, f
     res = CliRunner().invoke(main, ["cache", "clear"])
     assert res.exit_code == 0 and f"{hashes}: removed {n} file hash" in res.output, res.output
     assert HashMemo(hashes).entries() == [] and (hashes / "mine.txt").is_file()
+
+
+def test_a_file_just_written_is_hashed_as_written(tmp_path, monkeypatch):
+    monkeypatch.setattr(atomic, "_HASHES", {})
+    f = tmp_path / "k.obj"
+    atomic.write_bytes(f, b"v 1 2 3\n")
+    assert atomic._HASHES == {atomic._stat_key(f.stat()): _sha(b"v 1 2 3\n")}
+    assert sha256_file(f) == _sha(b"v 1 2 3\n")
+    time.sleep(0.05)
+    f.write_bytes(b"v 1 2 4\n")  # changed by another writer: its ctime moved, so it is hashed again
+    assert sha256_file(f) == _sha(b"v 1 2 4\n")
