@@ -489,7 +489,8 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     """Hex sha256 of a file's bytes, each unchanged file hashed once.
 
     A file whose stat (device, inode, size, mtime_ns, ctime_ns) is one already hashed in this process, or
-    in the active :func:`hash_memo`, is not read again, as git's index and make trust a file's stat; a file
+    in the active :func:`hash_memo` (which keeps the files a run reads, not those inside the folders it may
+    write), is not read again, as git's index and make trust a file's stat; a file
     changed within :data:`RACY_NS` of its hashing is not remembered, except a file this process just wrote
     with :func:`write_bytes` (its bytes were hashed as written; a stage's manifest trusts the size and mtime
     of its outputs the same way).
@@ -512,9 +513,19 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
         after = os.fstat(fh.fileno())
     if _stat_key(after) == key and _settled(st, now):
         _HASHES[key] = digest
-        if memo is not None:
+        if memo is not None and not _in_output(path):
             memo.put(key, digest, path)
     return digest
+
+
+def _in_output(path) -> bool:
+    """Whether *path* lies in a folder the active write guard lets this run write (an output a run rewrites:
+    not kept in the persistent memo, whose worth is the files runs read again and again)."""
+    guard = _GUARD.get()
+    if guard is None or not guard.roots:
+        return False
+    p = _resolve(path)
+    return any(p.is_relative_to(r) for r in guard.roots)
 
 
 def digest_files(paths) -> str:

@@ -99,13 +99,18 @@ def test_unreadable_or_stale_entries_are_misses(tmp_path, fresh, monkeypatch):
             assert sha256_file(f) == _sha(b"abc")
 
 
-def test_the_memo_writes_inside_a_run_guarded_elsewhere(tmp_path, fresh):
+def test_the_memo_keeps_inputs_not_outputs_and_writes_inside_a_run_guarded_elsewhere(tmp_path, fresh):
     f = tmp_path / "in" / "a.obj"
     f.parent.mkdir()
     f.write_bytes(b"abc")
+    out = tmp_path / "out" / "b.obj"
+    out.parent.mkdir()
+    out.write_bytes(b"def")
     with atomic.guard_writes(roots=[tmp_path / "out"]), hash_memo(tmp_path / "hashes") as memo:
         assert sha256_file(f) == _sha(b"abc")
         assert len(memo.entries()) == 1
+        assert sha256_file(out) == _sha(b"def")  # an output the run rewrites: this process only
+        assert len(memo.entries()) == 1 and len(atomic._HASHES) == 2
     assert not list((tmp_path / "hashes").glob(".retarget-parts-*"))
 
 
