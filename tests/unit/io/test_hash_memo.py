@@ -110,7 +110,7 @@ def test_the_memo_keeps_inputs_not_outputs_and_writes_inside_a_run_guarded_elsew
         assert sha256_file(f) == _sha(b"abc")
         assert len(memo.entries()) == 1
         assert sha256_file(out) == _sha(b"def")  # an output the run rewrites: this process only
-        assert len(memo.entries()) == 1 and len(atomic._HASHES) == 2
+        assert len(memo.entries()) == 1 and atomic._stat_key(out.stat()) in atomic._HASHES
     assert not list((tmp_path / "hashes").glob(".retarget-parts-*"))
 
 
