@@ -23,7 +23,8 @@ from .. import __version__
 from ..batch import command as batch_command
 from ..config import UNSET, Command, Flag, Param, show_paths
 from ..errors import RetargetError, UsageError, stop_cause, stop_message
-from ..io.atomic import guard_writes, remove_stale_parts
+from ..io.atomic import guard_writes, hash_memo, remove_stale_parts
+from ..io.rig.cache import hash_memo_dir
 from ..run import cache as cache_command
 from ..run import pipeline
 from ..see import commands as see_commands
@@ -219,7 +220,8 @@ class DeclaredCommand(click.Command):
     def _run(self, **values):
         out = Console()
         try:
-            result = self.declared.run(values, out)
+            with hash_memo(None if values.get("no_cache") else hash_memo_dir()):
+                result = self.declared.run(values, out)
             (self.declared.show or show_paths)(result, out)
         except UsageError as exc:
             if exc.bad_value:

@@ -27,6 +27,7 @@ import os
 import re
 import secrets
 import sys
+import time
 import zipfile
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -102,9 +103,13 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Atomically write *data* to *path*."""
+    """Atomically write *data* to *path*; its sha256 is remembered for :func:`sha256_file` in this process
+    (a stage's outputs are hashed for its manifests, and again as the next stage's inputs)."""
     with atomic_open(path, "wb") as fh:
         fh.write(data)
+    digest = hashlib.sha256(data).hexdigest()
+    with contextlib.suppress(OSError):
+        _HASHES[_stat_key(os.stat(path))] = digest
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:
@@ -365,13 +370,162 @@ def load_npz(path: str | os.PathLike, *, max_bytes: int | None = None) -> dict[s
     return out
 
 
+# --------------------------------------------------------------------------- file hashes, memoised
+
+#: A file's hash is remembered only when its mtime and ctime are at least this much older than the moment it
+#: was hashed: a file changed again within the file system's timestamp granularity would keep the same stat
+#: (git's "racily clean" entries), so a file that young is hashed again each time.
+RACY_NS = 2_000_000_000
+#: Files smaller than this are not kept in the persistent memo (:class:`HashMemo`): hashing them costs about
+#: what reading an entry does.
+MEMO_MIN_BYTES = 256 << 10
+#: At most this many entries in a persistent memo; past it, the older half (by last write) is removed.
+MEMO_MAX_ENTRIES = 20_000
+
+_MEMO_RE = re.compile(r"^[0-9a-f]{1,16}-[0-9a-f]{1,16}\.json$")
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+#: This process's memo: stat key (device, inode, size, mtime_ns, ctime_ns) to hex sha256.
+_HASHES: dict[tuple, str] = {}
+
+
+def _stat_key(st: os.stat_result) -> tuple:
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def _settled(st: os.stat_result, now_ns: int) -> bool:
+    """Whether the file of *st* was last changed long enough before *now_ns* for its stat to vouch for it."""
+    return now_ns - max(st.st_mtime_ns, st.st_ctime_ns) >= RACY_NS
+
+
+class HashMemo:
+    """A folder of file hashes kept between runs (``retarget cache``), one small JSON entry per file.
+
+    An entry is named by the file's device and inode and holds the file's size, mtime_ns and ctime_ns and
+    its sha256; it is used only while all four still match, as git's index and make trust a file's stat.
+    The ctime is part of it because no user can set it back: a file rewritten with its size and mtime
+    restored is hashed again. Entries are written atomically (another batch worker reads a whole entry or
+    none; two writers of one file write the same bytes), and a missing, unreadable or stale entry is a
+    miss, never an error.
+    """
+
+    def __init__(self, folder):
+        self.folder = Path(folder)
+        self._checked = False
+
+    def _entry(self, key: tuple) -> Path:
+        return self.folder / f"{key[0]:x}-{key[1]:x}.json"
+
+    def get(self, key: tuple) -> str | None:
+        """The remembered hex sha256 of the file with stat *key*, or None."""
+        try:
+            doc = json.loads(self._entry(key).read_bytes())
+        except (OSError, ValueError):
+            return None
+        if not isinstance(doc, dict) or doc.get("stat") != list(key[2:]):
+            return None
+        digest = doc.get("sha256")
+        return digest if isinstance(digest, str) and _HEX64.match(digest) else None
+
+    def put(self, key: tuple, digest: str, path) -> None:
+        """Remember *digest* for the file with stat *key* (*path*: recorded for a reader of the folder)."""
+        try:
+            with guard_writes(roots=[self.folder], label="the file hash memo"):
+                if not self._checked:
+                    self._checked = True
+                    self._trim()
+                write_json(self._entry(key), {"path": os.path.abspath(path), "sha256": digest,
+                                              "stat": list(key[2:])})
+        except (OSError, InputError) as exc:
+            log.debug("file hash memo %s not written (%s)", self.folder, exc)
+
+    def entries(self) -> list[Path]:
+        """The memo's own entries (files named ``<device>-<inode>.json``)."""
+        try:
+            return [p for p in self.folder.iterdir() if _MEMO_RE.match(p.name) and p.is_file()]
+        except OSError:
+            return []
+
+    def _trim(self) -> None:
+        found = self.entries()
+        if len(found) < MEMO_MAX_ENTRIES:
+            return
+        aged = []
+        for p in found:
+            with contextlib.suppress(OSError):
+                aged.append((p.stat().st_mtime_ns, p.name, p))
+        for _, _, p in sorted(aged)[: len(aged) // 2]:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(p)
+
+    def clear(self) -> int:
+        """Remove every entry (and temporary files of killed writers); returns how many entries."""
+        found = self.entries()
+        if self.folder.is_dir():
+            with guard_writes(roots=[self.folder], label="the file hash memo"):
+                remove_stale_parts(self.folder)
+        n = 0
+        for p in found:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(p)
+                n += 1
+        return n
+
+
+_MEMO: contextvars.ContextVar[HashMemo | None] = contextvars.ContextVar("retarget_hash_memo", default=None)
+
+
+@contextlib.contextmanager
+def hash_memo(folder) -> Iterator[HashMemo | None]:
+    """Keep the hashes :func:`sha256_file` computes inside the block in *folder* between runs (None: not)."""
+    memo = None if folder is None else HashMemo(folder)
+    token = _MEMO.set(memo)
+    try:
+        yield memo
+    finally:
+        _MEMO.reset(token)
+
+
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file's bytes."""
-    h = hashlib.sha256()
+    """Hex sha256 of a file's bytes, each unchanged file hashed once.
+
+    A file whose stat (device, inode, size, mtime_ns, ctime_ns) is one already hashed in this process, or
+    in the active :func:`hash_memo` (which keeps the files a run reads, not those inside the folders it may
+    write), is not read again, as git's index and make trust a file's stat; a file
+    changed within :data:`RACY_NS` of its hashing is not remembered, except a file this process just wrote
+    with :func:`write_bytes` (its bytes were hashed as written; a stage's manifest trusts the size and mtime
+    of its outputs the same way).
+    """
     with open(path, "rb") as fh:
+        st = os.fstat(fh.fileno())
+        key = _stat_key(st)
+        hit = _HASHES.get(key)
+        if hit is not None:
+            return hit
+        memo = _MEMO.get() if st.st_size >= MEMO_MIN_BYTES else None
+        if memo is not None and (hit := memo.get(key)) is not None:
+            _HASHES[key] = hit
+            return hit
+        now = time.time_ns()
+        h = hashlib.sha256()
         while block := fh.read(chunk):
             h.update(block)
-    return h.hexdigest()
+        digest = h.hexdigest()
+        after = os.fstat(fh.fileno())
+    if _stat_key(after) == key and _settled(st, now):
+        _HASHES[key] = digest
+        if memo is not None and not _in_output(path):
+            memo.put(key, digest, path)
+    return digest
+
+
+def _in_output(path) -> bool:
+    """Whether *path* lies in a folder the active write guard lets this run write (an output a run rewrites:
+    not kept in the persistent memo, whose worth is the files runs read again and again)."""
+    guard = _GUARD.get()
+    if guard is None or not guard.roots:
+        return False
+    p = _resolve(path)
+    return any(p.is_relative_to(r) for r in guard.roots)
 
 
 def digest_files(paths) -> str:

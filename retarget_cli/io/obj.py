@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, ShapeError
-from .atomic import atomic_open
+from .atomic import write_bytes
 
 #: printf format of one coordinate in written ``v`` lines.
 COORD_FORMAT = "%.6f"
@@ -789,8 +789,7 @@ def write_obj(path: str | os.PathLike, mesh: ObjMesh, positions: np.ndarray) -> 
         Template; every non-coordinate byte is copied from it.
     positions : ndarray, shape (N, 3)
     """
-    with atomic_open(path, "wb") as fh:
-        fh.write(mesh.to_bytes(positions))
+    write_bytes(path, mesh.to_bytes(positions))
 
 
 def check_same_topology(meshes: list[ObjMesh]) -> None:

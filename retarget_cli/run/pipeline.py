@@ -18,8 +18,8 @@ from pathlib import Path
 from .. import stages
 from ..config import REQUIRED, Command, Config, Flag, Param, load_config
 from ..errors import ConfigError, InputError, OutputError, RetargetError
-from ..io.atomic import folder_lock, guard_writes, remove_stale_parts
-from ..io.rig.cache import cache_limit, rig_cache_dir
+from ..io.atomic import folder_lock, guard_writes, hash_memo, remove_stale_parts
+from ..io.rig.cache import cache_limit, hash_memo_dir, rig_cache_dir
 from ..stages._common import Stage, collect_results
 from .manifest import check_unchanged, manifest_matches, record_inputs, write_manifest
 
@@ -233,7 +233,8 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
 
     Every stage's arguments are resolved (and so checked) before any runs.
     *cache* False: stages that load a rig parse its OBJs instead of using
-    :func:`cache_dir`.
+    :func:`cache_dir`, and the files' hashes are not looked up in, nor kept in, the user's memo
+    (:func:`~retarget_cli.io.rig.cache.hash_memo_dir`; the files are still hashed once per process).
 
     Returns
     -------
@@ -254,7 +255,7 @@ def run_pipeline(cfg: Config, *, force: bool = False, start=None, stop=None, pro
     if cache:
         cache_limit()  # a bad $RETARGET_CACHE_SIZE stops the run before any stage
     report = []
-    with folder_lock(cfg.output_dir, "output_dir"), \
+    with folder_lock(cfg.output_dir, "output_dir"), hash_memo(hash_memo_dir() if cache else None), \
             guard_writes(roots=[cfg.output_dir], inputs=inputs, label=f"output_dir of {cfg.path}"):
         remove_stale_parts(cfg.output_dir)
         for n in names:

@@ -1,3 +1,5 @@
+import re
+
 import pytest
 
 from retarget_cli.config import load_config
@@ -88,3 +90,55 @@ def test_a_key_given_twice_is_refused_in_every_yaml_kind(tmp_path, kind, text):
         read(path)
     msg = str(err.value)
     assert "\n" not in msg and f"{path}:" in msg and "given twice" in msg, msg
+
+
+_BAD_YAML = [
+    ("select: [1, 2\n", r"f\.yaml:2: invalid YAML \(.* at line 2, column 1\)$"),
+    ("version: 1\nn_points: 68\n{\n1 2\n", r"f\.yaml:4: invalid YAML \(.* at line 4, column 1\)$"),
+    ("a: b: c\n", r"f\.yaml:1: invalid YAML \(mapping values are not allowed .* at line 1, column 5\)$"),
+    ("- a\nb: c\n", r"f\.yaml:2: invalid YAML \(.* at line 2, column 1\)$"),
+    ("a: *x\n", r"f\.yaml:1: invalid YAML \(found undefined alias.* at line 1, column 4\)$"),
+    ("a: !!python/object:os.system x\n", r"f\.yaml:1: invalid YAML \(could not determine a constructor .*\)$"),
+    ("\t- a\n", r"f\.yaml:1: invalid YAML \(found character .*that cannot start any token at line 1, column 1\)$"),
+    ("a: [1,\n\x00", r"f\.yaml: invalid YAML \(unacceptable character #x0000: .*\)$"),
+    ("a: \ud800\n", r"f\.yaml: invalid YAML \(unacceptable character #xd800: .*\)$"),
+    ("a: 1\n---\nb: 2\n", r"f\.yaml:2: invalid YAML \(but found another document at line 2, column 1\)$"),
+    ("x:\n  b: 1\n  c: 2\n  b: 3\n", r"f\.yaml:4: key 'b' given twice in one mapping \(first at line 2\)"),
+    ("a: &a [1]\n" + "".join(f"x{i}: &x{i} [*{'a' if i == 0 else f'x{i - 1}'}, *{'a' if i == 0 else f'x{i - 1}'}]\n"
+                             for i in range(30)), r"f\.yaml: the YAML document expands to more than 1000000 values"),
+    ("a: &a 1\nb: [" + ", ".join(["*a"] * 1001) + "]\n", r"f\.yaml: more than 1000 YAML aliases"),
+    ("[" * 2000 + "]" * 2000, r"f\.yaml(:1: invalid YAML \(exceeded maximum nesting depth.*|: the YAML document is "
+                              r"nested too deeply)$"),
+]
+
+
+def _loaders():
+    import yaml
+
+    return [yaml.SafeLoader] + ([yaml.CSafeLoader] if getattr(yaml, "__with_libyaml__", False) else [])
+
+
+@pytest.mark.parametrize("loader", _loaders(), ids=lambda c: c.__name__)
+@pytest.mark.parametrize("text, message", _BAD_YAML)
+def test_bad_yaml_is_one_line_with_its_line_on_both_loaders(monkeypatch, loader, text, message):
+    """libyaml (CSafeLoader, used when PyYAML has it) words some problems differently from the pure-Python
+    loader; the message keeps its form: the file, the line, one line."""
+    from retarget_cli import config
+
+    monkeypatch.setattr(config, "yaml_loader", lambda: loader)
+    with pytest.raises(ConfigError) as err:
+        config.load_yaml(text, "f.yaml", with_line=True)
+    assert "\n" not in str(err.value) and re.match(message, str(err.value)), str(err.value)
+
+
+def test_both_yaml_loaders_read_the_same_values(monkeypatch):
+    from retarget_cli import config
+
+    text = ("a: 2001-01-01\nb: 0o17\nc: 1_000\nd: .inf\ne: yes\nf: 0x1F\ng: ~\nh: 1e3\ni: '1'\nj: !!binary aGVsbG8=\n"
+            "k: &k [1, 2]\nl: *k\nm: {<<: {d: 1}, d: 2}\nn: [-.5, +3, 1.5e+3, null, NO]\n")
+    got = []
+    for loader in _loaders():
+        monkeypatch.setattr(config, "yaml_loader", lambda loader=loader: loader)
+        got.append(config.load_yaml(text, "f.yaml"))
+    assert got[0]["l"] == [1, 2] and got[0]["m"] == {"d": 2} and got[0]["j"] == b"hello"
+    assert all(g == got[0] and repr(g) == repr(got[0]) for g in got)

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError, ParameterError
-from ..atomic import guard_writes, remove_stale_parts, savez
+from ..atomic import guard_writes, remove_stale_parts, savez, sha256_file
 from ..obj import ObjMesh, check_coordinates, check_same_topology, count_vertices, read_obj
 
 log = logging.getLogger(__name__)
@@ -88,6 +88,12 @@ def user_cache_dir(environ=None) -> Path:
 def rig_cache_dir(environ=None) -> Path:
     """Where the commands keep parsed rigs: ``rigs/`` in :func:`user_cache_dir`."""
     return user_cache_dir(environ) / "rigs"
+
+
+def hash_memo_dir(environ=None) -> Path:
+    """Where the commands keep the sha256 of the files they read (a rig's OBJs, a video) between runs:
+    ``hashes/`` in :func:`user_cache_dir` (:class:`~retarget_cli.io.atomic.HashMemo`)."""
+    return user_cache_dir(environ) / "hashes"
 
 
 def cache_limit(environ=None) -> int:
@@ -224,11 +230,6 @@ def _store(file: Path, arrays: dict, what) -> None:
         evict(file.parent, limit, keep=file)
 
 
-def _file_sha256(path: Path) -> str:
-    with open(path, "rb") as fh:
-        return hashlib.file_digest(fh, "sha256").hexdigest()
-
-
 def cache_key(rig_path: str | os.PathLike, files, *, kind: str = "") -> str:
     """sha256 over the cache version, ``rig.yaml``'s bytes and each referenced file (name and bytes).
 
@@ -246,10 +247,10 @@ def cache_key(rig_path: str | os.PathLike, files, *, kind: str = "") -> str:
     """
     rig_path = Path(rig_path)
     h = hashlib.sha256(f"retarget rig cache v{CACHE_VERSION}{' ' + kind if kind else ''}\n".encode())
-    h.update(_file_sha256(rig_path).encode() + b"\n")
+    h.update(sha256_file(rig_path).encode() + b"\n")
     for f in files:
         rel = os.path.relpath(Path(f).resolve(), rig_path.resolve().parent)
-        h.update(f"{rel}\0{_file_sha256(Path(f))}\n".encode())
+        h.update(f"{rel}\0{sha256_file(Path(f))}\n".encode())
     return h.hexdigest()
 
 
@@ -458,4 +459,5 @@ def cached_arrays(rig_path, files, build, *, cache_dir=None, kind: str, check=No
 
 __all__ = ["CACHE_DIR_ENV", "CACHE_SIZE_ENV", "CACHE_VERSION", "DEFAULT_CACHE_BYTES", "cache_entries", "cache_file",
            "cache_info", "cache_key", "cache_limit", "cached_arrays", "check_vertex_counts", "clear_cache", "evict",
+           "hash_memo_dir",
            "load_rig_meshes", "rig_cache_dir", "user_cache_dir"]
