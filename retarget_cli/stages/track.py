@@ -104,7 +104,8 @@ PARAMS = [
     Param("gaze", "setting", bool, True,
           "Locate each iris in the frames (68 points): the gaze, filtered like the landmarks and held through "
           "blinks and gaps, is stored in landmarks.npz ('gaze', 'gaze_valid') for auto_pose's eyeLook sliders "
-          "and the Live Link eye columns; false: none (the frames are decoded once less)."),
+          "and the Live Link eye columns (method detect keeps each frame's eyes while tracking for it, the other "
+          "methods decode the frames again); false: none."),
     Param("model", "input", str, None,
           "Facemark LBF model file for method facemark (written by 'retarget train-tracker').",
           nullable=True),
@@ -196,8 +197,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     own points are kept as ``points_raw``. Annotated frames keep their given
     points and anchor the filter. *neutral*: a calibration image or clip of
     the actor at rest, tracked the same way (:func:`_track_neutral`); its
-    rest shape is stored as the landmarks' ``neutral``. *gaze* (68 points): the frames are decoded again and
-    each iris located (:func:`_track_gaze`), stored as ``gaze`` and ``gaze_valid``.
+    rest shape is stored as the landmarks' ``neutral``. *gaze* (68 points): each iris located
+    (:func:`_track_gaze`), stored as ``gaze`` and ``gaze_valid``.
     """
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
@@ -300,7 +301,7 @@ def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, v
 
     if neutral is None and not smooth_head and undo is None and want_gaze:
         # no gap frame borrowed confidences (conf is only read): the head fits run on a worker thread while the
-        # gaze pass decodes the video again (numba's kernel and OpenCV release the GIL); the same results
+        # gaze pass runs (numba's kernel and OpenCV release the GIL); the same results
         with ThreadPoolExecutor(1, thread_name_prefix="retarget-head") as pool:
             heads = pool.submit(_fit_heads, points, conf, rigid_points, (W, H), head_pose)
             gz = gaze_pass()
@@ -783,8 +784,17 @@ def _keep_eyes(crops):
     """The tracker's ``on_frame``: each frame's eyes (:func:`~retarget_cli.methods.tracking.gaze.eye_crop`) kept in
     *crops*."""
 
+    failed = []
+
     def keep(t, gray, points):
-        crops.add(gray, eye_crop(points))
+        if failed:
+            return
+        try:
+            crops.add(gray, eye_crop(points))
+        except OSError as exc:  # a full disk, say: the gaze decodes the video again (fewer crops than frames)
+            failed.append(exc)
+            log.warning("%s: the eyes' pixels could not be kept for the gaze (%s); the video is decoded again",
+                        crops.path, exc)
 
     return keep
 

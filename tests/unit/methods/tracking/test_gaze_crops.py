@@ -99,9 +99,11 @@ def test_landmarks_moved_within_the_margin_are_still_covered():
 
 
 @needs_detector
-def test_track_reads_the_gaze_from_the_kept_eyes_and_writes_the_file_of_a_second_decoding(tmp_path, monkeypatch):
+def test_track_reads_the_gaze_from_the_kept_eyes_and_writes_the_file_of_a_second_decoding(tmp_path, monkeypatch,
+                                                                                          caplog):
     """run_track with the eyes kept while tracking gives the landmarks.npz of the same run that decodes the video
-    again for the gaze (crops_cover refused), and leaves no temporary file."""
+    again for the gaze (crops_cover refused, or the crops' file could not be written), and leaves no temporary
+    file."""
     import retarget_cli.stages.track as track_stage
     from retarget_cli.stages import run_track
 
@@ -119,12 +121,26 @@ def test_track_reads_the_gaze_from_the_kept_eyes_and_writes_the_file_of_a_second
     monkeypatch.setattr(track_stage, "crops_cover", lambda boxes, *a: np.zeros(len(boxes), bool))
     run_track(output=str(tmp_path / "b" / "lm.npz"), **kw)
     assert read == [1]
-    with np.load(tmp_path / "a" / "lm.npz") as a, np.load(tmp_path / "b" / "lm.npz") as b:
-        assert "gaze" in a.files and a["gaze_valid"].any()
-        for k in a.files:
-            if k != "meta":
-                assert np.array_equal(a[k], b[k]), k
-    for d in ("a", "b"):
+    # the crops cannot be written (a full disk, say): a warning, the video decoded again, the same file
+    monkeypatch.undo()
+    add = CropSpill.add
+
+    def full(self, *a):
+        if len(self) == 5:
+            raise OSError(28, "No space left on device")
+        add(self, *a)
+
+    monkeypatch.setattr(CropSpill, "add", full)
+    with caplog.at_level("WARNING"):
+        run_track(output=str(tmp_path / "c" / "lm.npz"), **kw)
+    assert "could not be kept for the gaze" in caplog.text
+    for other in ("b", "c"):
+        with np.load(tmp_path / "a" / "lm.npz") as a, np.load(tmp_path / other / "lm.npz") as b:
+            assert "gaze" in a.files and a["gaze_valid"].any()
+            for k in a.files:
+                if k != "meta":
+                    assert np.array_equal(a[k], b[k]), (other, k)
+    for d in ("a", "b", "c"):
         assert not [p.name for p in (tmp_path / d).iterdir() if ".part" in p.name]
 
 
