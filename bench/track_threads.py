@@ -62,7 +62,7 @@ def _sample_tasks() -> None:
 
 def wrap(owner, attr: str, label: str | None = None) -> None:
     """Count the CPU of ``owner.attr`` per calling thread."""
-    if not hasattr(owner, attr):
+    if owner is None or not hasattr(owner, attr):
         return
     f = getattr(owner, attr)
     label = label or f"{getattr(owner, '__name__', str(owner)).rsplit('.', 1)[-1]}.{attr}"
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
                         (track, "_run_tracker"), (track, "filter_segments"), (track, "_track_gaze"),
                         (track, "gaze_fn"), (gaze, "iris_centre"), (track, "_fit_heads"), (track, "fit_head"),
                         (track, "_head_pose_3d"), (track, "save_landmarks"), (track, "eye_crop"),
-                        (atomic.CropSpill, "add")]:
+                        (getattr(atomic, "CropSpill", None), "add")]:
         wrap(owner, attr)
     try:
         cli.main(args=["-q", "track", argv[0], "-o", argv[1], "--method", "detect", *argv[2:]], prog_name="retarget",
