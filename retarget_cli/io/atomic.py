@@ -17,6 +17,7 @@ Temporary ``.part`` files left by a killed run are removed by
 
 from __future__ import annotations
 
+import array
 import contextlib
 import contextvars
 import hashlib
@@ -234,14 +235,7 @@ class RowSpill:
         self.shape, self.dtype, self.n = tuple(int(n) for n in shape), np.dtype(dtype), 0
         self._row = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
         self._fh, self.path = None, None
-        while True:
-            tmp = part_name(path, ".npy")
-            try:
-                fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o600)
-                break
-            except FileExistsError:
-                continue
-        self.path, self._fh = tmp, os.fdopen(fd, "w+b")
+        self.path, self._fh = _new_part(path, ".npy")
 
     def write(self, rows) -> None:
         """Append *rows* (k, *shape[1:]), converted to the spill's dtype."""
@@ -265,6 +259,86 @@ class RowSpill:
             raise ParameterError(f"spill: {self.n} of {self.shape[0]} rows written")
         self._fh.flush()
         return NpyChunks(self.shape, self.dtype, self._read, block)
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+        if self.path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _new_part(path: Path, suffix: str):
+    """A new temporary file beside *path* (:func:`part_name`), created exclusively: ``(name, open file "w+b")``."""
+    while True:
+        tmp = part_name(path, suffix)
+        try:
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o600)
+            break
+        except FileExistsError:
+            continue
+    return tmp, os.fdopen(fd, "w+b")
+
+
+class CropSpill:
+    """A rectangle of each frame of a take (gray ``uint8``) kept in a temporary file beside *path*: added in frame
+    order (:meth:`add`), read back in order pasted into a frame-sized image (:meth:`frames`), removed on
+    :meth:`close`. What is held in memory is four integers a frame (the rectangles).
+
+    The file is a :func:`part_name` of *path* (a killed run's is removed by :func:`remove_stale_parts`) and
+    passes the write guard like *path*. Use as a context manager.
+    """
+
+    def __init__(self, path):
+        path = Path(path)
+        check_write(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._boxes = array.array("q")
+        self._fh, self.path = None, None
+        self.path, self._fh = _new_part(path, ".crops")
+
+    def __len__(self) -> int:
+        return len(self._boxes) // 4
+
+    def add(self, image, box) -> None:
+        """Append the rectangle *box* ``[x0, y0, x1, y1)`` (pixels, clipped to the image) of *image* (H, W), uint8."""
+        image = np.asarray(image)
+        if image.ndim != 2 or image.dtype != np.uint8:
+            raise ParameterError(f"crop spill: expected a gray uint8 image (H, W), got {image.dtype} {image.shape}")
+        h, w = image.shape
+        x0, y0, x1, y1 = (int(v) for v in box)
+        x0, x1 = min(max(x0, 0), w), min(max(x1, 0), w)
+        y0, y1 = min(max(y0, 0), h), min(max(y1, 0), h)
+        x1, y1 = max(x1, x0), max(y1, y0)
+        self._fh.write(np.ascontiguousarray(image[y0:y1, x0:x1]).tobytes())
+        self._boxes.extend((x0, y0, x1, y1))
+
+    def boxes(self) -> np.ndarray:
+        """The rectangles kept, clipped to the image: (n, 4) int64 ``[x0, y0, x1, y1)``."""
+        return np.frombuffer(self._boxes, np.int64).reshape(-1, 4).copy() if len(self) else np.zeros((0, 4), np.int64)
+
+    def frames(self, size, n: int | None = None):
+        """The first *n* (default: all) frames, each its rectangle pasted into one image of *size* ``(W, H)``
+        (yielded again for every frame: its pixels outside the frame's rectangle are those of earlier frames or
+        0)."""
+        W, H = (int(v) for v in size)
+        canvas = np.zeros((H, W), np.uint8)
+        self._fh.flush()
+        self._fh.seek(0)
+        boxes = self.boxes()
+        for x0, y0, x1, y1 in boxes[:n]:
+            part = np.empty((y1 - y0, x1 - x0), np.uint8)
+            if part.size and self._fh.readinto(memoryview(part).cast("B")) != part.nbytes:
+                raise OSError(f"{self.path}: short read")
+            canvas[y0:y1, x0:x1] = part
+            yield canvas
 
     def close(self) -> None:
         if self._fh is not None:

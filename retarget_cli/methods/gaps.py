@@ -206,7 +206,9 @@ class CutDetector:
             # frame still at least 4 times the thumbnail's side
             small = cv2.resize(g[:h - h % n, :w - w % n], (w // n, h // n), interpolation=cv2.INTER_AREA)
         thumb = cv2.resize(small, (CUT_THUMB, CUT_THUMB), interpolation=cv2.INTER_AREA)
-        hist = np.bincount((g[::4, ::4] >> 4).ravel(), minlength=16).astype(np.float64)
+        # the 16 bins of gray >> 4 of every 4th pixel, counted by OpenCV (half of numpy's bincount's time on a 1080p
+        # frame, which widens every pixel to an int64 first); the same integer counts
+        hist = cv2.calcHist([np.ascontiguousarray(g[::4, ::4])], [0], None, [16], [0, 256]).ravel().astype(np.float64)
         return thumb.astype(np.float32) / 255.0, hist / hist.sum()
 
     def __call__(self, frame, features=None) -> bool:

@@ -15,7 +15,16 @@ from .._validate import check_name
 from ..config import Command, Flag, Param, check_indices, check_size, check_strings, output_flag, validate_params
 from ..errors import FaceLostError, InputError, ParameterError, TruncatedInputError
 from ..io.annotations import read_annotations, read_csv_landmarks
-from ..io.atomic import NpyChunks, RowSpill, check_not_input, digest_files, load_npz, sha256_file, tracked_outputs
+from ..io.atomic import (
+    CropSpill,
+    NpyChunks,
+    RowSpill,
+    check_not_input,
+    digest_files,
+    load_npz,
+    sha256_file,
+    tracked_outputs,
+)
 from ..io.face_detector import face_detector_file
 from ..io.facemark_model import load_facemark, save_lbf_model
 from ..io.frames import IMAGE_SUFFIXES, FrameSource, is_sequence, read_image, sequence_files
@@ -29,7 +38,7 @@ from ..methods.tracking import TRACKERS, method_choices, method_help, tracker_pa
 from ..methods.tracking.base import check_inside, to_gray
 from ..methods.tracking.detect import Detector, detector_installed
 from ..methods.tracking.facemark import train_lbf
-from ..methods.tracking.gaze import EYES_68
+from ..methods.tracking.gaze import EYES_68, crops_cover, eye_crop
 from ..methods.tracking.gaze import gaze as gaze_fn
 from ..methods.tracking.head import apply_similarity, estimate_head, fit_head, invert_similarity, stabilized_rows
 from ..methods.tracking.head import smooth_head as _smooth
@@ -95,7 +104,8 @@ PARAMS = [
     Param("gaze", "setting", bool, True,
           "Locate each iris in the frames (68 points): the gaze, filtered like the landmarks and held through "
           "blinks and gaps, is stored in landmarks.npz ('gaze', 'gaze_valid') for auto_pose's eyeLook sliders "
-          "and the Live Link eye columns; false: none (the frames are decoded once less)."),
+          "and the Live Link eye columns (method detect keeps each frame's eyes while tracking for it, the other "
+          "methods decode the frames again); false: none."),
     Param("model", "input", str, None,
           "Facemark LBF model file for method facemark (written by 'retarget train-tracker').",
           nullable=True),
@@ -187,8 +197,8 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     own points are kept as ``points_raw``. Annotated frames keep their given
     points and anchor the filter. *neutral*: a calibration image or clip of
     the actor at rest, tracked the same way (:func:`_track_neutral`); its
-    rest shape is stored as the landmarks' ``neutral``. *gaze* (68 points): the frames are decoded again and
-    each iris located (:func:`_track_gaze`), stored as ``gaze`` and ``gaze_valid``.
+    rest shape is stored as the landmarks' ``neutral``. *gaze* (68 points): each iris located
+    (:func:`_track_gaze`), stored as ``gaze`` and ``gaze_valid``.
     """
 
     fset = {k: v for k, v in locals().items() if k in FILTER_DEFAULTS}
@@ -208,63 +218,71 @@ def run_track(*, video, init=None, output, method="auto", window=21, levels=3, f
     objects = _prepare(spec, method, need_auto=need_auto, ann=ann, src=src, model=model, init=init)
     _warn_unused(spec, method, tracker_settings, model)
     # gray trackers get grayscale frames, converted in the decoding thread
-    with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=spec.gray) as source:
-        calib = [] if neutral is None else (sequence_files(neutral) if is_sequence(neutral) else [Path(neutral)])
-        init_out = _check_track_outputs(source, given + calib, output, overlay, start, need_auto)
-        W, H = source.frame_size
-        it = iter(source)
-        ahead = []
-        if need_auto and "detector" not in spec.needs:
-            ahead.append(_auto_annotate(it, source, start, objects["detector"], init_out, ann, src))
-        if start not in ann and "detector" not in spec.needs:
-            raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
-                             f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
-        index = _annotation_index(ann, src, (W, H), start, end, step, missing=source.missing)
-        with large_frame_allocations(W * H * 3):
-            points, conf, coverage = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings,
-                                                  progress=progress, keep_partial=keep_partial,
-                                                  where=init_out or init or video)
-        frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
-        files = source.files()
-    conf = _lose_missing(conf, frame_numbers, source.missing)
-    if need_auto and "detector" in spec.needs:
-        write_auto_init(init_out, points[int(np.argmax(coverage.found))] if coverage is not None else points[0])
-    found, segment, gaps = _coverage(coverage, len(points), frame_numbers, source, video)
-    # the take's per-frame arrays held once each, the float64 points and confidences only (issues #31, #33):
-    # the tracker's points go to a file beside the output before the filter writes over them, the stabilized
-    # landmarks and the float32 copies are made a block of rows at a time while saving
-    conf = np.require(conf, np.float64, ["W"])
-    spill = None
-    if fset["filter"] != "none":
-        spill = RowSpill(output, points.shape, np.float32)
+    crops = None  # the eyes' pixels of every frame, kept while tracking for the gaze (CropSpill)
     try:
-        if spill is not None:
-            for a in range(0, len(points), BLOCK):
-                spill.write(points[a:a + BLOCK])
-        points, _, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
-                                           anchors=[i for i in index if i < len(points)], in_place=True,
-                                           keep_raw=False)
-        return _finish_track(
-            points, conf, spill, fmeta, found=found, segment=segment, gaps=gaps, output=output, video=video,
-            source=source, frame_numbers=frame_numbers, files=files, size=(W, H), rigid_points=rigid_points,
-            smooth_head=smooth_head, head_pose=head_pose, gaze=gaze, neutral=neutral, overlay=overlay,
-            spec=spec, objects=objects, tracker_settings=tracker_settings, fset=fset, progress=progress,
-            method=method, settings=settings, given=given, init_out=init_out, ann=ann, auto=auto, init=init,
-            model=model, params={"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
-                                 "downscale": downscale, "start": start, "end": end, "step": step,
-                                 "smooth_head": smooth_head, "head_pose": head_pose,
-                                 **({"fuse": fuse} if "fuse" in spec.settings else {}),
-                                 **{k: v for k, v in settings.items() if k in spec.settings}},
-            fps=fps)
+        with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=spec.gray) as source:
+            calib = [] if neutral is None else (sequence_files(neutral) if is_sequence(neutral) else [Path(neutral)])
+            init_out = _check_track_outputs(source, given + calib, output, overlay, start, need_auto)
+            if gaze and spec.on_frame:
+                crops = CropSpill(output)
+            W, H = source.frame_size
+            it = iter(source)
+            ahead = []
+            if need_auto and "detector" not in spec.needs:
+                ahead.append(_auto_annotate(it, source, start, objects["detector"], init_out, ann, src))
+            if start not in ann and "detector" not in spec.needs:
+                raise InputError(f"{init}: the first tracked frame ({start}) must be annotated; annotated frames: "
+                                 f"{', '.join(map(str, list(ann)[:8]))} (use --start or --init-frame)")
+            index = _annotation_index(ann, src, (W, H), start, end, step, missing=source.missing)
+            with large_frame_allocations(W * H * 3):
+                points, conf, coverage = _run_tracker(spec, source, ahead, it, index, objects, tracker_settings,
+                                                      progress=progress, keep_partial=keep_partial,
+                                                      where=init_out or init or video,
+                                                      on_frame=None if crops is None else _keep_eyes(crops))
+            frame_numbers = np.asarray(source.frames[:len(points)], dtype=np.int64)
+            files = source.files()
+        conf = _lose_missing(conf, frame_numbers, source.missing)
+        if need_auto and "detector" in spec.needs:
+            write_auto_init(init_out, points[int(np.argmax(coverage.found))] if coverage is not None else points[0])
+        found, segment, gaps = _coverage(coverage, len(points), frame_numbers, source, video)
+        # the take's per-frame arrays held once each, the float64 points and confidences only (issues #31, #33):
+        # the tracker's points go to a file beside the output before the filter writes over them, the stabilized
+        # landmarks and the float32 copies are made a block of rows at a time while saving
+        conf = np.require(conf, np.float64, ["W"])
+        spill = None
+        if fset["filter"] != "none":
+            spill = RowSpill(output, points.shape, np.float32)
+        try:
+            if spill is not None:
+                for a in range(0, len(points), BLOCK):
+                    spill.write(points[a:a + BLOCK])
+            points, _, fmeta = filter_segments(points, conf, segment, fps=source.fps, settings=fset, where=str(video),
+                                               anchors=[i for i in index if i < len(points)], in_place=True,
+                                               keep_raw=False)
+            return _finish_track(
+                points, conf, spill, fmeta, found=found, segment=segment, gaps=gaps, output=output, video=video,
+                source=source, frame_numbers=frame_numbers, files=files, size=(W, H), rigid_points=rigid_points,
+                smooth_head=smooth_head, head_pose=head_pose, gaze=gaze, neutral=neutral, overlay=overlay,
+                spec=spec, objects=objects, tracker_settings=tracker_settings, fset=fset, progress=progress,
+                method=method, settings=settings, given=given, init_out=init_out, ann=ann, auto=auto, init=init,
+                model=model, crops=crops, params={"window": window, "levels": levels, "fb_threshold": fb_threshold, "anchor": anchor,
+                                     "downscale": downscale, "start": start, "end": end, "step": step,
+                                     "smooth_head": smooth_head, "head_pose": head_pose,
+                                     **({"fuse": fuse} if "fuse" in spec.settings else {}),
+                                     **{k: v for k, v in settings.items() if k in spec.settings}},
+                fps=fps)
+        finally:
+            if spill is not None:
+                spill.close()
     finally:
-        if spill is not None:
-            spill.close()
+        if crops is not None:
+            crops.close()
 
 
 def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, video, source, frame_numbers, files,
                   size, rigid_points, smooth_head, head_pose, gaze, neutral, overlay, spec, objects,
                   tracker_settings, fset, progress, method, settings, given, init_out, ann, auto, init, model,
-                  params, fps) -> list[Path]:
+                  params, fps, crops=None) -> list[Path]:
     """The rest of :func:`run_track` once the points are filtered: head motion, 3D head pose, gaze, calibration,
     ``landmarks.npz`` (and the overlay). *points* (T, L, 2) and *conf* (T, L) are float64 and writable; *spill*
     holds the tracker's points (or None: no filter)."""
@@ -279,11 +297,11 @@ def _finish_track(points, conf, spill, fmeta, *, found, segment, gaps, output, v
 
     def gaze_pass():
         return _track_gaze(video, points, conf, segment, start=start, end=end, step=step, fps=fps, settings=fset,
-                           progress=progress)
+                           progress=progress, crops=crops, size=size)
 
     if neutral is None and not smooth_head and undo is None and want_gaze:
         # no gap frame borrowed confidences (conf is only read): the head fits run on a worker thread while the
-        # gaze pass decodes the video again (numba's kernel and OpenCV release the GIL); the same results
+        # gaze pass runs (numba's kernel and OpenCV release the GIL); the same results
         with ThreadPoolExecutor(1, thread_name_prefix="retarget-head") as pool:
             heads = pool.submit(_fit_heads, points, conf, rigid_points, (W, H), head_pose)
             gz = gaze_pass()
@@ -584,8 +602,9 @@ def _annotation_index(ann, src, size, start, end, step, missing=()) -> dict:
     return index
 
 
-def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress, keep_partial, where):
-    """Run the tracker over the decoded frames; a truncated video or a lost face per *keep_partial*."""
+def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress, keep_partial, where, on_frame=None):
+    """Run the tracker over the decoded frames; a truncated video or a lost face per *keep_partial*. *on_frame*: passed
+    to a tracker that takes it (:attr:`~retarget_cli.methods.tracking.base.TrackerSpec.on_frame`)."""
 
     stopped = []
 
@@ -603,6 +622,7 @@ def _run_tracker(spec, source, ahead, it, index, objects, settings, *, progress,
     track = spec.load()
     kw = {k: settings[k] for k in spec.settings} | {k: objects[k] for k in spec.needs}
     kw |= {"gaps": True} if spec.gaps else {}
+    kw |= {"on_frame": on_frame} if on_frame is not None and spec.on_frame else {}
     coverage = None
     with progress(n_expected, "track") as bar:
         try:
@@ -714,11 +734,16 @@ def filter_segments(points, conf, segment, *, fps, settings, where, anchors=(), 
     return out, raw, meta
 
 
-def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings, progress):
-    """Each eye's gaze in every tracked frame: the frames decoded again, each iris located inside the tracked
-    eye (:func:`retarget_cli.methods.tracking.gaze.gaze`; a closed eye or a lost frame holds the last seen
+def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings, progress, crops=None, size=None):
+    """Each eye's gaze in every tracked frame: each iris located inside the tracked eye
+    (:func:`retarget_cli.methods.tracking.gaze.gaze`; a closed eye or a lost frame holds the last seen
     value), then filtered with the landmarks' filter (*settings*, per segment, :func:`filter_segments`) in
     pixels of the eye's median width, the held frames given no weight.
+
+    The frames are the eyes' pixels kept while tracking (*crops*, a :class:`~retarget_cli.io.atomic.CropSpill`
+    of frames of *size* ``(W, H)``) where they hold every pixel the gaze reads at the final landmarks
+    (:func:`~retarget_cli.methods.tracking.gaze.crops_cover`; the same pixels, so the same gaze), else the
+    video decoded again.
 
     Returns
     -------
@@ -728,9 +753,14 @@ def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings
         Frames where the eye's iris was seen.
     """
     T = len(points)
+    kept = crops is not None and len(crops) >= T and bool(crops_cover(crops.boxes()[:T], points, conf, size).all())
+    if crops is not None:
+        log.debug("gaze: %s", "the eyes' pixels kept while tracking" if kept else
+                  "the eyes' pixels kept while tracking miss some the gaze reads; decoding the video again")
     with FrameSource(video, start=start, end=end, step=step, fps=fps, gray=True, warn_missing=False) as src, \
             progress(T, "gaze") as bar, large_frame_allocations(src.frame_size[0] * src.frame_size[1] * 3):
-        g = gaze_fn(islice(src, T), points, confidence=conf, progress=bar.update)  # only the T tracked (truncated video)
+        frames = crops.frames(src.frame_size, T) if kept else islice(src, T)  # only the T tracked (truncated video)
+        g = gaze_fn(frames, points, confidence=conf, progress=bar.update)
     valid = ~g.held
     P = np.asarray(points, dtype=np.float64)
     width = np.array([np.nanmedian(np.hypot(*(P[:, e[1]] - P[:, e[0]]).T)) for e in EYES_68])
@@ -748,6 +778,25 @@ def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings
     log.info("gaze: iris seen in %.1f%% of the eye-frames; horizontal sd %.3f, vertical sd %.3f eye widths",
              100.0 * valid.mean(), float(np.std(out[..., 0])), float(np.std(out[..., 1])))
     return out, valid
+
+
+def _keep_eyes(crops):
+    """The tracker's ``on_frame``: each frame's eyes (:func:`~retarget_cli.methods.tracking.gaze.eye_crop`) kept in
+    *crops*."""
+
+    failed = []
+
+    def keep(t, gray, points):
+        if failed:
+            return
+        try:
+            crops.add(gray, eye_crop(points))
+        except OSError as exc:  # a full disk, say: the gaze decodes the video again (fewer crops than frames)
+            failed.append(exc)
+            log.warning("%s: the eyes' pixels could not be kept for the gaze (%s); the video is decoded again",
+                        crops.path, exc)
+
+    return keep
 
 
 def held_confidence(conf, found):

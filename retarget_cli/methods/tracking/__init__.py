@@ -13,7 +13,7 @@ TRACKERS: dict[str, TrackerSpec] = {
     "detect": TrackerSpec(
         "dlib's pretrained 68-point detector on every frame joined with optical flow; needs the extra detect",
         "retarget_cli.methods.tracking.detect:track_detect", settings=("downscale", "fuse"), gray=True, needs=("detector",),
-        gaps=True),
+        gaps=True, on_frame=True),
     "lk": TrackerSpec(
         "Lucas-Kanade, one or more annotated frames",
         "retarget_cli.methods.tracking.lk:track_lk",

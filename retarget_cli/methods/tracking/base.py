@@ -55,6 +55,10 @@ class TrackerSpec:
         It keeps tracking through frames without a face: called with ``gaps=True`` it returns a third
         value, a :class:`~retarget_cli.methods.gaps.Coverage` (which frames had a face, why not, scene cuts),
         and raises :class:`~retarget_cli.errors.FaceLostError` only when no frame has one.
+    on_frame : bool
+        It takes ``on_frame``, called after each frame with the frame in gray at full resolution and its
+        landmarks as tracked so far (see :func:`~retarget_cli.methods.tracking.detect.track_detect`): the stage
+        keeps the eyes' pixels for the gaze instead of decoding the video again.
     """
 
     help: str
@@ -64,6 +68,7 @@ class TrackerSpec:
     needs: tuple[str, ...] = ()
     params: tuple = ()
     gaps: bool = False
+    on_frame: bool = False
 
     def load(self) -> Callable:
         """The tracker function."""

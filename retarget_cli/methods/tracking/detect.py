@@ -559,7 +559,7 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
                  downscale: float | str = 1.0, tau: float = 0.05, max_jump: float = 0.5, max_disagreement: float = 0.08,
                  lost_frames: int = 25, fuse: bool = True, fusion: FusionSettings | None = None, progress=None,
                  gaps: bool = False, search_every: int = SEARCH_EVERY, min_confidence: float = MIN_FOUND_CONFIDENCE,
-                 cuts: CutDetector | None = None, threads: bool = True):
+                 cuts: CutDetector | None = None, threads: bool = True, on_frame=None):
     """Landmarks on every frame by the pretrained detector, the face box following the previous frame.
 
     Per frame: the predictor fits the box of the previous frame's landmarks
@@ -615,6 +615,11 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
         grayscale, scaling and scene-cut thumbnail, and the fusion's optical flow while the shape predictor
         fits the frame. Each result is taken in frame order, so the output is the same as with False
         (everything in the caller's thread), whatever the timing.
+    on_frame : callable, optional
+        Called after each frame ``t`` as ``on_frame(t, gray, points)``: the frame in gray at full resolution
+        (H, W), uint8, and its landmarks (68, 2) at full resolution as tracked up to that frame (the fusion's
+        forward estimate, before the take is smoothed; a frame without a face: those it holds). The stage keeps
+        the eyes' pixels with it for the gaze (no second decoding of the video).
 
     Returns
     -------
@@ -653,8 +658,10 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
                          search_every=search_every, min_confidence=min_confidence, cuts=cuts, hint=hint,
                          capacity=capacity, pool=pool)
     try:
-        for t, (g, feats) in enumerate(_prepared(frames, k, cuts, pool)):
+        for t, (g, feats, full) in enumerate(_prepared(frames, k, cuts, pool)):
             track.frame(t, g, feats)
+            if on_frame is not None:
+                on_frame(t, full, track.pts.array[-1])
             if progress is not None:
                 progress(t)
         if not track.pts:
@@ -679,10 +686,12 @@ def track_detect(frames: Iterable[np.ndarray], annotations=None, *, detector: De
 
 
 def _prepare_frame(frame, k: float, cuts: CutDetector | None):
-    """A frame as :class:`_DetectTrack` takes it: grayscale at the detection scale *k* (H', W') and its
-    scene-cut features (:meth:`~retarget_cli.methods.gaps.CutDetector.features`; None without *cuts*)."""
-    g = _scaled(_gray(frame), k)
-    return g, (None if cuts is None else cuts.features(g))
+    """A frame as :class:`_DetectTrack` takes it: grayscale at the detection scale *k* (H', W'), its
+    scene-cut features (:meth:`~retarget_cli.methods.gaps.CutDetector.features`; None without *cuts*) and the
+    frame in gray at full resolution (H, W)."""
+    full = _gray(frame)
+    g = _scaled(full, k)
+    return g, (None if cuts is None else cuts.features(g)), full
 
 
 def _prepared(frames, k: float, cuts: CutDetector | None, pool=None):

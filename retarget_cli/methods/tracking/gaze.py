@@ -27,6 +27,7 @@ gaze holds its last open value there, so a blink never moves it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -91,6 +92,110 @@ def _patch(gray: np.ndarray, mid, x, y, w) -> tuple[np.ndarray, np.ndarray]:
     A[:, 2] = np.array(_PATCH, dtype=np.float64) / 2.0 - A[:, :2] @ mid
     patch = cv2.warpAffine(gray, A, _PATCH, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return patch.astype(np.float64), A
+
+
+def patch_reads(points: np.ndarray) -> np.ndarray:
+    """The image pixels each eye patch of :func:`gaze` reads, as boxes ``[x0, y0, x1, y1)`` (before they are clamped
+    to the image, as ``BORDER_REPLICATE`` clamps what lies outside it), for every frame.
+
+    The patch maps its corners back to the image through the eye's frame (:func:`eye_frame`); bilinear sampling
+    reads the pixel below and the one above each position, and two more pixels are added on every side for the
+    fixed-point rounding of OpenCV's warp.
+
+    Parameters
+    ----------
+    points : ndarray (T, 68, 2)
+        Landmarks, image pixels.
+
+    Returns
+    -------
+    ndarray (T, 2, 4), int64
+        Per frame, for each eye of :data:`EYES_68`; a frame whose eye corners are not finite has ``[0, 0, 0, 0]``.
+    """
+    P = np.asarray(points, np.float64)
+    out = np.zeros((len(P), len(EYES_68), 4), np.int64)
+    c = np.array(_PATCH, np.float64) / 2.0  # the patch pixel the eye's middle maps to (as in _patch)
+    lo_q, hi_q = -c, np.array(_PATCH, np.float64) - 1.0 - c
+    corners = np.array([[lo_q[0], lo_q[1]], [hi_q[0], lo_q[1]], [lo_q[0], hi_q[1]], [hi_q[0], hi_q[1]]])
+    for e, eye in enumerate(EYES_68):
+        left, right = P[:, eye[0]], P[:, eye[1]]
+        d = right - left
+        w = np.hypot(d[:, 0], d[:, 1])
+        ok = np.isfinite(w)
+        x = d / np.maximum(w, 1e-9)[:, None]
+        y = np.stack([-x[:, 1], x[:, 0]], axis=1)
+        mid = (left + right) / 2.0
+        r = np.maximum(w, 1e-9) / _WIDTH  # image pixels per patch pixel
+        img = mid[:, None] + r[:, None, None] * (corners[None, :, :1] * x[:, None] + corners[None, :, 1:] * y[:, None])
+        img = np.where(ok[:, None, None], img, 0.0)
+        box = np.concatenate([np.floor(img.min(axis=1)) - 2, np.ceil(img.max(axis=1)) + 4], axis=1)
+        out[:, e] = np.clip(box, -2**40, 2**40).astype(np.int64)
+    return out
+
+
+#: The eyes' pixels kept while tracking (:func:`eye_crop`, so the gaze needs no second decoding of the video) reach
+#: this many eye widths beyond what the patches read at the landmarks tracked up to the frame: the smoothed and
+#: filtered landmarks the gaze reads lie a little elsewhere.
+CROP_MARGIN = 0.25
+
+
+def eye_crop(points: np.ndarray) -> tuple[int, int, int, int]:
+    """The rectangle ``[x0, y0, x1, y1)`` (pixels, not clamped to the image) of a frame to keep for the gaze of
+    landmarks near *points* (68, 2): around each eye, the box of its patch (:func:`patch_reads`: 1.5 by 0.9 eye
+    widths along and across the corner line) grown by :data:`CROP_MARGIN` eye widths and 6 pixels on every side.
+    Scalar arithmetic (it runs once a frame while tracking); :func:`crops_cover` checks what was kept."""
+    a = 0.5 * _PATCH[0] / _WIDTH + CROP_MARGIN
+    b = 0.5 * _PATCH[1] / _WIDTH + CROP_MARGIN
+    lo_x = lo_y = float("inf")
+    hi_x = hi_y = float("-inf")
+    for eye in EYES_68:
+        (ax, ay), (bx, by) = points[eye[0]].tolist(), points[eye[1]].tolist()
+        dx, dy = abs(bx - ax), abs(by - ay)  # the eye width times the corner line's direction
+        rx, ry = a * dx + b * dy + 6.0, a * dy + b * dx + 6.0
+        mx, my = (ax + bx) / 2.0, (ay + by) / 2.0
+        lo_x, lo_y, hi_x, hi_y = min(lo_x, mx - rx), min(lo_y, my - ry), max(hi_x, mx + rx), max(hi_y, my + ry)
+    if not all(map(math.isfinite, (lo_x, lo_y, hi_x, hi_y))):
+        return 0, 0, 0, 0
+    return math.floor(lo_x), math.floor(lo_y), math.ceil(hi_x) + 1, math.ceil(hi_y) + 1
+
+
+def crops_cover(boxes: np.ndarray, points: np.ndarray, confidence, size) -> np.ndarray:
+    """Frames whose kept rectangle holds every pixel :func:`gaze` reads there (the eye patches it makes).
+
+    Parameters
+    ----------
+    boxes : ndarray (T, 4), int
+        The rectangle kept of each frame, ``[x0, y0, x1, y1)`` clamped to the image.
+    points : ndarray (T, 68, 2)
+        The landmarks the gaze reads.
+    confidence : ndarray (T, 68) or None
+        As :func:`gaze` takes it: an eye it skips (a point below 0.1 or not finite) needs no pixels.
+    size : (int, int)
+        The image's ``(W, H)``: what a patch reads outside it is the border's pixels (``BORDER_REPLICATE``).
+
+    Returns
+    -------
+    ndarray (T,), bool
+    """
+    P = np.asarray(points, np.float64)
+    W, H = (int(v) for v in size)
+    need = patch_reads(P)
+    need[..., 0::2] = np.clip(need[..., 0::2], 0, W)
+    need[..., 1::2] = np.clip(need[..., 1::2], 0, H)
+    need[..., 0] = np.minimum(need[..., 0], W - 1)  # a patch left or right of the image reads its edge column
+    need[..., 1] = np.minimum(need[..., 1], H - 1)
+    need[..., 2] = np.maximum(need[..., 2], 1)
+    need[..., 3] = np.maximum(need[..., 3], 1)
+    b = np.asarray(boxes, np.int64)[:, None, :]
+    inside = (b[..., 0] <= need[..., 0]) & (b[..., 1] <= need[..., 1]) & (b[..., 2] >= need[..., 2]) & \
+        (b[..., 3] >= need[..., 3])
+    used = np.zeros(inside.shape, bool)
+    for e, eye in enumerate(EYES_68):
+        ids = [eye[0], eye[1], *eye[2], *eye[3]]
+        used[:, e] = np.isfinite(P[:, ids]).all(axis=(1, 2))
+        if confidence is not None:
+            used[:, e] &= ~(np.min(np.asarray(confidence)[:, ids], axis=1) < 0.1)  # (NaN: used, as gaze does)
+    return (inside | ~used).all(axis=1)
 
 
 def _eye_mask(points: np.ndarray, eye, A: np.ndarray, grow: int = _GROW) -> np.ndarray:

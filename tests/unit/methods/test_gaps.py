@@ -97,3 +97,16 @@ def test_cut_detector_sees_a_cut_not_motion():
     assert cut(other) is True
     assert cut(other) is False
     assert cut(np.dstack([a, a, a])) is True  # colour frames too
+
+
+def test_cut_histogram_counts_every_fourth_pixel_in_bins_of_sixteen_gray_levels():
+    """CutDetector.features' histogram is numpy's bincount of gray >> 4 over every 4th pixel (OpenCV counts it),
+    for every gray level and odd frame sizes."""
+    rng = np.random.default_rng(0)
+    for h, w in ((64, 64), (135, 241), (480, 512)):
+        g = rng.integers(0, 256, (h, w), dtype=np.uint8)
+        n = g[::4, ::4].size
+        g[::4, ::4] = (np.arange(n) % 256).astype(np.uint8).reshape(g[::4, ::4].shape)  # every level, where sampled
+        _, hist = CutDetector.features(g)
+        ref = np.bincount((g[::4, ::4] >> 4).ravel(), minlength=16).astype(np.float64)
+        assert np.array_equal(hist, ref / ref.sum())
