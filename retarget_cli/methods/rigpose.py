@@ -337,7 +337,7 @@ CONTACT_KINDS = ("lips", "lids")
 CLOSED_PERCENTILE = 5.0
 CLOSED_BAND = 0.03
 #: The neutral frame's eye is the open reference unless it is closed by more than three quarters, from the take's
-#: open reading towards its closed reading (:func:`lid_closed_reading`; a squint, a wink, a blink).
+#: open reading towards its closed reading (:func:`take_lid_closed`; a squint, a wink, a blink).
 NEUTRAL_OPEN = 0.25
 OPEN_PERCENTILE = 75.0
 #: Default tolerance of a contact gap, as a fraction of its feature's width on the rig (mouth or eye corners).
