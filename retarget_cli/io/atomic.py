@@ -303,9 +303,15 @@ class CropSpill:
         self._boxes = array.array("q")
         self._fh, self.path = None, None
         self.path, self._fh = _new_part(path, ".crops")
+        self.nbytes = 0  # pixel bytes written so far
 
     def __len__(self) -> int:
         return len(self._boxes) // 4
+
+    def discard(self) -> None:
+        """Remove the file and forget every rectangle (the spill then holds no frame; :meth:`add` refuses)."""
+        self.close()
+        self._boxes = array.array("q")
 
     def add(self, image, box) -> None:
         """Append the rectangle *box* ``[x0, y0, x1, y1)`` (pixels, clipped to the image) of *image* (H, W), uint8."""
@@ -317,7 +323,11 @@ class CropSpill:
         x0, x1 = min(max(x0, 0), w), min(max(x1, 0), w)
         y0, y1 = min(max(y0, 0), h), min(max(y1, 0), h)
         x1, y1 = max(x1, x0), max(y1, y0)
-        self._fh.write(np.ascontiguousarray(image[y0:y1, x0:x1]).tobytes())
+        if self._fh is None:
+            raise ValueError(f"crop spill {self.path}: closed")
+        data = np.ascontiguousarray(image[y0:y1, x0:x1]).tobytes()
+        self._fh.write(data)
+        self.nbytes += len(data)
         self._boxes.extend((x0, y0, x1, y1))
 
     def boxes(self) -> np.ndarray:

@@ -780,9 +780,14 @@ def _track_gaze(video, points, conf, segment, *, start, end, step, fps, settings
     return out, valid
 
 
+#: The eyes' pixels kept for the gaze take at most this many bytes on disk (about 13,000 frames at 1080p, 58,000
+#: at 512x512): past it they are dropped and the gaze decodes the video again.
+CROPS_MAX_BYTES = 1 << 30
+
+
 def _keep_eyes(crops):
     """The tracker's ``on_frame``: each frame's eyes (:func:`~retarget_cli.methods.tracking.gaze.eye_crop`) kept in
-    *crops*."""
+    *crops*, up to :data:`CROPS_MAX_BYTES`."""
 
     failed = []
 
@@ -793,8 +798,15 @@ def _keep_eyes(crops):
             crops.add(gray, eye_crop(points))
         except OSError as exc:  # a full disk, say: the gaze decodes the video again (fewer crops than frames)
             failed.append(exc)
+            crops.discard()
             log.warning("%s: the eyes' pixels could not be kept for the gaze (%s); the video is decoded again",
                         crops.path, exc)
+            return
+        if crops.nbytes > CROPS_MAX_BYTES:  # a long take: its disk freed, the gaze decodes the video again
+            failed.append(None)
+            crops.discard()
+            log.info("the eyes' pixels kept for the gaze passed %d MiB at frame %d; the gaze decodes the video "
+                     "again", CROPS_MAX_BYTES >> 20, t)
 
     return keep
 

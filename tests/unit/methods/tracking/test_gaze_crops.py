@@ -134,13 +134,28 @@ def test_track_reads_the_gaze_from_the_kept_eyes_and_writes_the_file_of_a_second
     with caplog.at_level("WARNING"):
         run_track(output=str(tmp_path / "c" / "lm.npz"), **kw)
     assert "could not be kept for the gaze" in caplog.text
-    for other in ("b", "c"):
+    # a long take: past CROPS_MAX_BYTES the crops are dropped (their disk freed), the video decoded again
+    monkeypatch.undo()
+    monkeypatch.setattr(track_stage, "CROPS_MAX_BYTES", 1)
+    kept = []
+    discard = CropSpill.discard
+
+    def spy_discard(self):
+        kept.append((len(self), self.path.is_file()))
+        discard(self)
+        assert len(self) == 0 and not self.path.is_file()
+
+    monkeypatch.setattr(CropSpill, "discard", spy_discard)
+    monkeypatch.setattr(CropSpill, "frames", spy)
+    run_track(output=str(tmp_path / "d" / "lm.npz"), **kw)
+    assert kept == [(1, True)] and read == [1]  # dropped after the first frame; never read back
+    for other in ("b", "c", "d"):
         with np.load(tmp_path / "a" / "lm.npz") as a, np.load(tmp_path / other / "lm.npz") as b:
             assert "gaze" in a.files and a["gaze_valid"].any()
             for k in a.files:
                 if k != "meta":
                     assert np.array_equal(a[k], b[k]), (other, k)
-    for d in ("a", "b", "c"):
+    for d in ("a", "b", "c", "d"):
         assert not [p.name for p in (tmp_path / d).iterdir() if ".part" in p.name]
 
 
