@@ -220,7 +220,29 @@ def _npy_header(arr) -> bytes:
     return header.getvalue()
 
 
-class RowSpill:
+class _PartFile:
+    """A temporary file beside an output (``self.path``, open as ``self._fh``), removed on :meth:`close`; a
+    context manager."""
+
+    path = None
+    _fh = None
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+        if self.path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class RowSpill(_PartFile):
     """Rows of an array kept in a temporary file beside *path* instead of in memory: written once, in order
     (:meth:`write`), read back a block at a time (:meth:`chunks`, for :func:`savez`), removed on :meth:`close`.
 
@@ -260,19 +282,6 @@ class RowSpill:
         self._fh.flush()
         return NpyChunks(self.shape, self.dtype, self._read, block)
 
-    def close(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
-            self._fh = None
-        if self.path is not None:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(self.path)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def _new_part(path: Path, suffix: str):
@@ -287,7 +296,7 @@ def _new_part(path: Path, suffix: str):
     return tmp, os.fdopen(fd, "w+b")
 
 
-class CropSpill:
+class CropSpill(_PartFile):
     """A rectangle of each frame of a take (gray ``uint8``) kept in a temporary file beside *path*: added in frame
     order (:meth:`add`), read back in order pasted into a frame-sized image (:meth:`frames`), removed on
     :meth:`close`. What is held in memory is four integers a frame (the rectangles).
@@ -350,19 +359,6 @@ class CropSpill:
             canvas[y0:y1, x0:x1] = part
             yield canvas
 
-    def close(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
-            self._fh = None
-        if self.path is not None:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(self.path)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 #: Largest array a data file may hold once loaded (bytes); guards against zip bombs and huge headers.

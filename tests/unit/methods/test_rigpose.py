@@ -201,13 +201,18 @@ def test_heavy_extra_rows_do_not_raise_the_sparsity_price_of_the_landmark_fit():
     assert everything[0] == 0.0  # h̄ over every row: the gap row's weight zeroes slider 0
 
 
-def test_lids_the_tracker_never_shuts_close_the_rig_eye():
-    n = source_neutral()
+def _blink_rig(n):
+    """A 68-vertex rig of *n* (source_neutral) with one slider, eyeBlink_R: the upper lid onto the lower one."""
     V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
     D = np.zeros((1, 68, 3))
     for up, lo in ((37, 41), (38, 40)):
-        D[0, up, 1] = V[lo, 1] - V[up, 1]  # eyeBlink_R: the upper lid onto the lower one
-    rig = BlendshapeRig(V, D, ["eyeBlink_R"])
+        D[0, up, 1] = V[lo, 1] - V[up, 1]
+    return BlendshapeRig(V, D, ["eyeBlink_R"])
+
+
+def test_lids_the_tracker_never_shuts_close_the_rig_eye():
+    n = source_neutral()
+    rig = _blink_rig(n)
     Y0 = 140.0 * n + [150.0, 160.0]
     T = 40
     Y = np.repeat(Y0[None], T, axis=0)
@@ -256,11 +261,7 @@ def test_the_closed_reading_is_relative_to_the_actors_open_eye():
     at 0.3 of the open reading closes the character's eye, narrowed eyes at 0.6 of it (a smile) stay open in
     part, for a large and a small eye alike; an absolute lid_closed keeps its meaning."""
     n = source_neutral()
-    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
-    D = np.zeros((1, 68, 3))
-    for up, lo in ((37, 41), (38, 40)):
-        D[0, up, 1] = V[lo, 1] - V[up, 1]  # eyeBlink_R: the upper lid onto the lower one
-    rig = BlendshapeRig(V, D, ["eyeBlink_R"])
+    rig = _blink_rig(n)
     eye = CONTACT_68[1]
     kw = dict(regions={"eye": list(range(36, 42))}, sparsity=0.0, ridge=1e-6, contact=CONTACT_68, front=FRONT_68)
     blink, narrow = list(range(20, 24)), list(range(40, 46))
@@ -352,11 +353,7 @@ def test_an_eye_the_fit_sees_shifted_is_not_explained_by_an_opener_and_a_closer_
 
 def test_an_open_eyes_lid_noise_is_not_a_blink():
     n = source_neutral()
-    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
-    D = np.zeros((1, 68, 3))
-    for up, lo in ((37, 41), (38, 40)):
-        D[0, up, 1] = V[lo, 1] - V[up, 1]  # eyeBlink_R
-    rig = BlendshapeRig(V, D, ["eyeBlink_R"])
+    rig = _blink_rig(n)
     Y0 = 140.0 * n + [150.0, 160.0]
     T = 60
     Y = np.repeat(Y0[None], T, axis=0)
