@@ -23,7 +23,9 @@ the worst difference: its r is noise, e.g. d3's mouth, closed from frame 97 to 1
 runs are of the clip written through the same encoder as the variants (:func:`write_video`, mp4v), so the
 frames away from the change are the same pixels in both: the variants are re-encoded, and re-encoding alone
 moves the tracked landmarks (d12, frames 5-85: mouth r 0.78 from the original file, 0.89 from its mp4v copy,
-same rest frame). Target: every difference within 0.03. The reference is MediaPipe Face Mesh 0.10.14
+same rest frame). Target: every difference within 0.03. Each part of a cut is also scored against the same
+frames run as a take of their own (the shot alone, :func:`shot_alone`: its own rest pose, no cut), which says
+what the cut itself costs, apart from what a shorter take holds (a shot with no rest frame of its own). The reference is MediaPipe Face Mesh 0.10.14
 (``bench/reference``) where its venv can be made, else raw per-frame dlib (say which in the output).
 
 ``--long MINUTES`` (e.g. ``1,3``): also a synthetic long take per length: d12 scaled to 256x256 and looped,
@@ -235,6 +237,20 @@ def flat_on(ref: dict, frames: np.ndarray) -> list[str]:
     return [m for m in MEASURES if not np.nanstd(ref["m"][m][frames][found]) >= FLAT]
 
 
+def shot_alone(clip: str, part: str, info: dict, ctx, args) -> np.ndarray:
+    """The curves of one shot of a cut run as a take of its own: *part*'s frames of the clean video (the other clip
+    framed as the cut shows it), from the shot's first frame to its last, as rows of the whole cut (0 elsewhere)."""
+    from peer import run_ours
+
+    rows = np.flatnonzero(info["source"] == part)
+    start, end = int(rows[0]), int(rows[-1]) + 1
+    video = reencoded(clip) if part == clip else (fitted(part, clip) or reencoded(part))
+    out = run_ours(video, start, end, ctx, BUILD / "runs" / f"{clip}_cut_{part}_alone", args)
+    C = np.zeros((len(info["source"]), out["curves"].shape[1]))
+    C[start:end] = out["curves"]
+    return C
+
+
 def check_variant(clip: str, variant: str, ctx, refs: dict, clean: dict, args) -> dict:
     video, info = make_variant(clip, variant)
     T = len(info["changed"])
@@ -257,7 +273,25 @@ def check_variant(clip: str, variant: str, ctx, refs: dict, clean: dict, args) -
         r_cln = r_on(clean.get(f"{part}@{clip}", clean[part])["curves"], ctx, refs[part], sel)
         row["r"][part] = {"n": int(sel.size), "variant": r_var, "clean": r_cln, "flat": flat_on(refs[part], sel),
                           "diff": {m: r_var[m] - r_cln[m] for m in MEASURES}}
+        if variant == "cut":  # the shot's own frames as a take: what the cut costs beyond the shot's content
+            r_alone = r_on(shot_alone(clip, part, info, ctx, args), ctx, refs[part], sel)
+            row["r"][part].update(alone=r_alone, diff_alone={m: r_var[m] - r_alone[m] for m in MEASURES})
     return row
+
+
+def fmt_alone(row: dict) -> list[str]:
+    """The cut's parts against each shot run as a take of its own (:func:`shot_alone`)."""
+    lines = []
+    for part, s in row["r"].items():
+        if "alone" not in s:
+            continue
+        moving = [m for m in MEASURES if m not in s["flat"]]
+        worst = min((s["diff_alone"][m] for m in moving), default=0.0)
+        cells = " | ".join(f"{s['variant'][m]:.3f} / {s['alone'][m]:.3f}" + (" (flat)" if m in s["flat"] else "")
+                           for m in MEASURES)
+        lines.append(f"| {row['clip']} | {part} ({s['n']}) | {cells} | {worst:+.3f} "
+                     f"{'ok' if worst >= -TOLERANCE else 'MISS'} |")
+    return lines
 
 
 def fmt_row(row: dict) -> list[str]:
@@ -381,6 +415,13 @@ def main(argv=None) -> int:
         print("|---|---|---|---|---|---|---|---|---|---|")
         for row in rows:
             print("\n".join(fmt_row(row)))
+        alone = [line for row in rows for line in fmt_alone(row)]
+        if alone:
+            print("\nEach part of a cut against the same frames run as a take of their own (the shot alone: its own "
+                  "rest pose, no cut), variant / shot alone, and the largest loss:\n")
+            print("| clip | part (frames scored) | mouth | eye L | eye R | largest loss |")
+            print("|---|---|---|---|---|---|")
+            print("\n".join(alone))
     for m in [float(x) for x in args.long.split(",") if x]:
         r = long_take(m, args)
         print(f"\nlong take {m:g} min ({r['frames']} frames, 256x256): {r['gaps']} gaps made, {r['reported']} "
