@@ -314,6 +314,13 @@ CONTACT_68 = (Contact("lips", ((61, 67), (62, 66), (63, 65)), (48, 54)),
 #: runs, λ 3 / threshold 3 on 2, both neutral-dependent; λ 10 released more events and jittered more).
 DEFAULT_SMOOTH = 3.0
 DEFAULT_SMOOTH_ROBUST = 3.0
+#: The tracker's noise per landmark coordinate, as a fraction of the face's size (the RMS distance of the rig's
+#: landmarks from their centroid, seen from the front): the smoothing's event test does not take a
+#: residual excess that noise alone explains for an event (:func:`smooth_sliders`).
+DEFAULT_SMOOTH_NOISE = 0.02
+#: The contact gaps' noise floor, as a fraction of the landmarks' (:data:`DEFAULT_SMOOTH_NOISE`): lower, so that
+#: the blinks and lip closures the gap rows carry, the events the release is for, stay events.
+SMOOTH_GAP_NOISE = 0.3
 #: Openness within this of the open eye counts as open (:func:`contact_targets`): the lid gap is held at rest
 #: there instead of following the tracker's lid noise, which the openness map amplifies (by 1.8x on the
 #: 68-point detector); a squint deeper than this is followed.
@@ -679,7 +686,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
                contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
                lid_closed: float | None = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
-               smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, contact_tol: float = DEFAULT_CONTACT_TOL,
+               smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, smooth_noise: float = DEFAULT_SMOOTH_NOISE,
+               contact_tol: float = DEFAULT_CONTACT_TOL,
                contact_refs=None, front=None, spill: float = DEFAULT_SPILL, preset=None,
                smooth_window: int | None = SMOOTH_WINDOW, smooth_margin: int = SMOOTH_MARGIN, out=None) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
@@ -747,6 +755,10 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         λ of :func:`smooth_sliders` (the targets are then consecutive frames; 0: each frame alone).
     smooth_robust : float
         Its event threshold.
+    smooth_noise : float
+        The tracker's noise per landmark coordinate as a fraction of the face's size (the RMS distance of the
+        rig's landmarks from their centroid, seen from the front), below which a residual excess is not an event
+        (:func:`smooth_sliders`'s *noise*; 0: none).
     smooth_window, smooth_margin : int
         A take longer than ``smooth_window + smooth_margin`` frames is fitted and smoothed in windows of
         *smooth_window* frames reaching *smooth_margin* frames into their neighbours (:func:`smoothing_windows`),
@@ -821,6 +833,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     sq = np.zeros(K)
     cnt = np.zeros(K)
     B0 = project(DL, R)
+    face_size = float(np.sqrt(((P0n - P0n.mean(axis=0)) ** 2).sum(axis=1).mean()))
     for a, b, lo, hi in smoothing_windows(K, smooth_window, smooth_margin if smooth > 0 else 0):
         # frames [lo, hi) fitted and smoothed together; rows [a, b) of W kept (the whole take unless it is long)
         fits = [[] for _ in ids]
@@ -838,7 +851,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
             if not fits[ri]:
                 continue
             Bi = B0[i].reshape(-1, rig.n_sliders)
-            Wr = smooth_sliders(fits[ri], Bi.T @ Bi, rig.lower, rig.upper, lam=smooth, robust=smooth_robust)
+            Wr = smooth_sliders(fits[ri], Bi.T @ Bi, rig.lower, rig.upper, lam=smooth, robust=smooth_robust,
+                                noise=smooth_noise * face_size)
             for k in range(a, b):
                 f, w = fits[ri][k - lo], Wr[k - lo]
                 W[k] += w
@@ -1149,7 +1163,11 @@ class _RegionFit:
 
     def point_residuals(self, w) -> np.ndarray:
         """Weighted squared residual of *w* per landmark (its two rows together) and per gap row, (P,)."""
-        e = self.cw * (self.A @ w - self.b) ** 2
+        return self.point_residuals_of(self.A @ w - self.b)
+
+    def point_residuals_of(self, r) -> np.ndarray:
+        """:meth:`point_residuals` of the row residuals *r* (r,)."""
+        e = self.cw * np.asarray(r, dtype=np.float64) ** 2
         return np.concatenate([e[:self.n_lm].reshape(-1, 2).sum(axis=1), e[self.n_lm:]])
 
     def residual(self, w) -> tuple[float, float]:
@@ -1160,7 +1178,7 @@ class _RegionFit:
 
 
 def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT_SMOOTH_ROBUST, passes: int = 3,
-                   point_factor: float = 5.0) -> np.ndarray:
+                   point_factor: float = 5.0, noise: float = 0.0) -> np.ndarray:
     """One region's sliders over consecutive frames, smoothed where the face does not move fast.
 
     The per-frame fits of :func:`delta_pose` (their QPs, with the Huber weights and the exclusive pairs'
@@ -1175,7 +1193,9 @@ def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT
     with ``M = Σ_i P D_iᵀ P D_i`` over the region's landmarks (rig units, so ``λ`` is unitless). Sliders a
     frame's fit held at 0 stay at 0 there. ``ρ_t`` is released (0) around fast events, by the test of
     :func:`retarget_cli.methods.decomposition.temporal.event_terms` on each landmark's (and gap's) excess
-    residual over its per-frame fit, so blinks keep their amplitude. Solved exactly by
+    residual over its per-frame fit, so blinks keep their amplitude; an excess within the tracker's *noise* is
+    not an event (on a rig that can follow the noise, the per-frame fits leave a residual far below it, and
+    d9's brows behind glasses were released on 39 % of the frames). Solved exactly by
     :func:`retarget_cli.methods.decomposition.temporal.sparse_box_qp`.
 
     Parameters
@@ -1189,6 +1209,11 @@ def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT
     robust, point_factor : float
         The event test's thresholds (``robust`` 0: no release).
     passes : int
+    noise : float
+        The tracker's noise per landmark coordinate (rig units; 0: none): each point's unit in the event test
+        is at least the residual that noise alone leaves (:data:`SMOOTH_GAP_NOISE` of it on a contact gap),
+        so the noise a per-frame fit followed (on a rig whose sliders can follow it) is smoothed, not taken
+        for an event.
 
     Returns
     -------
@@ -1215,6 +1240,11 @@ def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT
     D2 = _second_difference(T)
     Mk = sparse.csr_matrix(np.asarray(M, dtype=np.float64)[np.ix_(cols, cols)])
     p0 = np.stack([f.point_residuals(f.w) for f in fits])
+    floor = None
+    if noise > 0:  # each point's residual were the fit off by the noise alone (the median over the frames)
+        floor = np.median(np.stack([f.point_residuals_of(np.r_[np.full(f.n_lm, noise),
+                                                               np.full(len(f.b) - f.n_lm, SMOOTH_GAP_NOISE * noise)])
+                                    for f in fits]), axis=0)
     rho = np.ones(T - 2)
     W = W0
     for it in range(max(int(passes), 1)):
@@ -1230,7 +1260,7 @@ def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT
         if not robust > 0 or it == passes - 1:
             break
         p = np.stack([f.point_residuals(w) for f, w in zip(fits, W)])
-        touch = event_terms(p, p0, robust=robust, point_factor=point_factor)
+        touch = event_terms(p, p0, robust=robust, point_factor=point_factor, point_floor=floor)
         if not np.any(touch & (rho > 0)):
             break
         rho[touch] = 0.0
