@@ -244,9 +244,9 @@ def event_terms(p, p0, *, robust: float, point_factor: float = 5.0, floor: float
         As :func:`temporal_events`.
     floor : float
         Lower bound of the median per-frame residual used as the unit.
-    point_floor : ndarray, shape (P,), optional
-        Lower bound of each point's unit (e.g. what the tracker's noise alone leaves): an excess that small is
-        not an event, however closely the per-frame fit followed the noise.
+    point_floor : ndarray, shape (P,) or (T, P), optional
+        Lower bound of each point's unit (e.g. what the tracker's noise alone leaves), per frame or for all: an
+        excess that small is not an event, however closely the per-frame fit followed the noise.
 
     Returns
     -------

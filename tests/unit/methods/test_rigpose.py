@@ -436,8 +436,8 @@ def test_a_slider_owned_by_one_region_does_not_move_another_regions_landmarks_fo
 def test_noise_a_rig_can_follow_is_smoothed_not_taken_for_an_event():
     # Two sliders per brow point: the per-frame fits follow the tracker's noise there, so their residual is far
     # below it and any smoothing's excess over it looked like a fast event (every frame released: the noise
-    # kept). With the noise floor (smooth_noise) the brows are smoothed, and the blink, which the lids' contact
-    # gap carries, keeps its amplitude.
+    # kept). With the take's noise as the floor (smooth_noise) the brows are smoothed, and the blink keeps its
+    # amplitude.
     n = source_neutral()
     V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
     brows = [17, 18, 19, 20, 21]
@@ -458,7 +458,7 @@ def test_noise_a_rig_can_follow_is_smoothed_not_taken_for_an_event():
     Y0 = 140.0 * np.column_stack([V[:, 0], -V[:, 1]]) + [150.0, 160.0]
     kw = dict(regions={"brows-eye": brows + list(range(36, 42))}, sparsity=0.0, ridge=1e-6, contact=CONTACT_68,
               front=FRONT_68, smooth=1.0)
-    old = delta_pose(rig, np.arange(68), Y0, Y, smooth_noise=0.0, **kw)["w"]
+    old = delta_pose(rig, np.arange(68), Y0, Y, smooth_noise=False, **kw)["w"]
     new = delta_pose(rig, np.arange(68), Y0, Y, **kw)["w"]
     calm = np.ones(T - 2, bool)
     calm[40:50] = False
