@@ -1200,13 +1200,16 @@ def tracking_noise(points) -> np.ndarray:
         Pixels (0 with fewer than 3 frames).
     """
     P = np.asarray(points)
+    out = np.zeros(P.shape[1:])
     if len(P) < 3:
-        return np.zeros(P.shape[1:])
-    d2 = np.abs(P[2:] - 2.0 * P[1:-1] + P[:-2], dtype=np.float64)
-    ok = np.isfinite(d2).all(axis=(1, 2))
-    if not ok.any():
-        return np.zeros(P.shape[1:])
-    return 1.4826 * np.median(d2[ok], axis=0) / np.sqrt(6.0)
+        return out
+    for k in range(P.shape[1]):  # a landmark at a time: a long take's (K, L, 2) is not copied
+        x = P[:, k].astype(np.float64)
+        d2 = np.abs(x[2:] - 2.0 * x[1:-1] + x[:-2])
+        d2 = d2[np.isfinite(d2).all(axis=1)]
+        if len(d2):
+            out[k] = 1.4826 * np.median(d2, axis=0) / np.sqrt(6.0)
+    return out
 
 
 def noise_floor(fits, noise_px) -> np.ndarray:

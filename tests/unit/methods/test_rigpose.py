@@ -469,3 +469,18 @@ def test_noise_a_rig_can_follow_is_smoothed_not_taken_for_an_event():
     assert jitter(new) < 0.6 * jitter(old)
     assert np.abs(new - truth)[:, 1:].mean() < np.abs(old - truth)[:, 1:].mean()
     assert new[45, 0] > 0.9  # the blink keeps its amplitude
+
+
+def test_the_takes_tracking_noise_is_its_landmarks_jitter_not_its_blinks():
+    from retarget_cli.methods.rigpose import tracking_noise
+
+    rng = np.random.default_rng(0)
+    T = 600
+    truth = np.zeros((T, 3, 2))
+    truth[:, :, 0] = 50.0 * np.sin(np.arange(T) / 40.0)[:, None]  # smooth motion
+    for t in range(20, T, 60):
+        truth[t:t + 3, 1, 1] += [6.0, 10.0, 6.0]  # a blink every two seconds
+    P = (truth + rng.normal(0.0, [[0.3, 0.3], [0.6, 0.6], [1.2, 1.2]], (T, 3, 2))).astype(np.float32)
+    P[300] = np.nan  # a lost frame
+    sigma = tracking_noise(P)
+    np.testing.assert_allclose(sigma, [[0.3, 0.3], [0.6, 0.6], [1.2, 1.2]], rtol=0.15)
