@@ -314,6 +314,7 @@ CONTACT_68 = (Contact("lips", ((61, 67), (62, 66), (63, 65)), (48, 54)),
 #: runs, λ 3 / threshold 3 on 2, both neutral-dependent; λ 10 released more events and jittered more).
 DEFAULT_SMOOTH = 3.0
 DEFAULT_SMOOTH_ROBUST = 3.0
+
 #: Openness within this of the open eye counts as open (:func:`contact_targets`): the lid gap is held at rest
 #: there instead of following the tracker's lid noise, which the openness map amplifies (by 1.8x on the
 #: 68-point detector); a squint deeper than this is followed.
@@ -679,7 +680,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                region_scale: bool = True, rigid=None, fixed=None, robust_iterations: int = 2,
                contact=None, contact_weight: float = DEFAULT_CONTACT_WEIGHT,
                lid_closed: float | None = DEFAULT_LID_CLOSED, lip_closed: float = DEFAULT_LIP_CLOSED,
-               smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, contact_tol: float = DEFAULT_CONTACT_TOL,
+               smooth: float = 0.0, smooth_robust: float = DEFAULT_SMOOTH_ROBUST, smooth_noise: bool = True,
+               contact_tol: float = DEFAULT_CONTACT_TOL,
                contact_refs=None, front=None, spill: float = DEFAULT_SPILL, preset=None,
                smooth_window: int | None = SMOOTH_WINDOW, smooth_margin: int = SMOOTH_MARGIN, out=None) -> dict:
     """Rig sliders that reproduce each target frame's landmark displacement from the neutral frame.
@@ -747,6 +749,9 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         λ of :func:`smooth_sliders` (the targets are then consecutive frames; 0: each frame alone).
     smooth_robust : float
         Its event threshold.
+    smooth_noise : bool
+        The event test takes no residual excess within the take's own tracking noise (a landmark's,
+        :func:`tracking_noise`) or within *contact_tol* (a contact gap's) for an event (:func:`noise_floor`).
     smooth_window, smooth_margin : int
         A take longer than ``smooth_window + smooth_margin`` frames is fitted and smoothed in windows of
         *smooth_window* frames reaching *smooth_margin* frames into their neighbours (:func:`smoothing_windows`),
@@ -821,6 +826,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     sq = np.zeros(K)
     cnt = np.zeros(K)
     B0 = project(DL, R)
+    noise = tracking_noise(Y) if smooth > 0 and smooth_noise else None  # the whole take's: windows agree
     for a, b, lo, hi in smoothing_windows(K, smooth_window, smooth_margin if smooth > 0 else 0):
         # frames [lo, hi) fitted and smoothed together; rows [a, b) of W kept (the whole take unless it is long)
         fits = [[] for _ in ids]
@@ -838,7 +844,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
             if not fits[ri]:
                 continue
             Bi = B0[i].reshape(-1, rig.n_sliders)
-            Wr = smooth_sliders(fits[ri], Bi.T @ Bi, rig.lower, rig.upper, lam=smooth, robust=smooth_robust)
+            Wr = smooth_sliders(fits[ri], Bi.T @ Bi, rig.lower, rig.upper, lam=smooth, robust=smooth_robust,
+                                noise=None if noise is None else noise[np.concatenate([i, others[ri]])])
             for k in range(a, b):
                 f, w = fits[ri][k - lo], Wr[k - lo]
                 W[k] += w
@@ -1073,7 +1080,7 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
         for j, k in enumerate(todo):
             H[k] = Ht[j]
     return [_RegionFit(w[k], H[k], q[k] if H[k] is not None else None, used[k], A[k], b[k], cw[k], n_lm,
-                       float(scale[k]), n_own) for k in range(T)]
+                       float(scale[k]), n_own, tol[k]) for k in range(T)]
 
 
 def _slider_qps(A, b, lower, upper, CW, *, sparsity, ridge, exclusive, free, scale_rows=None):
@@ -1134,7 +1141,8 @@ class _RegionFit:
     """One region of one frame, fitted (:func:`_fit_region`): the sliders ``w`` (n,), the QP they solve (``H``
     (n, n) or None, ``q`` (n,), the sliders ``free`` in it), its rows ``A`` (r, n), ``b`` (r,) and weights ``cw``
     (r,), of which the first ``n_lm`` are landmark coordinates (the first ``n_own`` the region's own, the others'
-    after them), and the pixels per rig unit ``scale``."""
+    after them), the pixels per rig unit ``scale``, and each gap row's contact tolerance ``gap_tol``
+    (r − n_lm,)."""
 
     w: np.ndarray
     H: np.ndarray | None
@@ -1146,10 +1154,15 @@ class _RegionFit:
     n_lm: int
     scale: float
     n_own: int | None = None
+    gap_tol: np.ndarray | None = None
 
     def point_residuals(self, w) -> np.ndarray:
         """Weighted squared residual of *w* per landmark (its two rows together) and per gap row, (P,)."""
-        e = self.cw * (self.A @ w - self.b) ** 2
+        return self.point_residuals_of(self.A @ w - self.b)
+
+    def point_residuals_of(self, r) -> np.ndarray:
+        """:meth:`point_residuals` of the row residuals *r* (r,)."""
+        e = self.cw * np.asarray(r, dtype=np.float64) ** 2
         return np.concatenate([e[:self.n_lm].reshape(-1, 2).sum(axis=1), e[self.n_lm:]])
 
     def residual(self, w) -> tuple[float, float]:
@@ -1159,8 +1172,64 @@ class _RegionFit:
         return float(np.sum(self.cw[:k] * res**2)), float(self.cw[:k].sum()) / 2
 
 
+#: A landmark's floor in :func:`smooth_sliders`'s event test, as a fraction of the residual that the take's
+#: tracking noise alone leaves there (:func:`tracking_noise`): where a per-frame fit cannot follow the noise its
+#: residual is about that, so an event it passed still passes (a three-frame blink seen by its landmarks alone);
+#: where a fit follows the noise (its residual far below it) the noise is not taken for events.
+NOISE_FLOOR = 0.5
+#: A contact gap's floor in :func:`smooth_sliders`'s event test, in squares of its contact tolerance
+#: (``contact_tol``): an excess within about 1.7 tolerances is not an event. On the 12 runs of ``bench/peer.py``
+#: the character's jitter 2.83 (×1000) and closed-eye contact 96.0 % (3.65 and 96.1 % without floors); with the
+#: landmarks' floor at the whole noise residual, 2, 3 and 4 gave 2.50, 2.41 and 2.24, and 96.2, 96.0 and 95.6 %.
+GAP_FLOOR = 3.0
+
+
+def tracking_noise(points) -> np.ndarray:
+    """The take's tracking noise per landmark coordinate: the robust standard deviation of its second difference
+    over frames (1.4826 × its median absolute value), / √6, what white noise gives. A blink or a fast word
+    moves few frames and leaves the median; the head's motion is smooth at this scale.
+
+    Parameters
+    ----------
+    points : array_like, shape (K, L, 2)
+        Pixels (non-finite frames are skipped).
+
+    Returns
+    -------
+    ndarray, shape (L, 2)
+        Pixels (0 with fewer than 3 frames).
+    """
+    P = np.asarray(points)
+    out = np.zeros(P.shape[1:])
+    if len(P) < 3:
+        return out
+    for k in range(P.shape[1]):  # a landmark at a time: a long take's (K, L, 2) is not copied
+        x = P[:, k].astype(np.float64)
+        d2 = np.abs(x[2:] - 2.0 * x[1:-1] + x[:-2])
+        d2 = d2[np.isfinite(d2).all(axis=1)]
+        if len(d2):
+            out[k] = 1.4826 * np.median(d2, axis=0) / np.sqrt(6.0)
+    return out
+
+
+def noise_floor(fits, noise_px) -> np.ndarray:
+    """Per frame and point of a region's rows (its landmarks, then its contact gaps), the floor of the event test:
+    a landmark's is :data:`NOISE_FLOOR` times the weighted squared residual that the tracking noise alone leaves,
+    *noise_px* (M, 2), the noise of the rows' landmarks in pixels (:func:`tracking_noise`), over each frame's
+    pixels per rig unit. A contact gap's is :data:`GAP_FLOOR` times
+    its squared tolerance: the gap rows, boosted where contact is off, leave no residual in the per-frame fits,
+    and the landmarks' filtered noise would leave them as sensitive as without a floor.
+
+    Returns
+    -------
+    ndarray, shape (T, P)
+    """
+    sigma = np.asarray(noise_px, dtype=np.float64).ravel()
+    return np.stack([f.point_residuals_of(np.r_[np.sqrt(NOISE_FLOOR) * sigma / f.scale, np.sqrt(GAP_FLOOR) * f.gap_tol]) for f in fits])
+
+
 def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT_SMOOTH_ROBUST, passes: int = 3,
-                   point_factor: float = 5.0) -> np.ndarray:
+                   point_factor: float = 5.0, noise=None) -> np.ndarray:
     """One region's sliders over consecutive frames, smoothed where the face does not move fast.
 
     The per-frame fits of :func:`delta_pose` (their QPs, with the Huber weights and the exclusive pairs'
@@ -1175,7 +1244,9 @@ def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT
     with ``M = Σ_i P D_iᵀ P D_i`` over the region's landmarks (rig units, so ``λ`` is unitless). Sliders a
     frame's fit held at 0 stay at 0 there. ``ρ_t`` is released (0) around fast events, by the test of
     :func:`retarget_cli.methods.decomposition.temporal.event_terms` on each landmark's (and gap's) excess
-    residual over its per-frame fit, so blinks keep their amplitude. Solved exactly by
+    residual over its per-frame fit, so blinks keep their amplitude; with *noise*, an excess within the take's
+    tracking noise is not an event (on a rig that can follow the noise the per-frame fits leave a residual far
+    below it: d9's brows behind glasses were released on 39 % of the frames). Solved exactly by
     :func:`retarget_cli.methods.decomposition.temporal.sparse_box_qp`.
 
     Parameters
@@ -1189,6 +1260,10 @@ def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT
     robust, point_factor : float
         The event test's thresholds (``robust`` 0: no release).
     passes : int
+    noise : ndarray, shape (M, 2), optional
+        The tracking noise (pixels, :func:`tracking_noise`) of the rows' landmarks, in their order: each point's
+        unit in the event test is at least :func:`noise_floor`, so that the noise a per-frame fit followed (on a
+        rig whose sliders can) is smoothed, not taken for an event.
 
     Returns
     -------
@@ -1215,6 +1290,7 @@ def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT
     D2 = _second_difference(T)
     Mk = sparse.csr_matrix(np.asarray(M, dtype=np.float64)[np.ix_(cols, cols)])
     p0 = np.stack([f.point_residuals(f.w) for f in fits])
+    floor = None if noise is None else noise_floor(fits, noise)
     rho = np.ones(T - 2)
     W = W0
     for it in range(max(int(passes), 1)):
@@ -1230,7 +1306,7 @@ def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT
         if not robust > 0 or it == passes - 1:
             break
         p = np.stack([f.point_residuals(w) for f, w in zip(fits, W)])
-        touch = event_terms(p, p0, robust=robust, point_factor=point_factor)
+        touch = event_terms(p, p0, robust=robust, point_factor=point_factor, point_floor=floor)
         if not np.any(touch & (rho > 0)):
             break
         rho[touch] = 0.0

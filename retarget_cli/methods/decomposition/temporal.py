@@ -233,7 +233,7 @@ def temporal_events(frames, keys, *, lam: float, upper: float | None = None, con
     return W
 
 
-def event_terms(p, p0, *, robust: float, point_factor: float = 5.0, floor: float = 0.0) -> np.ndarray:
+def event_terms(p, p0, *, robust: float, point_factor: float = 5.0, floor: float = 0.0, point_floor=None) -> np.ndarray:
     """The second-difference terms a fast event touches (the test of :func:`temporal_events`).
 
     Parameters
@@ -244,6 +244,9 @@ def event_terms(p, p0, *, robust: float, point_factor: float = 5.0, floor: float
         As :func:`temporal_events`.
     floor : float
         Lower bound of the median per-frame residual used as the unit.
+    point_floor : ndarray, shape (P,) or (T, P), optional
+        Lower bound of each point's unit (e.g. what the tracker's noise alone leaves), per frame or for all: an
+        excess that small is not an event, however closely the per-frame fit followed the noise.
 
     Returns
     -------
@@ -253,6 +256,8 @@ def event_terms(p, p0, *, robust: float, point_factor: float = 5.0, floor: float
     r0 = p0.sum(axis=1)
     scale = max(float(np.median(r0)), floor, 1e-300)
     p_scale = np.maximum(np.median(p0, axis=0), 0.1 * scale / p0.shape[1])
+    if point_floor is not None:
+        p_scale = np.maximum(p_scale, point_floor)
     win = _window3(np.column_stack([(p.sum(axis=1) - r0) / scale, (p - p0) / p_scale]))
     event = (win[:, 0] > robust) | (win[:, 1:].max(axis=1) > point_factor * robust)
     event[1:] |= event[:-1].copy()

@@ -431,3 +431,56 @@ def test_a_slider_owned_by_one_region_does_not_move_another_regions_landmarks_fo
     assert lip_gap(alone["w"]).min() > 1.8 * part  # eye-only rows: angry at ~1, the lips part
     assert lip_gap(fit["w"]).max() < 0.6 * part  # other regions' rows: the lips stay nearly closed ...
     assert lid_travel(fit["w"]).min() > 0.85  # ... and the lids still close (the squint does it)
+
+
+def test_noise_a_rig_can_follow_is_smoothed_not_taken_for_an_event():
+    # Two sliders per brow point: the per-frame fits follow the tracker's noise there, so their residual is far
+    # below it and any smoothing's excess over it looked like a fast event (every frame released: the noise
+    # kept). With the take's noise as the floor (smooth_noise) the brows are smoothed, and the blink keeps its
+    # amplitude.
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    brows = [17, 18, 19, 20, 21]
+    D = np.zeros((1 + 2 * len(brows), 68, 3))
+    for up, lo in ((37, 41), (38, 40)):
+        D[0, up, 1] = V[lo, 1] - V[up, 1]  # eyeBlink_R
+    for j, p in enumerate(brows):
+        D[1 + 2 * j, p, 0] = 0.05  # one brow point sideways
+        D[2 + 2 * j, p, 1] = 0.05  # and up
+    rig = BlendshapeRig(V, D, ["eyeBlink_R"] + [f"brow{p}{c}" for p in brows for c in "xy"])
+    rng = np.random.default_rng(5)
+    T = 90
+    truth = np.zeros((T, 1 + 2 * len(brows)))
+    truth[:, 1:] = 0.5 + 0.2 * np.sin(np.arange(T)[:, None] / 9.0 + np.arange(2 * len(brows)))
+    truth[44:47, 0] = [0.6, 1.0, 0.6]  # a three-frame blink
+    X = np.stack([rig.evaluate(c) for c in truth])
+    Y = 140.0 * np.stack([X[:, :, 0], -X[:, :, 1]], axis=2) + [150.0, 160.0] + 0.6 * rng.standard_normal((T, 68, 2))
+    Y0 = 140.0 * np.column_stack([V[:, 0], -V[:, 1]]) + [150.0, 160.0]
+    kw = dict(regions={"brows-eye": brows + list(range(36, 42))}, sparsity=0.0, ridge=1e-6, contact=CONTACT_68,
+              front=FRONT_68, smooth=1.0)
+    old = delta_pose(rig, np.arange(68), Y0, Y, smooth_noise=False, **kw)["w"]
+    new = delta_pose(rig, np.arange(68), Y0, Y, **kw)["w"]
+    calm = np.ones(T - 2, bool)
+    calm[40:50] = False
+
+    def jitter(W):
+        return np.abs(W[2:, 1:] - 2 * W[1:-1, 1:] + W[:-2, 1:])[calm].mean()
+
+    assert jitter(new) < 0.6 * jitter(old)
+    assert np.abs(new - truth)[:, 1:].mean() < np.abs(old - truth)[:, 1:].mean()
+    assert new[45, 0] > 0.9  # the blink keeps its amplitude
+
+
+def test_the_takes_tracking_noise_is_its_landmarks_jitter_not_its_blinks():
+    from retarget_cli.methods.rigpose import tracking_noise
+
+    rng = np.random.default_rng(0)
+    T = 600
+    truth = np.zeros((T, 3, 2))
+    truth[:, :, 0] = 50.0 * np.sin(np.arange(T) / 40.0)[:, None]  # smooth motion
+    for t in range(20, T, 60):
+        truth[t:t + 3, 1, 1] += [6.0, 10.0, 6.0]  # a blink every two seconds
+    P = (truth + rng.normal(0.0, [[0.3, 0.3], [0.6, 0.6], [1.2, 1.2]], (T, 3, 2))).astype(np.float32)
+    P[300] = np.nan  # a lost frame
+    sigma = tracking_noise(P)
+    np.testing.assert_allclose(sigma, [[0.3, 0.3], [0.6, 0.6], [1.2, 1.2]], rtol=0.15)
