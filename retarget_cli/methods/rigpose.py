@@ -314,7 +314,6 @@ CONTACT_68 = (Contact("lips", ((61, 67), (62, 66), (63, 65)), (48, 54)),
 #: runs, λ 3 / threshold 3 on 2, both neutral-dependent; λ 10 released more events and jittered more).
 DEFAULT_SMOOTH = 3.0
 DEFAULT_SMOOTH_ROBUST = 3.0
-
 #: Openness within this of the open eye counts as open (:func:`contact_targets`): the lid gap is held at rest
 #: there instead of following the tracker's lid noise, which the openness map amplifies (by 1.8x on the
 #: 68-point detector); a squint deeper than this is followed.
@@ -751,7 +750,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
         Its event threshold.
     smooth_noise : bool
         The event test takes no residual excess within the take's own tracking noise (a landmark's,
-        :func:`tracking_noise`) or within *contact_tol* (a contact gap's) for an event (:func:`noise_floor`).
+        :func:`tracking_noise`) or within about 1.7 *contact_tol* (a contact gap's) for an event
+        (:func:`noise_floor`).
     smooth_window, smooth_margin : int
         A take longer than ``smooth_window + smooth_margin`` frames is fitted and smoothed in windows of
         *smooth_window* frames reaching *smooth_margin* frames into their neighbours (:func:`smoothing_windows`),
@@ -1213,19 +1213,27 @@ def tracking_noise(points) -> np.ndarray:
 
 
 def noise_floor(fits, noise_px) -> np.ndarray:
-    """Per frame and point of a region's rows (its landmarks, then its contact gaps), the floor of the event test:
-    a landmark's is :data:`NOISE_FLOOR` times the weighted squared residual that the tracking noise alone leaves,
-    *noise_px* (M, 2), the noise of the rows' landmarks in pixels (:func:`tracking_noise`), over each frame's
-    pixels per rig unit. A contact gap's is :data:`GAP_FLOOR` times
-    its squared tolerance: the gap rows, boosted where contact is off, leave no residual in the per-frame fits,
-    and the landmarks' filtered noise would leave them as sensitive as without a floor.
+    """Per frame and point of a region's rows (its landmarks, then its contact gaps), the floor of the event test.
+
+    A landmark's is :data:`NOISE_FLOOR` times the weighted squared residual that the tracking noise alone leaves
+    (*noise_px*, over each frame's pixels per rig unit). A contact gap's is :data:`GAP_FLOOR` times its weighted
+    squared tolerance: the gap rows, boosted where contact is off, leave no residual in the per-frame fits, and
+    the landmarks' noise (filtered) would leave them as sensitive as without a floor.
+
+    Parameters
+    ----------
+    fits : list of _RegionFit
+        One per frame.
+    noise_px : ndarray, shape (M, 2)
+        The tracking noise of the rows' landmarks, in their order, pixels (:func:`tracking_noise`).
 
     Returns
     -------
     ndarray, shape (T, P)
     """
-    sigma = np.asarray(noise_px, dtype=np.float64).ravel()
-    return np.stack([f.point_residuals_of(np.r_[np.sqrt(NOISE_FLOOR) * sigma / f.scale, np.sqrt(GAP_FLOOR) * f.gap_tol]) for f in fits])
+    sigma = np.sqrt(NOISE_FLOOR) * np.asarray(noise_px, dtype=np.float64).ravel()
+    return np.stack([f.point_residuals_of(np.r_[sigma / f.scale, np.sqrt(GAP_FLOOR) * (
+        f.gap_tol if f.gap_tol is not None else np.zeros(len(f.b) - f.n_lm))]) for f in fits])
 
 
 def smooth_sliders(fits, M, lower, upper, *, lam: float, robust: float = DEFAULT_SMOOTH_ROBUST, passes: int = 3,
