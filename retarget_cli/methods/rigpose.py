@@ -63,6 +63,12 @@ ROBUST_PX = 2.0
 #: sliders are fitted on its own landmarks, and what they move elsewhere is error there that no other region's fit
 #: sees (a VRM ``angry`` owned by the eyes parts the lips); those landmarks are rows with target 0 at this weight.
 DEFAULT_SPILL = 1.0
+#: A region's sliders that change another region's contact gap (lips, lids) by more than this fraction of the
+#: feature's width over their range meet that gap as a row of its own, target 0, weighted as the region's own gaps
+#: times *spill* (:func:`delta_pose`): the landmarks' spill rows weigh a gap's change as a few pixels, while a
+#: viewer sees lips part. The Godette VRM's ``angry`` (owned by the eyes, which it narrows) parts its lips by 0.32
+#: of the mouth's width; on the ICT FaceKit only ``noseSneer`` (0.05 of an eye's width) passes.
+SPILL_GAP_CHANGE = 0.03
 
 
 def rig_landmarks(rig, vertices) -> tuple[np.ndarray, np.ndarray]:
@@ -820,6 +826,7 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
     pairs = _exclusive_pairs(exclusive, rig, P0n, Bn, [c for g in groups for c, _ in g])
     fitted = np.unique(np.concatenate(ids))
     others = [np.setdiff1d(fitted, i) if spill > 0 else fitted[:0] for i in ids]
+    foreign = _foreign_contacts(groups, owner, P0n, Bn, rig, spill)
     opts = dict(sparsity=sparsity, ridge=ridge, exclusive=pairs, robust_iterations=robust_iterations, spill=spill,
                 contact_weight=contact_weight, contact_tol=contact_tol, lid_closed=lid_closed, lip_closed=lip_closed)
     W = _zeroed_out(out, K, rig.n_sliders)
@@ -839,7 +846,8 @@ def delta_pose(rig, vertices, neutral, targets, *, weights=None, neutral_weights
                     free = owner == ri
                     if not free.any():
                         continue
-                    fits[ri] += _fit_region_frames(rig, frames, i, sr, free, groups[ri], others=others[ri], **opts)
+                    fits[ri] += _fit_region_frames(rig, frames, i, sr, free, groups[ri], others=others[ri],
+                                                   foreign=foreign[ri], **opts)
         for ri, i in enumerate(ids):
             if not fits[ri]:
                 continue
@@ -945,6 +953,25 @@ def _region_contacts(contact, refs, ids, L: int) -> list:
 
 
 
+def _foreign_contacts(groups, owner, P0n, Bn, rig, spill: float) -> list:
+    """Per region, the other regions' contact groups that its sliders change by more than
+    :data:`SPILL_GAP_CHANGE` of the feature's width over their range (none when *spill* is 0)."""
+    out = [[] for _ in groups]
+    if spill <= 0:
+        return out
+    for ri in range(len(groups)):
+        free = owner == ri
+        if not free.any():
+            continue
+        for rj, g in enumerate(groups):
+            for c, _ in (g if rj != ri else ()):
+                G, width, _ = _contact_rig(c, P0n, Bn, free, rig.lower, rig.upper)
+                reach = np.maximum(np.abs(G * rig.upper), np.abs(G * rig.lower))[:, free]
+                if reach.size and float(reach.max()) > SPILL_GAP_CHANGE * width:
+                    out[ri].append(c)
+    return out
+
+
 def smoothing_windows(K: int, window: int | None = SMOOTH_WINDOW, margin: int = SMOOTH_MARGIN) -> list:
     """The windows :func:`delta_pose` fits and smooths a take of *K* frames in, as ``(a, b, lo, hi)``
     (:func:`~retarget_cli.methods.decomposition.temporal.take_windows`): rows ``[a, b)`` of the result come
@@ -962,11 +989,12 @@ def smoothing_windows(K: int, window: int | None = SMOOTH_WINDOW, margin: int = 
 
 
 def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_closed, lip_closed, others=(),
-                 neutral_view=None):
+                 neutral_view=None, foreign=(), foreign_view=None):
     """The rows of one region of one frame: ``A`` (r, n), ``b`` (r,) (the landmark coordinates' displacements,
-    then the *others* landmarks' coordinates with target 0, then a row per contact pair), and per pair its
-    landmark weight, tolerance and closed gap, and the frame's pixels per rig unit. *neutral_view*: the
-    groups' :func:`_contact_rig` in the neutral frame's view (``fr.P0n``, ``fr.Bn``), when already known."""
+    then the *others* landmarks' coordinates with target 0, then a row per contact pair, then a row per pair of
+    the *foreign* groups (other regions' contacts) with target 0), and per pair its landmark weight, tolerance
+    and closed gap, and the frame's pixels per rig unit. *neutral_view*, *foreign_view*: the groups'
+    :func:`_contact_rig` in the neutral frame's view (``fr.P0n``, ``fr.Bn``), when already known."""
     n = rig.n_sliders
     scale = fr.s * sr
     m = ((fr.Y[i] - fr.rest[i]) / scale)  # (|i|, 2) the delta fit's displacements, rig units
@@ -1000,6 +1028,15 @@ def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_close
         g_t.append(target)
         g_closed.append(closed)
         g_tol += [contact_tol * float(np.linalg.norm(fr.P0n[c.corners[1]] - fr.P0n[c.corners[0]]))] * len(c.pairs)
+    for fi, c in enumerate(foreign):
+        # another region's gap: this region's sliders should leave it as it is (that region poses it)
+        G = (foreign_view[fi] if foreign_view is not None else
+             _contact_rig(c, fr.P0n, fr.Bn, free, rig.lower, rig.upper))[0]
+        G_rows.append(G)
+        g_t.append(np.zeros(len(c.pairs)))
+        g_closed.append(np.zeros(len(c.pairs)))
+        g_c += [min(fr.c[up], fr.c[lo]) for up, lo in c.pairs]
+        g_tol += [contact_tol * float(np.linalg.norm(fr.P0n[c.corners[1]] - fr.P0n[c.corners[0]]))] * len(c.pairs)
     others = np.asarray(others, dtype=np.int64)
     A = np.vstack([Br.reshape(-1, n), fr.B[others].reshape(-1, n)])
     b = np.concatenate([m.ravel(), np.zeros(2 * len(others))])
@@ -1011,13 +1048,15 @@ def _region_rows(rig, fr: _Frame, i, sr, groups, free, *, contact_tol, lid_close
 
 
 def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exclusive, robust_iterations,
-                       contact_weight, contact_tol, lid_closed, lip_closed, others=(), spill=DEFAULT_SPILL) -> list:
+                       contact_weight, contact_tol, lid_closed, lip_closed, others=(), spill=DEFAULT_SPILL,
+                       foreign=()) -> list:
     """One region of each of *frames*: a :class:`_RegionFit` per frame.
 
     Per frame, the sliders of :func:`fit_sliders` on the region's rows (:func:`_region_rows`: the region's
     landmarks, and the *others* (the other regions' landmarks) with target 0 at weight *spill*, since what the
-    region's sliders move there is error that the other regions' fits do not see), then
-    ``robust_iterations`` Huber reweightings per landmark (a point the tracker lost, tens of pixels off, must not
+    region's sliders move there is error that the other regions' fits do not see, and the *foreign* contact
+    groups' gaps (other regions', held by :func:`_foreign_contacts`) with target 0 at the contact weight times
+    *spill*), then ``robust_iterations`` Huber reweightings per landmark (a point the tracker lost, tens of pixels off, must not
     pose the face: the threshold is ROBUST_PX pixels, or twice the median residual when that is larger), then up
     to CONTACT_PASSES passes where a gap that crosses (below the closed one by more than *contact_tol* of its
     feature's width), or that is not closed where the actor's is, weighs CONTACT_BOOST times more, until none
@@ -1027,8 +1066,11 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
     # the neutral frame's view is every frame's: its side of the contact rows is computed once
     neutral_view = [_contact_rig(c, frames[0].P0n, frames[0].Bn, free, rig.lower, rig.upper) for c, _ in groups] \
         if frames else None
+    foreign_view = [_contact_rig(c, frames[0].P0n, frames[0].Bn, free, rig.lower, rig.upper) for c in foreign] \
+        if frames else None
     rows = [_region_rows(rig, fr, i, sr, groups, free, contact_tol=contact_tol, lid_closed=lid_closed,
-                         lip_closed=lip_closed, others=others, neutral_view=neutral_view) for fr in frames]
+                         lip_closed=lip_closed, others=others, neutral_view=neutral_view, foreign=foreign,
+                         foreign_view=foreign_view) for fr in frames]
     A = np.stack([r[0] for r in rows])
     b = np.stack([r[1] for r in rows])
     g_c = np.stack([r[2] for r in rows])
@@ -1037,16 +1079,19 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
     scale = np.array([r[5] for r in rows])
     cl = np.stack([np.concatenate([fr.c[i], spill * fr.c[others]]) for fr in frames])
     T, n_own, n_lm = len(frames), 2 * len(i), 2 * (len(i) + len(others))
-    pos = {int(p): j for j, p in enumerate(i)}
-    ups = np.array([pos[up] for c, _ in groups for up, _ in c.pairs], dtype=np.int64)
-    los = np.array([pos[lo] for c, _ in groups for _, lo in c.pairs], dtype=np.int64)
+    pos = {int(p): j for j, p in enumerate(np.concatenate([i, others]))}
+    every_pair = [pr for c, _ in groups for pr in c.pairs] + [pr for c in foreign for pr in c.pairs]
+    ups = np.array([pos[up] for up, _ in every_pair], dtype=np.int64)
+    los = np.array([pos[lo] for _, lo in every_pair], dtype=np.int64)
+    gw = np.concatenate([np.ones(sum(len(c.pairs) for c, _ in groups)),
+                         np.full(sum(len(c.pairs) for c in foreign), spill)])  # a foreign gap weighs as a spill row
     boost = np.ones(g_c.shape)
 
     def row_weights(h, k):
         cw = np.repeat(cl[k] * h[k], 2, axis=1)
         if len(ups):
             hp = np.minimum(h[k][:, ups], h[k][:, los])
-            cw = np.concatenate([cw, contact_weight * boost[k] * g_c[k] * hp], axis=1)
+            cw = np.concatenate([cw, contact_weight * gw * boost[k] * g_c[k] * hp], axis=1)
         return cw
 
     every = np.arange(T)

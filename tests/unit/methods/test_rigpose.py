@@ -433,6 +433,51 @@ def test_a_slider_owned_by_one_region_does_not_move_another_regions_landmarks_fo
     assert lid_travel(fit["w"]).min() > 0.85  # ... and the lids still close (the squint does it)
 
 
+def test_a_slider_owned_by_the_eyes_does_not_part_closed_lips_it_moves_by_a_few_pixels(monkeypatch):
+    # A stylised face (the mouth a third of its size) and a VRM-style "angry" that lowers the brows, closes the
+    # lids and parts the small lips by 0.3 of their width; "eyeSquint" closes the lids alone, to 80 % of angry's
+    # travel. The actor lowers the brows and closes the lids as angry does, lips closed. Both sliders are the
+    # eyes'; on landmarks alone the lips' parting is a few pixels, cheaper than the brows' miss, so angry wins
+    # and the character's lips part: the lips' gap must be a row of the eyes' fit too (SPILL_GAP_CHANGE).
+    import retarget_cli.methods.rigpose as rigpose
+
+    n = source_neutral()
+    V = np.column_stack([n[:, 0], -n[:, 1], np.zeros(68)])
+    c = V[48:68].mean(axis=0)
+    V[48:68] = c + 0.3 * (V[48:68] - c)
+    width = float(np.linalg.norm(V[54] - V[48]))
+    D = np.zeros((2, 68, 3))
+    for up, lo in ((37, 41), (38, 40), (43, 47), (44, 46)):
+        D[:, up, 1] = 0.6 * (V[lo, 1] - V[up, 1])
+    D[1, [37, 38, 43, 44], 1] *= 0.8
+    D[0, 17:27, 1] = -0.5 * abs(D[0, 37, 1])
+    D[0, [61, 62, 63], 1] = 0.15 * width
+    D[0, [65, 66, 67], 1] = -0.15 * width
+    rig = BlendshapeRig(V, D, ["angry", "eyeSquint"])
+    Y0 = 140.0 * V[:, :2] * [1, -1] + [150.0, 160.0]
+    X = np.stack([rig.evaluate(np.array([1.0, 0.0]))] * 6)
+    Y = 140.0 * X[:, :, :2] * [1, -1] + [150.0, 160.0]
+    Y[:, 48:68] = Y0[48:68]  # ... with closed lips
+    kw = dict(regions={"brows-eyes": list(range(17, 27)) + list(range(36, 48)), "mouth": list(range(48, 68))},
+              contact=CONTACT_68, front=FRONT_68)
+
+    def lip_gap(W):  # the inner lips' parting from rest, / the mouth's width
+        d = [rig.evaluate(w) - V for w in W]
+        return np.array([(x[[61, 62, 63], 1] - x[[67, 66, 65], 1]).mean() / width for x in d])
+
+    def lid_travel(W):
+        return np.array([(rig.evaluate(w) - V)[[37, 38, 43, 44], 1].mean() / D[0, [37, 38, 43, 44], 1].mean()
+                         for w in W])
+
+    fit = delta_pose(rig, np.arange(68), Y0, Y, **kw)
+    assert list(fit["owner"]) == [0, 0]
+    monkeypatch.setattr(rigpose, "SPILL_GAP_CHANGE", np.inf)  # no foreign gap rows: the landmarks' spill alone
+    alone = delta_pose(rig, np.arange(68), Y0, Y, **kw)
+    assert lip_gap(alone["w"]).min() > 0.1  # angry carries the lids and brows: the lips part
+    assert lip_gap(fit["w"]).max() < DEFAULT_LIP_CLOSED  # the lips' gap as a row: they stay closed ...
+    assert lid_travel(fit["w"]).min() > 0.69 and lid_travel(alone["w"]).min() > 0.69  # ... the lids close alike
+
+
 def test_noise_a_rig_can_follow_is_smoothed_not_taken_for_an_event():
     # Two sliders per brow point: the per-frame fits follow the tracker's noise there, so their residual is far
     # below it and any smoothing's excess over it looked like a fast event (every frame released: the noise
