@@ -617,6 +617,47 @@ def _contact_target(c: Contact, rig, ratio, ref, *, lid_closed: float, lip_close
     return G, (1.0 - o) * closed, closed
 
 
+#: Default of :func:`depth_sliders`: a slider whose fitted landmark vertices move, at the farthest, more than this
+#: many times as far in 3D as in the rig's front view. On the ICT FaceKit only ``jawForward`` passes (6.6: its chin
+#: juts 0.12 inter-ocular distances and shows as 0.02 down in the picture); next come ``cheekPuff_*`` (4.3) and
+#: ``mouthPucker`` (2.2); on the VALID avatar ``LlipCorner_h`` and ``RlipCorner_h`` (52, 35), then ``JawFront_h``
+#: (4.3) and ``Lblow_h``/``Rblow_h`` (3.5-3.7); on the Godette VRM none (1.5 at most).
+DEPTH_RATIO = 5.0
+
+
+def depth_sliders(X0, DL, rows, front, *, ratio: float = DEPTH_RATIO) -> np.ndarray:
+    """The sliders that move the landmarks mostly along the line of sight: 2D landmarks do not see them.
+
+    Such a slider (a jaw thrust) shows in the picture only by a side effect a few pixels large, so the 2D fit
+    takes it, at full weight, for any small residual that side effect matches (the ICT FaceKit's ``jawForward``
+    at 0.5 or more on 57-61 % of the d12 clip's frames: a jutting jaw the actor does not make; docs/auto-pose.md).
+    Like the gaze sliders without pupils, they are left out of the fit.
+
+    Parameters
+    ----------
+    X0 : ndarray, shape (L, 3)
+        The rig's landmark vertices at rest (:func:`rig_landmarks`).
+    DL : ndarray, shape (L, 3, n)
+        Their displacement per slider at full weight.
+    rows : array_like of int
+        The landmarks the fit uses.
+    front : (int, int, int)
+        The landmarks of :func:`frontal_rotation` (for 68 points :data:`FRONT_68`).
+    ratio : float
+        A slider whose largest 3D displacement over *rows* exceeds *ratio* times its largest displacement in the
+        front view is a depth slider.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    R = frontal_rotation(np.asarray(X0, dtype=np.float64), *front)
+    D = np.asarray(DL, dtype=np.float64)[np.asarray(rows, dtype=np.int64)]
+    full = np.linalg.norm(D, axis=1).max(axis=0, initial=0.0)
+    seen = np.linalg.norm(np.einsum("ij,rjn->rin", R[:2], D), axis=1).max(axis=0, initial=0.0)
+    return (full > 0) & (full > ratio * seen)
+
+
 def lid_antagonists(P0, B, contact, lower, upper, *, change: float = ANTAGONIST_CHANGE) -> np.ndarray:
     """Pairs of sliders that one opens and the other closes the same eye: kept mutually exclusive.
 
@@ -1446,6 +1487,6 @@ def rig_region_masks(rig, owner, n_regions: int, *, threshold: float = 1e-4) -> 
 
 
 __all__ = [
-    "DEFAULT_RIDGE", "DEFAULT_SPARSITY", "delta_pose", "exclusive_indices", "fit_sliders", "infer_exclusive",
+    "DEFAULT_RIDGE", "DEFAULT_SPARSITY", "DEPTH_RATIO", "delta_pose", "depth_sliders", "exclusive_indices", "fit_sliders", "infer_exclusive",
     "project", "region_scales", "rig_curves", "rig_landmarks", "rig_region_masks", "slider_owners",
 ]

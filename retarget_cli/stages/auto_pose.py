@@ -38,11 +38,13 @@ from ..methods.rigpose import (
     CONTACT_68,
     DEFAULT_RIDGE,
     DEFAULT_SPARSITY,
+    DEPTH_RATIO,
     FRONT_68,
     LID_CLOSED_FRACTION,
     Contact,
     contact_references,
     delta_pose,
+    depth_sliders,
     frontal_rotation,
     infer_exclusive,
     project,
@@ -107,6 +109,12 @@ PARAMS = [
           "Slider-name patterns (fnmatch, any case) kept out of the landmark fit and at 0: by default gaze and "
           "pupils, which landmarks without pupils cannot see (the gaze sliders are then set from the iris by "
           "auto_pose.gaze).", validate=check_strings),
+    Param("depth_ratio", "setting", float, DEPTH_RATIO,
+          "Sliders whose fitted landmark vertices move more than this many times as far in 3D as in the rig's "
+          "front view (a jaw thrust: motion along the line of sight, which 2D landmarks see only by a side effect "
+          "a few pixels large, so the fit would take it at full weight for small residuals) are kept out of the "
+          "fit and at 0, as exclude keeps its own (68 points; on the ICT FaceKit jawForward); null: fitted like "
+          "any other.", min=1, nullable=True),
     Param("gaze", "setting", str, "auto",
           "on: when landmarks.npz has the gaze (track.gaze) and the rig has gaze sliders (eyeLookIn/Out/Up/Down "
           "_L/_R, or named so in rig.yaml's names:), set them from each iris, calibrated on the take's rest "
@@ -188,7 +196,8 @@ def _mask_text(weights: np.ndarray) -> str:
 def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks=None, fit="delta",
                   neutral_frame="auto", sparsity=None, ridge=None, exclude=DEFAULT_EXCLUDE, skip_points=None,
                   rigid_points=None, alpha=0.001, mu=0.0001, frames="all", smooth=3.0, contact_weight=4.0,
-                  lip_closed=0.02, lid_closed="auto", frontalize=False, gaze="auto", base_dir=None, cache_dir=None) -> list[Path]:
+                  lip_closed=0.02, lid_closed="auto", frontalize=False, gaze="auto", depth_ratio=DEPTH_RATIO,
+                  base_dir=None, cache_dir=None) -> list[Path]:
     """Pose *rig* at each key frame of *keys* (and every frame with ``frames="all"``); write key OBJs,
     ``sliders.csv``, masks, ``targets.yaml`` (and ``curves.csv``).
 
@@ -209,6 +218,9 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         λ and μ of :func:`retarget_cli.methods.rigpose.fit_sliders` (None: defaults).
     exclude : sequence of str
         Slider-name patterns kept at 0.
+    depth_ratio : float, optional
+        Sliders that move the fitted landmarks mostly in depth (:func:`~retarget_cli.methods.rigpose.depth_sliders`)
+        are kept at 0 too (68 points; None: fitted).
     skip_points : sequence of int, optional
         Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
     rigid_points : sequence of int, optional
@@ -244,8 +256,9 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     lm_ids, vx = _rig_landmark_vertices(spec, landmark_vertices, lm.n_points, r.n_vertices, rig_path)
     if frontalize:
         lm, neutral = frontal_landmarks(lm, neutral, r, vx, lm_ids)
-    excluded = excluded_sliders(r.names, exclude)
     region_rows, rigid = _fit_rows(kf, keys, lm_ids, lm.n_points, skip_points, rigid_points)
+    excluded = excluded_sliders(r.names, exclude) | _depth_sliders(r, vx, lm_ids, lm.n_points, region_rows,
+                                                                   depth_ratio)
     preset, gaze_mask = _gaze_preset(gaze, fit, lm, r, spec, lm_ids, vx)
     fixed = excluded | gaze_mask
     # the fitted landmarks as the file stores them (float32): the delta fit reads each frame at float64, exactly
@@ -367,6 +380,21 @@ def frontal_landmarks(lm, neutral, rig, vx, lm_ids):
             and neutral.record.get("frames"):
         neutral = replace(neutral, shape=stab[_rest_rows(lm, neutral)].astype(np.float64).mean(0))
     return lm, neutral
+
+
+def _depth_sliders(r, vx, lm_ids, L: int, region_rows, ratio) -> np.ndarray:
+    """:func:`~retarget_cli.methods.rigpose.depth_sliders` over the fitted rows, logged (none without *ratio* or
+    without the 68 points' front)."""
+    front = _contact_rows(lm_ids, L)[1]
+    if ratio is None or front is None:
+        return np.zeros(r.n_sliders, dtype=bool)
+    X0, DL = rig_landmarks(r, vx)
+    rows = sorted({i for v in region_rows.values() for i in v})
+    depth = depth_sliders(X0, DL, rows, front, ratio=ratio)
+    if depth.any():
+        log.info("auto-pose leaves %d slider(s) that move the landmarks mostly in depth at 0 (depth_ratio %g): %s",
+                 int(depth.sum()), ratio, ", ".join(n for n, d in zip(r.names, depth) if d))
+    return depth
 
 
 def _contact_rows(lm_ids, L: int):
@@ -701,8 +729,8 @@ def slider_coverage(r, vx, region_names, region_rows, owner, excluded, gaze_mask
     - ``cannot``: no fitted landmark moves with it (a tongue, the pupils, a shape of the jaw contour that the
       fit skips; excluded or not, since no setting would drive it) or no region owns it: whatever the actor
       does, it stays at 0;
-    - ``excluded``: left at 0 by choice (``auto_pose.exclude``) though landmarks move with it, and not driven
-      by the gaze.
+    - ``excluded``: left at 0 by choice (``auto_pose.exclude``, or ``auto_pose.depth_ratio``: it moves the
+      landmarks mostly in depth) though landmarks move with it, and not driven by the gaze.
 
     On the ICT FaceKit every slider but ``PupilDilate_*`` moves a fitted landmark vertex by 3.4 % of the
     inter-ocular distance or more at full weight (``cheekSquint_*`` least), the pupils by 0.01 % at most.
@@ -748,13 +776,14 @@ def slider_coverage(r, vx, region_names, region_rows, owner, excluded, gaze_mask
         groups.setdefault(region, {"driven": [], "cannot": [], "excluded": []})[kind].append(name)
     return {"regions": groups, "threshold": thr,
             "rule": f"cannot: moves no fitted landmark vertex by {UNSEEN_FRACTION:.0%} of the inter-ocular distance "
-                    f"({thr:.4g} rig units) at full weight; excluded: auto_pose.exclude; driven: fitted, or gaze"}
+                    f"({thr:.4g} rig units) at full weight; excluded: auto_pose.exclude or depth_ratio; driven: fitted, "
+                    "or gaze"}
 
 
 def _log_coverage(coverage: dict) -> None:
     """One log line per group: how many sliders, and which (the report shows them per region)."""
     for kind, what in (("driven", "drives"), ("cannot", "cannot drive (no fitted landmark moves with them)"),
-                       ("excluded", "leaves at 0 by choice (exclude)")):
+                       ("excluded", "leaves at 0 by choice (exclude, depth_ratio)")):
         names = [n for g in coverage["regions"].values() for n in g[kind]]
         log.info("auto-pose %s %d slider(s)%s", what, len(names), (": " + ", ".join(names)) if names else "")
 
