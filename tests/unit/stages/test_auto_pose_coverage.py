@@ -63,3 +63,27 @@ def test_a_slider_that_moves_only_skipped_landmarks_cannot_be_driven(ict):
     cov = slider_coverage(rig, vx, names, rows, owner, none, none)
     cannot = {n for g in cov["regions"].values() for n in g["cannot"]}
     assert {"browInnerUp_L", "eyeBlink_R"} <= cannot and "jawOpen" not in cannot
+
+
+def test_the_ict_slider_that_moves_the_landmarks_mostly_in_depth_is_its_jaw_thrust(ict):
+    # jawForward juts the chin by 0.12 inter-ocular distances and shows 0.02 of it in the front view; the
+    # cheek puffs (4.3) and the pucker (2.2) show more of theirs
+    from retarget_cli.methods.rigpose import DEPTH_RATIO, FRONT_68, depth_sliders
+    from retarget_cli.stages.auto_pose import _depth_sliders
+
+    rig, vx = ict
+    rows = sorted({p for n in ("brows-eyes", "mouth") for p in REGION_PRESETS_68[n] if p not in CONTOUR_68})
+    X0, DL = rig_landmarks(rig, vx)
+
+    def names(mask):
+        return sorted(n for n, m in zip(rig.names, mask) if m)
+
+    assert names(depth_sliders(X0, DL, rows, FRONT_68)) == ["jawForward"]
+    assert names(depth_sliders(X0, DL, rows, FRONT_68, ratio=3.0)) == ["cheekPuff_L", "cheekPuff_R", "jawForward"]
+    # the stage's default: left at 0, listed as excluded; off with depth_ratio null
+    region_rows = {"face": rows}
+    assert names(_depth_sliders(rig, vx, np.arange(68), 68, region_rows, DEPTH_RATIO)) == ["jawForward"]
+    assert not _depth_sliders(rig, vx, np.arange(68), 68, region_rows, None).any()
+    # with the gaze driven from the iris, jawForward is the one slider left at 0 by choice
+    _, flat = _groups(rig, vx, [*DEFAULT_EXCLUDE, "jawForward"], gaze=True)
+    assert flat["excluded"] == ["jawForward"] and "jawForward" not in flat["driven"]
