@@ -63,13 +63,13 @@ ROBUST_PX = 2.0
 #: sliders are fitted on its own landmarks, and what they move elsewhere is error there that no other region's fit
 #: sees (a VRM ``angry`` owned by the eyes parts the lips); those landmarks are rows with target 0 at this weight.
 DEFAULT_SPILL = 1.0
-#: A region's sliders that change the gap of another region's lips (closed at the rig's rest) by more than this
-#: share of the mouth's width over their range meet the lips' gap as a row of its own, target 0, weighted as the
-#: region's own gaps times *spill* (:func:`delta_pose`): the landmarks' spill rows weigh the parting as a few pixels, while a
-#: viewer sees the lips part. The Godette VRM's ``angry`` (owned by the eyes, which it narrows) parts its lips by
-#: 0.32 of the mouth's width; no ICT FaceKit or VALID slider passes. Lids are open at rest and left out: on the
-#: ICT FaceKit, ``noseSneer`` (the mouth's) narrows an eye by 0.05 of its width, and holding that as a row cost
-#: d3's mouth width 0.09-0.11 r and eye contact 1 % on ``bench/peer.py``.
+#: A region's sliders that change the gap of another region's lips (closed at the rig's rest) by more than this share of
+#: the mouth's width over their range meet the lips' gap as a row of its own, target 0, weighted as the region's own
+#: gaps times *spill* (:func:`delta_pose`): the landmarks' spill rows weigh the parting as a few pixels, while a viewer
+#: sees the lips part. The Godette VRM's ``angry`` (owned by the eyes, which it narrows) parts its lips by 0.32 of the
+#: mouth's width; no ICT FaceKit or VALID slider passes. Lids are open at rest and left out: on the ICT FaceKit,
+#: ``noseSneer`` (the mouth's) narrows an eye by 0.05 of its width, and holding that as a row cost d3's mouth width
+#: 0.09-0.11 r and eye contact 1 % on ``bench/peer.py``.
 SPILL_GAP_CHANGE = 0.03
 
 
@@ -1099,13 +1099,13 @@ def _fit_region_frames(rig, frames, i, sr, free, groups, *, sparsity, ridge, exc
 
     Per frame, the sliders of :func:`fit_sliders` on the region's rows (:func:`_region_rows`: the region's
     landmarks, and the *others* (the other regions' landmarks) with target 0 at weight *spill*, since what the
-    region's sliders move there is error that the other regions' fits do not see, and the *foreign* contact
-    groups' gaps (other regions' lips, :func:`_foreign_contacts`) with target 0 at the contact weight times
-    *spill*), then ``robust_iterations`` Huber reweightings per landmark (a point the tracker lost, tens of
-    pixels off, must not pose the face: the threshold is ROBUST_PX pixels, or twice the median residual when that is larger), then up
-    to CONTACT_PASSES passes where a gap that crosses (below the closed one by more than *contact_tol* of its
-    feature's width), or that is not closed where the actor's is, weighs CONTACT_BOOST times more, until none
-    is. Each step's QPs are solved for every frame at once (:func:`_slider_qps`).
+    region's sliders move there is error that the other regions' fits do not see, and the *foreign* contact groups'
+    gaps (other regions' lips, :func:`_foreign_contacts`) with target 0 at the contact weight times *spill*), then
+    ``robust_iterations`` Huber reweightings per landmark (a point the tracker lost, tens of pixels off, must not
+    pose the face: the threshold is ROBUST_PX pixels, or twice the median residual when that is larger), then up to
+    CONTACT_PASSES passes where a gap that crosses (below the closed one by more than *contact_tol* of its feature's
+    width), or that is not closed where the actor's is, weighs CONTACT_BOOST times more, until none is. Each step's
+    QPs are solved for every frame at once (:func:`_slider_qps`).
     """
     others = np.asarray(others, dtype=np.int64)
     # the neutral frame's view is every frame's: its side of the contact rows is computed once
@@ -1487,6 +1487,7 @@ def rig_region_masks(rig, owner, n_regions: int, *, threshold: float = 1e-4) -> 
 
 
 __all__ = [
-    "DEFAULT_RIDGE", "DEFAULT_SPARSITY", "DEPTH_RATIO", "delta_pose", "depth_sliders", "exclusive_indices", "fit_sliders", "infer_exclusive",
-    "project", "region_scales", "rig_curves", "rig_landmarks", "rig_region_masks", "slider_owners",
+    "DEFAULT_RIDGE", "DEFAULT_SPARSITY", "DEPTH_RATIO", "delta_pose", "depth_sliders", "exclusive_indices",
+    "fit_sliders", "infer_exclusive", "project", "region_scales", "rig_curves", "rig_landmarks", "rig_region_masks",
+    "slider_owners",
 ]

@@ -219,8 +219,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
     exclude : sequence of str
         Slider-name patterns kept at 0.
     depth_ratio : float, optional
-        Sliders that move the fitted landmarks mostly in depth (:func:`~retarget_cli.methods.rigpose.depth_sliders`)
-        are kept at 0 too (68 points; None: fitted).
+        Sliders that move the fitted landmarks mostly in depth
+        (:func:`~retarget_cli.methods.rigpose.depth_sliders`) are kept at 0 too (68 points; None: fitted).
     skip_points : sequence of int, optional
         Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
     rigid_points : sequence of int, optional
@@ -776,8 +776,8 @@ def slider_coverage(r, vx, region_names, region_rows, owner, excluded, gaze_mask
         groups.setdefault(region, {"driven": [], "cannot": [], "excluded": []})[kind].append(name)
     return {"regions": groups, "threshold": thr,
             "rule": f"cannot: moves no fitted landmark vertex by {UNSEEN_FRACTION:.0%} of the inter-ocular distance "
-                    f"({thr:.4g} rig units) at full weight; excluded: auto_pose.exclude or depth_ratio; driven: fitted, "
-                    "or gaze"}
+                    f"({thr:.4g} rig units) at full weight; excluded: auto_pose.exclude or depth_ratio; "
+                    "driven: fitted, or gaze"}
 
 
 def _log_coverage(coverage: dict) -> None:
