@@ -113,8 +113,8 @@ PARAMS = [
           "Sliders whose fitted landmark vertices move more than this many times as far in 3D as in the rig's "
           "front view (a jaw thrust: motion along the line of sight, which 2D landmarks see only by a side effect "
           "a few pixels large, so the fit would take it at full weight for small residuals) are kept out of the "
-          "fit and at 0, as exclude keeps its own (68 points; on the ICT FaceKit jawForward); null: fitted like "
-          "any other.", min=1, nullable=True),
+          "fit and at 0, as exclude keeps its own (68 points; on the ICT FaceKit jawForward); off (or null): fitted "
+          "like any other.", min=1, nullable=True, words=("off",)),
     Param("gaze", "setting", str, "auto",
           "on: when landmarks.npz has the gaze (track.gaze) and the rig has gaze sliders (eyeLookIn/Out/Up/Down "
           "_L/_R, or named so in rig.yaml's names:), set them from each iris, calibrated on the take's rest "
@@ -220,7 +220,8 @@ def run_auto_pose(*, keys, landmarks, rig, output, landmark_vertices=None, masks
         Slider-name patterns kept at 0.
     depth_ratio : float, optional
         Sliders that move the fitted landmarks mostly in depth
-        (:func:`~retarget_cli.methods.rigpose.depth_sliders`) are kept at 0 too (68 points; None: fitted).
+        (:func:`~retarget_cli.methods.rigpose.depth_sliders`) are kept at 0 too (68 points; None or "off":
+        fitted).
     skip_points : sequence of int, optional
         Landmarks left out of the fit (default for 68 points: :data:`CONTOUR_68`).
     rigid_points : sequence of int, optional
@@ -386,7 +387,7 @@ def _depth_sliders(r, vx, lm_ids, L: int, region_rows, ratio) -> np.ndarray:
     """:func:`~retarget_cli.methods.rigpose.depth_sliders` over the fitted rows, logged (none without *ratio* or
     without the 68 points' front)."""
     front = _contact_rows(lm_ids, L)[1]
-    if ratio is None or front is None:
+    if ratio is None or ratio == "off" or front is None:
         return np.zeros(r.n_sliders, dtype=bool)
     X0, DL = rig_landmarks(r, vx)
     rows = sorted({i for v in region_rows.values() for i in v})
@@ -830,7 +831,7 @@ COMMAND = Command(
      Flag("masks", decls=("--mask",), value="mask", multiple=True, metavar="REGION=FILE", show_default=False,
           help="Vertex mask of a region, overriding the mask derived from the rig. Repeatable."),
      "fit", "neutral_frame", "frames", "gaze", "smooth", "contact_weight", "lip_closed", "lid_closed", "sparsity",
-     "ridge",
+     "ridge", "depth_ratio",
      Flag("exclude", decls=("--exclude",), value="text", multiple=True, metavar="PATTERN", default=None,
           show_default=False,
           help="Slider-name pattern kept out of the landmark fit (repeatable; default eyeLook*, *pupil*: gaze "

@@ -81,6 +81,17 @@ def test_curves_are_the_rig_sliders_with_a_neutral_first_frame(real_run, ict):
     assert C[:, names.index("jawOpen")].max() > 0.05
 
 
+def test_the_jaw_thrust_the_landmarks_see_only_in_depth_is_left_at_zero_and_reported(real_run, ict):
+    # auto_pose.depth_ratio (default 5): the ICT FaceKit's jawForward moves its landmarks 6.6 times as far in 3D as
+    # the front view shows, so it is kept out of the fit; coverage.json says so
+    names, C, _, _ = read_animation(real_run / "out" / "frames" / "curves.csv")
+    assert np.all(C[:, names.index("jawForward")] == 0.0)
+    cov = json.loads((real_run / "out" / "targets" / "coverage.json").read_text())
+    excluded = [n for g in cov["regions"].values() for n in g["excluded"]]
+    assert "jawForward" in excluded and "depth_ratio" in cov["rule"]
+    assert "cheekPuff_L" not in excluded and "mouthPucker" not in excluded
+
+
 def test_apply_drives_the_rig_with_every_frame_auto_pose_posed(real_run, ict, tmp_path):
     out = real_run / "out"
     tg = read_targets(out / "targets" / "targets.yaml")

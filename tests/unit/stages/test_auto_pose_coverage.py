@@ -80,10 +80,13 @@ def test_the_ict_slider_that_moves_the_landmarks_mostly_in_depth_is_its_jaw_thru
 
     assert names(depth_sliders(X0, DL, rows, FRONT_68)) == ["jawForward"]
     assert names(depth_sliders(X0, DL, rows, FRONT_68, ratio=3.0)) == ["cheekPuff_L", "cheekPuff_R", "jawForward"]
-    # the stage's default: left at 0, listed as excluded; off with depth_ratio null
+    # the stage's default; off with depth_ratio null or off
     region_rows = {"face": rows}
     assert names(_depth_sliders(rig, vx, np.arange(68), 68, region_rows, DEPTH_RATIO)) == ["jawForward"]
     assert not _depth_sliders(rig, vx, np.arange(68), 68, region_rows, None).any()
-    # with the gaze driven from the iris, jawForward is the one slider left at 0 by choice
+    assert not _depth_sliders(rig, vx, np.arange(68), 68, region_rows, "off").any()
+    assert not _depth_sliders(rig, vx, np.arange(60), 60, region_rows, DEPTH_RATIO).any()  # not the 68 points'
+    # as the stage reports it (tests/e2e/test_real_rig.py checks the stage's coverage.json): with the gaze driven
+    # from the iris, jawForward is the one slider left at 0 by choice
     _, flat = _groups(rig, vx, [*DEFAULT_EXCLUDE, "jawForward"], gaze=True)
     assert flat["excluded"] == ["jawForward"] and "jawForward" not in flat["driven"]
